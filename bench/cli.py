@@ -1,0 +1,76 @@
+"""The ``servobench`` command line.
+
+Each subcommand lives in ``bench.commands.<module>`` and exposes
+``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only
+when their subcommand runs. Any :class:`~drivers.errors.ServobenchError`
+(and file-system errors) becomes one line on stderr and exit status 1;
+Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from drivers.errors import ServobenchError
+
+#: subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "sidbe": ("bench.commands.sidbe", "run the whole SIDBE procedure on a drive"),
+    "run": ("bench.commands.run", "excite a drive with u1/u2 and log only"),
+    "identify": ("bench.commands.identify", "identify the model from a log"),
+    "serve-sim": ("bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
+    "diagnose": ("bench.commands.diagnose", "find, name and add the effect the model lacks"),
+    "commission": ("bench.commands.commission", "commission a drive in the field"),
+    "udev": ("bench.commands.udev", "install the udev rules for bench adapters"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2
+        self.exit(2, f"servobench: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="servobench", description=__doc__.splitlines()[0])
+    from bench import __version__
+
+    parser.add_argument("--version", action="version", version=f"servobench {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, (module_name, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as err:
+            if err.name != module_name:
+                raise
+            continue
+        module.add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module = getattr(args, "_module", None)
+    if module is None:
+        parser.error(f"command {args.command!r} is not available in this build")
+    try:
+        return int(module.run(args) or 0)
+    except ServobenchError as err:
+        print(f"servobench: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        where = f" {err.filename}" if getattr(err, "filename", None) else ""
+        print(f"servobench: error:{where} {err.strerror or err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("servobench: interrupted; axis stopped, partial log kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

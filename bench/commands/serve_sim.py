@@ -1,0 +1,35 @@
+"""``servobench serve-sim --transport T --sim SIMURL``: serve the simulated drive."""
+
+from __future__ import annotations
+
+import argparse
+
+from sim_backend.serve import TRANSPORTS, run_server
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--transport", required=True, choices=sorted(TRANSPORTS))
+    p.add_argument("--sim", default="sim://", metavar="SIMURL", help="plant, as a sim:// URL")
+    p.add_argument("--host", default="127.0.0.1", help="listen address for TCP transports")
+    p.add_argument("--port", type=int, default=0, help="TCP port (0: pick a free one)")
+    p.add_argument("--node", type=int, default=2, help="CANopen node id")
+    p.add_argument("--unit", type=int, default=1, help="Modbus unit id")
+    p.add_argument("--map", default="servobench-sim", help="Modbus register map name or file")
+    p.add_argument("--dialect", default="odrive", help="serial dialect name or file")
+    p.add_argument("--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE")
+    p.add_argument("--fault", action="append", default=[], metavar="SPEC", help="inject a fault (repeatable)")
+
+
+def run(args: argparse.Namespace) -> int:
+    options = {
+        "host": args.host,
+        "port": str(args.port),
+        "node": str(args.node),
+        "unit": str(args.unit),
+        "map": args.map,
+        "dialect": args.dialect,
+        "can": args.can,
+        "fault": ";".join(args.fault),
+    }
+    run_server(args.transport, args.sim, options)
+    return 0

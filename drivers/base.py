@@ -1,0 +1,369 @@
+"""The transport-agnostic :class:`Drive` interface.
+
+Every backend (``sim``, ``canopen``, ``modbus+tcp``, ``modbus+rtu``,
+``serial``) subclasses :class:`Drive` and implements a handful of small
+``_internal`` hooks; the public methods here own what must be the same on
+every transport: the safety envelope (command clamping, velocity and travel
+limits), the lifecycle (a context manager whose exit stops and disables the
+axis, ``close()`` safe to call twice) and the cycle semantics.
+
+Sign and sampling conventions
+-----------------------------
+* Command ``u`` is in the drive's command units (torque, current or voltage,
+  as the backend documents); positive ``u`` accelerates towards positive
+  velocity.
+* One control cycle ``k`` is :meth:`Drive.exchange`: the feedback returned is
+  sampled at ``t_k``, *before* ``u_k`` acts, and ``u_k`` is then held over
+  ``[t_k, t_{k+1})`` (zero-order hold).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from drivers.errors import DriveError, LimitExceededError, UsageError
+from drivers.url import DriveURL, parse_drive_url
+
+#: Query keys every backend accepts: the safety envelope and the watchdog.
+COMMON_QUERY_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog"})
+
+#: Drive-side watchdog used when the URL does not set one [s].
+DEFAULT_WATCHDOG_S = 0.5
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Safety envelope enforced by the Drive layer on every transport.
+
+    Attributes
+    ----------
+    max_command : float
+        Largest ``|u|`` sent to the drive [command units]; larger commands are clamped.
+    max_velocity : float
+        Largest allowed ``|v|`` [velocity units/s]; beyond it the axis is stopped.
+    min_position, max_position : float
+        Allowed travel [position units]; outside it the axis is stopped.
+    """
+
+    max_command: float = math.inf
+    max_velocity: float = math.inf
+    min_position: float = -math.inf
+    max_position: float = math.inf
+
+    def __post_init__(self) -> None:
+        if not self.max_command > 0 or not self.max_velocity > 0:
+            raise UsageError("max_u and max_v must be > 0")
+        if not self.min_position < self.max_position:
+            raise UsageError("xmin must be below xmax")
+
+    def clamp(self, u: float) -> float:
+        """``u`` limited to ``[-max_command, max_command]``."""
+        return min(max(u, -self.max_command), self.max_command)
+
+    def violation(self, velocity: float, position: float) -> str | None:
+        """A sentence naming the envelope breach, or ``None`` when inside."""
+        if not abs(velocity) <= self.max_velocity:
+            return f"|velocity| {abs(velocity):.4g} exceeds the limit {self.max_velocity:.4g}"
+        if not self.min_position <= position <= self.max_position:
+            return (
+                f"position {position:.4g} outside the allowed travel "
+                f"[{self.min_position:.4g}, {self.max_position:.4g}]"
+            )
+        return None
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "max_u": self.max_command,
+            "max_v": self.max_velocity,
+            "xmin": self.min_position,
+            "xmax": self.max_position,
+        }
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """One feedback sample.
+
+    Attributes
+    ----------
+    t_s : float
+        Sample time [s]: the drive's clock when the transport carries one,
+        otherwise the host's ``time.monotonic()`` at reception.
+    velocity : float
+        Velocity [velocity units/s], positive in the direction of positive command.
+    position : float
+        Position [position units].
+    fault_code : int
+        Drive fault code, 0 when the drive is healthy.
+    """
+
+    t_s: float
+    velocity: float
+    position: float
+    fault_code: int = 0
+
+
+@dataclass(frozen=True)
+class BlockFeedback:
+    """Feedback of a block of cycles, one entry per cycle (arrays of shape ``(n,)``)."""
+
+    t_s: np.ndarray
+    velocity: np.ndarray
+    position: np.ndarray
+    applied: np.ndarray
+
+
+@dataclass(frozen=True)
+class DriveInfo:
+    """Identity and state of a drive, as far as the protocol tells."""
+
+    transport: str
+    vendor: str = ""
+    product: str = ""
+    firmware: str = ""
+    serial_number: str = ""
+    state: str = ""
+    fault_code: int = 0
+    units: Mapping[str, str] = field(default_factory=dict)
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+class Drive(ABC):
+    """A servo drive on some transport.
+
+    Subclasses implement ``_open``, ``_close``, ``_enable``, ``_disable``,
+    ``_write_command`` and ``_read_feedback``; they may override ``_exchange``
+    (one atomic cycle, e.g. SYNC + PDOs or Modbus FC23), ``_exchange_block``,
+    ``_quick_stop``, ``_configure_watchdog``, ``_set_cycle``, ``_fault_code``,
+    ``_reset_fault`` and ``_info``.
+
+    Parameters
+    ----------
+    url : DriveURL or str
+        The drive URL; its query may hold ``max_u``, ``max_v``, ``xmin``,
+        ``xmax`` (the :class:`Limits`) and ``watchdog`` [s], plus the keys in
+        the backend's :attr:`query_keys`.
+    """
+
+    #: Backend-specific query keys, beyond :data:`COMMON_QUERY_KEYS`.
+    query_keys: ClassVar[frozenset[str]] = frozenset()
+    #: Human-readable units of command, velocity and position.
+    units: ClassVar[Mapping[str, str]] = {"u": "", "v": "", "x": ""}
+
+    def __init__(self, url: DriveURL | str) -> None:
+        self.url = parse_drive_url(url) if isinstance(url, str) else url
+        self.url.check_keys(COMMON_QUERY_KEYS | self.query_keys)
+        self.limits = Limits(
+            max_command=self.url.get_float("max_u", math.inf),
+            max_velocity=self.url.get_float("max_v", math.inf),
+            min_position=self.url.get_float("xmin", -math.inf),
+            max_position=self.url.get_float("xmax", math.inf),
+        )
+        self.watchdog_s: float = self.url.get_float("watchdog", DEFAULT_WATCHDOG_S)
+        if not self.watchdog_s > 0:
+            raise UsageError("watchdog must be > 0 s")
+        self.cycle_s: float | None = None
+        self._is_open = False
+        self._enabled = False
+
+    # ----------------------------------------------------------------- lifecycle
+    @property
+    def is_open(self) -> bool:
+        return self._is_open
+
+    @property
+    def enabled(self) -> bool:
+        return self._enabled
+
+    def open(self) -> Drive:
+        """Connect and arm the drive-side watchdog. Idempotent."""
+        if not self._is_open:
+            self._open()
+            self._is_open = True
+            try:
+                self._configure_watchdog(self.watchdog_s)
+            except BaseException:
+                self.close()
+                raise
+        return self
+
+    def close(self) -> None:
+        """Stop and disable the axis, then disconnect. Safe to call twice."""
+        if not self._is_open:
+            return
+        try:
+            if self._enabled:
+                try:
+                    self.stop()
+                finally:
+                    self.disable()
+        finally:
+            self._is_open = False
+            self._close()
+
+    def __enter__(self) -> Drive:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_is_open", False):
+            warnings.warn(f"{type(self).__name__} was never closed", ResourceWarning, stacklevel=1)
+
+    def _require_open(self) -> None:
+        if not self._is_open:
+            raise DriveError(f"{self.url.scheme} drive is not open")
+
+    # ------------------------------------------------------------------- power
+    def enable(self) -> None:
+        """Bring the drive to its operational (torque-on) state with zero command."""
+        self._require_open()
+        self._enable()
+        self._enabled = True
+
+    def disable(self) -> None:
+        """Remove torque (zero command first). Safe when already disabled."""
+        if not self._is_open:
+            return
+        try:
+            self._write_command(0.0)
+        except DriveError:
+            pass  # disabling is what matters; the command path may be the broken part
+        finally:
+            self._enabled = False
+            self._disable()
+
+    def stop(self) -> None:
+        """Quick stop: zero command and the drive's own stop ramp where it has one."""
+        self._require_open()
+        self._quick_stop()
+
+    def set_cycle(self, period_s: float) -> None:
+        """Tell the drive the control cycle period [s] the host will stream at."""
+        if not period_s > 0:
+            raise UsageError("cycle period must be > 0 s")
+        self.cycle_s = float(period_s)
+        self._set_cycle(self.cycle_s)
+
+    # ----------------------------------------------------------------- cycles
+    def command(self, u: float) -> float:
+        """Send command ``u`` (clamped to the limits); return the value applied."""
+        self._require_open()
+        applied = self.limits.clamp(float(u))
+        self._write_command(applied)
+        return applied
+
+    def read(self) -> Feedback:
+        """Read one feedback sample; stop the axis if it is outside the envelope."""
+        self._require_open()
+        return self._checked(self._read_feedback())
+
+    def exchange(self, u: float) -> tuple[Feedback, float]:
+        """One control cycle: feedback sampled at ``t_k``, then ``u`` held until ``t_{k+1}``.
+
+        Returns the feedback and the command actually applied (after clamping).
+        """
+        self._require_open()
+        applied = self.limits.clamp(float(u))
+        return self._checked(self._exchange(applied)), applied
+
+    def exchange_block(self, u: np.ndarray) -> BlockFeedback:
+        """Several cycles at once (fast simulated drives); same semantics as :meth:`exchange`."""
+        self._require_open()
+        u = np.asarray(u, dtype=float)
+        applied = np.clip(u, -self.limits.max_command, self.limits.max_command)
+        block = self._exchange_block(applied)
+        bad = np.flatnonzero(
+            (np.abs(block.velocity) > self.limits.max_velocity)
+            | (block.position < self.limits.min_position)
+            | (block.position > self.limits.max_position)
+        )
+        if bad.size:
+            i = int(bad[0])
+            self._checked(Feedback(block.t_s[i], block.velocity[i], block.position[i]))
+        return block
+
+    def _checked(self, fb: Feedback) -> Feedback:
+        breach = self.limits.violation(fb.velocity, fb.position)
+        if breach is not None:
+            try:
+                self.stop()
+            finally:
+                self.disable()
+            raise LimitExceededError(f"axis stopped: {breach}")
+        return fb
+
+    # ---------------------------------------------------------------- status
+    def fault_code(self) -> int:
+        """The drive's active fault code, 0 when healthy."""
+        self._require_open()
+        return self._fault_code()
+
+    def reset_fault(self) -> None:
+        """Acknowledge a drive fault; raises :class:`DriveFaultError` if it persists."""
+        self._require_open()
+        self._reset_fault()
+
+    def info(self) -> DriveInfo:
+        """Identity, firmware and state as far as the protocol tells."""
+        self._require_open()
+        return self._info()
+
+    # --------------------------------------------------------- backend hooks
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _close(self) -> None: ...
+
+    @abstractmethod
+    def _enable(self) -> None: ...
+
+    @abstractmethod
+    def _disable(self) -> None: ...
+
+    @abstractmethod
+    def _write_command(self, u: float) -> None: ...
+
+    @abstractmethod
+    def _read_feedback(self) -> Feedback: ...
+
+    def _exchange(self, u: float) -> Feedback:
+        fb = self._read_feedback()
+        self._write_command(u)
+        return fb
+
+    def _exchange_block(self, u: np.ndarray) -> BlockFeedback:
+        rows = [self._exchange(float(uk)) for uk in u]
+        return BlockFeedback(
+            t_s=np.array([r.t_s for r in rows]),
+            velocity=np.array([r.velocity for r in rows]),
+            position=np.array([r.position for r in rows]),
+            applied=u.copy(),
+        )
+
+    def _quick_stop(self) -> None:
+        self._write_command(0.0)
+
+    def _configure_watchdog(self, timeout_s: float) -> None:
+        raise NotImplementedError(f"{type(self).__name__} has no drive-side watchdog")
+
+    def _set_cycle(self, period_s: float) -> None:
+        """Default: the drive needs no notice of the host's cycle."""
+
+    def _fault_code(self) -> int:
+        return 0
+
+    def _reset_fault(self) -> None:
+        """Default: nothing to acknowledge."""
+
+    def _info(self) -> DriveInfo:
+        return DriveInfo(transport=self.url.scheme, units=dict(self.units))

@@ -1,0 +1,84 @@
+"""Exceptions of servobench, in one tree.
+
+::
+
+    ServobenchError
+    ├── DriveError                       a drive or its link misbehaved
+    │   ├── DriveUnavailableError        unknown URL scheme, backend library missing
+    │   ├── DriveConfigError(ValueError) malformed URL, unknown query key, bad map/dialect file
+    │   ├── DriveConnectionError(ConnectionError)
+    │   ├── DriveTimeoutError(TimeoutError)  the drive stopped answering
+    │   ├── DriveFaultError              the drive reports a fault (``code`` holds it)
+    │   ├── StateTransitionError         a state machine did not reach the requested state
+    │   └── LimitExceededError           feedback left the configured safe envelope
+    ├── IdentificationError(ValueError)  the data cannot yield a model (no motion, too short ...)
+    ├── LogFormatError(ValueError)       a log file is malformed
+    └── UsageError(ValueError)           an argument is out of range
+
+Drivers raise these and never log-and-continue; the runner decides what to
+tolerate, and the CLI turns any ``ServobenchError`` into one line on stderr
+and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+
+class ServobenchError(Exception):
+    """Root of every error servobench raises on purpose."""
+
+
+class DriveError(ServobenchError):
+    """A drive, or the link to it, did not do what was asked."""
+
+
+class DriveUnavailableError(DriveError):
+    """The drive backend cannot be used: unknown scheme or missing library."""
+
+
+class DriveConfigError(DriveError, ValueError):
+    """A drive URL, register map or dialect file is malformed."""
+
+
+class DriveConnectionError(DriveError, ConnectionError):
+    """The link to the drive could not be opened or was lost."""
+
+
+class DriveTimeoutError(DriveError, TimeoutError):
+    """The drive did not answer within its deadline."""
+
+
+class DriveFaultError(DriveError):
+    """The drive reports a fault.
+
+    Parameters
+    ----------
+    message : str
+        Human-readable description.
+    code : int
+        Transport-specific fault code (CiA 402 error code 0x603F, a fault
+        register value, ...); 0 when the transport gives none.
+    """
+
+    def __init__(self, message: str, code: int = 0) -> None:
+        super().__init__(message)
+        self.code = int(code)
+
+
+class StateTransitionError(DriveError):
+    """A drive state machine did not reach the requested state in time."""
+
+
+class LimitExceededError(DriveError):
+    """Feedback left the configured envelope (velocity or travel); the axis was stopped."""
+
+
+class IdentificationError(ServobenchError, ValueError):
+    """The data cannot yield a model: no motion, too few samples, singular fit."""
+
+
+class LogFormatError(ServobenchError, ValueError):
+    """A log file is missing, malformed or lacks a required column."""
+
+
+class UsageError(ServobenchError, ValueError):
+    """An argument is out of its allowed range."""

@@ -1,0 +1,259 @@
+"""The simulated drive: a :class:`~sim_backend.plant.Plant` behind a power stage.
+
+:class:`SimulatedDevice` is what every transport serves (and what ``sim://``
+wraps in-process): a lock-step drive that samples its feedback and then
+applies the latest command for one control cycle each time it is clocked
+(a SYNC, a Modbus feedback read, a serial feedback query), a power state
+(disabled / enabled / quick stop / fault), a command limit like CiA 402's
+max torque 0x6072, and a drive-side watchdog that trips when the host falls
+silent.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from drivers.errors import DriveFaultError
+from sim_backend.plant import Plant, PlantParams
+
+#: Fault code the watchdog raises: CiA 301/402 "heartbeat / life guard error".
+WATCHDOG_FAULT = 0x8130
+#: Fault code of a generic drive fault injected by tests or the fault injector.
+GENERIC_FAULT = 0x1000
+
+
+class PowerState(Enum):
+    """Power stage of the simulated drive."""
+
+    DISABLED = "disabled"
+    ENABLED = "enabled"
+    QUICK_STOP = "quick_stop"
+    FAULT = "fault"
+
+
+@dataclass(frozen=True)
+class DeviceSample:
+    """Feedback of one cycle: plant time [s], velocity, position, power state, fault code."""
+
+    t_s: float
+    velocity: float
+    position: float
+    state: PowerState
+    fault_code: int
+
+
+class SimulatedDevice:
+    """A simulated servo drive, thread-safe, clocked once per control cycle.
+
+    Parameters
+    ----------
+    params : PlantParams
+        The plant.
+    cycle_s : float
+        Control cycle [s] until the host sets another with :meth:`set_cycle`.
+    max_command : float
+        Drive-side command limit [command units] (like 0x6072).
+    watchdog_s : float or None
+        Host silence after which an enabled drive faults and removes torque.
+    clock : callable
+        Wall clock for the watchdog [s], ``time.monotonic`` by default.
+    """
+
+    def __init__(
+        self,
+        params: PlantParams,
+        *,
+        cycle_s: float = 1e-3,
+        max_command: float = math.inf,
+        watchdog_s: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.params = params
+        self.plant = Plant(params)
+        self.cycle_s = float(cycle_s)
+        self.max_command = float(max_command)
+        self.watchdog_s = watchdog_s
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._k = 0
+        self._t_s = 0.0
+        self._command = 0.0
+        self.state = PowerState.DISABLED
+        self.fault_code = 0
+        self.fault_reason = ""
+        self.last_host_activity = clock()
+        self.watchdog_trips = 0
+        self.frozen_feedback: DeviceSample | None = None
+
+    # ------------------------------------------------------------ host side
+    def feed(self) -> None:
+        """Note host activity (any valid message counts)."""
+        self.last_host_activity = self._clock()
+
+    def set_cycle(self, cycle_s: float) -> None:
+        with self._lock:
+            if not cycle_s > 0:
+                raise ValueError("cycle must be > 0 s")
+            self.cycle_s = float(cycle_s)
+
+    def set_watchdog(self, watchdog_s: float | None) -> None:
+        with self._lock:
+            self.watchdog_s = watchdog_s
+            self.feed()
+
+    def set_command(self, u: float) -> None:
+        """Latch the command applied from the next cycle on (clamped to ``max_command``)."""
+        with self._lock:
+            self.feed()
+            if not math.isfinite(u):
+                u = 0.0
+            self._command = min(max(float(u), -self.max_command), self.max_command)
+
+    @property
+    def command(self) -> float:
+        """Command the power stage applies now (0 unless enabled)."""
+        return self._command if self.state is PowerState.ENABLED else 0.0
+
+    def enable(self) -> None:
+        with self._lock:
+            self.feed()
+            if self.state is PowerState.FAULT:
+                raise DriveFaultError(
+                    f"drive in fault 0x{self.fault_code:04X}: {self.fault_reason}", self.fault_code
+                )
+            self._command = 0.0
+            self.state = PowerState.ENABLED
+
+    def disable(self) -> None:
+        with self._lock:
+            self.feed()
+            self._command = 0.0
+            if self.state is not PowerState.FAULT:
+                self.state = PowerState.DISABLED
+
+    def quick_stop(self) -> None:
+        """Remove the command; friction brings the axis to rest."""
+        with self._lock:
+            self.feed()
+            self._command = 0.0
+            if self.state is PowerState.ENABLED:
+                self.state = PowerState.QUICK_STOP
+
+    def fault(self, code: int = GENERIC_FAULT, reason: str = "injected fault") -> None:
+        """Enter the fault state: torque off until :meth:`reset_fault`."""
+        with self._lock:
+            self._command = 0.0
+            self.state = PowerState.FAULT
+            self.fault_code = int(code)
+            self.fault_reason = reason
+
+    def reset_fault(self) -> None:
+        with self._lock:
+            self.feed()
+            if self.state is PowerState.FAULT:
+                self.state = PowerState.DISABLED
+                self.fault_code = 0
+                self.fault_reason = ""
+
+    # --------------------------------------------------------------- clocking
+    def sample(self) -> DeviceSample:
+        """Feedback at the current cycle start, without clocking the plant."""
+        with self._lock:
+            if self.frozen_feedback is not None:
+                return self.frozen_feedback
+            v, x = self.plant._measure(
+                np.array([self.plant.state.v]), np.array([self.plant.state.x])
+            )
+            return DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
+
+    def step(self) -> DeviceSample:
+        """One cycle: sample feedback at ``t_k``, then hold the command until ``t_{k+1}``."""
+        with self._lock:
+            v, x = self.plant.step_block(np.array([self.command]), self.cycle_s)
+            sample = DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
+            self._advance(1)
+            return self.frozen_feedback or sample
+
+    def exchange(self, u: float) -> DeviceSample:
+        """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts."""
+        with self._lock:
+            self.set_command(u)
+            return self.step()
+
+    def exchange_block(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Many cycles at once: ``(t_s, v, x)`` arrays, one row per cycle."""
+        with self._lock:
+            self.feed()
+            u = np.clip(np.asarray(u, dtype=float), -self.max_command, self.max_command)
+            if self.state is not PowerState.ENABLED:
+                u = np.zeros_like(u)
+            if u.size:
+                self._command = float(u[-1])
+            t = self._t_s + self.cycle_s * np.arange(u.size)
+            v, x = self.plant.step_block(u, self.cycle_s)
+            self._advance(u.size)
+            return t, v, x
+
+    def _advance(self, n: int) -> None:
+        self._k += n
+        self._t_s = self._k * self.cycle_s
+
+    # --------------------------------------------------------------- watchdog
+    def check_watchdog(self) -> bool:
+        """Trip the watchdog if the host has been silent too long; return whether it tripped."""
+        with self._lock:
+            if self.watchdog_s is None or self.state not in (
+                PowerState.ENABLED,
+                PowerState.QUICK_STOP,
+            ):
+                return False
+            silent = self._clock() - self.last_host_activity
+            if silent <= self.watchdog_s:
+                return False
+            self.watchdog_trips += 1
+            self.fault(WATCHDOG_FAULT, f"host silent for {silent:.3f} s (watchdog {self.watchdog_s} s)")
+            return True
+
+    @property
+    def is_stopped(self) -> bool:
+        """True when no torque is applied and the axis is at rest."""
+        return self.command == 0.0 and self.plant.state.v == 0.0
+
+
+class WatchdogThread(threading.Thread):
+    """Polls :meth:`SimulatedDevice.check_watchdog` every ``period_s`` until stopped."""
+
+    def __init__(self, device: SimulatedDevice, period_s: float = 0.01) -> None:
+        super().__init__(name="sim-watchdog", daemon=True)
+        self.device = device
+        self.period_s = period_s
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self._stop_event.wait(self.period_s):
+            self.device.check_watchdog()
+
+    def stop(self) -> None:
+        self._stop_event.set()
+
+
+def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
+    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``)."""
+    from drivers.url import parse_drive_url
+    from sim_backend.simurl import plant_from_url
+
+    parsed = parse_drive_url(url)
+    if parsed.scheme != "sim":
+        from drivers.errors import DriveConfigError
+
+        raise DriveConfigError(f"expected a sim:// URL, got {url!r}")
+    params = plant_from_url(parsed)
+    max_u = parsed.get_float("max_u", math.inf)
+    return SimulatedDevice(params, max_command=max_u, **kwargs)  # type: ignore[arg-type]

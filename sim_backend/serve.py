@@ -1,0 +1,79 @@
+"""``servobench serve-sim``: serve a simulated drive over a real protocol.
+
+Each transport module ``sim_backend.serve_<name>`` exposes::
+
+    def serve(device, stop, announce, options) -> None
+
+which starts its server around the :class:`~sim_backend.device.SimulatedDevice`,
+calls ``announce(drive_url)`` exactly once when a client can connect, blocks
+until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
+This module owns what is common: building the device from the ``sim://``
+URL, the watchdog thread, SIGINT/SIGTERM handling and printing the URL as
+the first line on stdout.
+"""
+
+from __future__ import annotations
+
+import importlib
+import signal
+import sys
+import threading
+from collections.abc import Callable, Mapping
+
+from drivers.errors import DriveConfigError
+from sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+
+#: ``--transport`` value -> module implementing ``serve``.
+TRANSPORTS: dict[str, str] = {
+    "canopen": "sim_backend.serve_canopen",
+    "modbus-tcp": "sim_backend.serve_modbus",
+    "modbus-rtu": "sim_backend.serve_modbus",
+    "serial": "sim_backend.serve_serial",
+}
+
+ServeFunction = Callable[
+    [SimulatedDevice, threading.Event, Callable[[str], None], Mapping[str, str]], None
+]
+
+
+def load_transport(name: str) -> ServeFunction:
+    if name not in TRANSPORTS:
+        raise DriveConfigError(
+            f"unknown transport {name!r}; choose one of {', '.join(sorted(TRANSPORTS))}"
+        )
+    module = importlib.import_module(TRANSPORTS[name])
+    return module.serve
+
+
+def run_server(
+    transport: str,
+    sim_url: str,
+    options: Mapping[str, str] | None = None,
+    *,
+    stop: threading.Event | None = None,
+    announce: Callable[[str], None] | None = None,
+) -> SimulatedDevice:
+    """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device."""
+    serve = load_transport(transport)
+    device = device_from_url(sim_url)
+    stop = stop or threading.Event()
+    opts = {"transport": transport, **(options or {})}
+
+    def _announce(url: str) -> None:
+        print(url, flush=True)
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    watchdog = WatchdogThread(device)
+    watchdog.start()
+    try:
+        serve(device, stop, announce or _announce, opts)
+    finally:
+        watchdog.stop()
+        device.disable()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        sys.stdout.flush()
+    return device

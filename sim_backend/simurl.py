@@ -1,0 +1,83 @@
+"""Plant parameters from a ``sim://`` URL query or a TOML plant file.
+
+``sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4`` -- the key names are a contract.
+``sim://?plant=path/to/plant.toml`` reads the same keys from the file's
+``[plant]`` table (keys given in the URL override the file).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from drivers.errors import DriveConfigError, UsageError
+from drivers.url import DriveURL, parse_drive_url
+from sim_backend import effects
+from sim_backend.plant import PlantParams
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+#: Base physics keys of ``sim://`` (see :class:`~sim_backend.plant.PlantParams`).
+PLANT_KEYS = frozenset(
+    {"M", "B", "fc_pos", "fc_neg", "brk_pos", "brk_neg", "noise", "noise_x", "res_x", "res_v"}
+)
+#: Keys that configure the simulated drive rather than the physics.
+DEVICE_KEYS = frozenset({"seed", "pace", "plant"})
+
+
+def sim_query_keys() -> frozenset[str]:
+    """Every query key ``sim://`` accepts apart from the common drive keys."""
+    return PLANT_KEYS | DEVICE_KEYS | effects.query_keys()
+
+
+def _number(key: str, value: object) -> float:
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise DriveConfigError(f"sim plant key {key}={value!r} is not a number") from None
+    if out != out or abs(out) == float("inf"):
+        raise DriveConfigError(f"sim plant key {key}={value!r} is not finite")
+    return out
+
+
+def load_plant_file(path: str | Path) -> dict[str, object]:
+    """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise DriveConfigError(f"cannot read plant file {path}: {err.strerror}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise DriveConfigError(f"plant file {path} is not valid TOML: {err}") from None
+    table = data.get("plant", data)
+    if not isinstance(table, dict):
+        raise DriveConfigError(f"plant file {path}: [plant] must be a table")
+    return table
+
+
+def plant_from_url(url: DriveURL | str) -> PlantParams:
+    """Build :class:`PlantParams` from a ``sim://`` URL (and its plant file, if named)."""
+    url = parse_drive_url(url) if isinstance(url, str) else url
+    values: dict[str, object] = {}
+    if "plant" in url.query:
+        values.update(load_plant_file(url.query["plant"]))
+    values.update({k: v for k, v in url.query.items() if k not in DEVICE_KEYS})
+    from drivers.base import COMMON_QUERY_KEYS
+
+    for key in COMMON_QUERY_KEYS:
+        values.pop(key, None)
+    unknown = set(values) - PLANT_KEYS - effects.query_keys()
+    if unknown:
+        raise DriveConfigError(f"unknown sim plant key(s): {', '.join(sorted(unknown))}")
+    base = {k: _number(k, values[k]) for k in PLANT_KEYS & set(values)}
+    effect_values = {k: _number(k, values[k]) for k in set(values) - PLANT_KEYS}
+    seed = url.get_int("seed")
+    try:
+        return PlantParams(
+            **base, seed=seed, effects=effects.effects_from_query(effect_values)
+        )
+    except UsageError as err:
+        raise DriveConfigError(f"bad sim plant: {err}") from None
