@@ -358,12 +358,14 @@ class Drive(ABC):
 
     def _set_cycle(self, period_s: float) -> None:
         """Default: the drive needs no notice of the host's cycle."""
+        return None
 
     def _fault_code(self) -> int:
         return 0
 
     def _reset_fault(self) -> None:
         """Default: nothing to acknowledge."""
+        return None
 
     def _info(self) -> DriveInfo:
         return DriveInfo(transport=self.url.scheme, units=dict(self.units))

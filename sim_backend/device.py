@@ -218,7 +218,9 @@ class SimulatedDevice:
             if silent <= self.watchdog_s:
                 return False
             self.watchdog_trips += 1
-            self.fault(WATCHDOG_FAULT, f"host silent for {silent:.3f} s (watchdog {self.watchdog_s} s)")
+            self.fault(
+                WATCHDOG_FAULT, f"host silent for {silent:.3f} s (watchdog {self.watchdog_s} s)"
+            )
             return True
 
     @property

@@ -76,8 +76,6 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     effect_values = {k: _number(k, values[k]) for k in set(values) - PLANT_KEYS}
     seed = url.get_int("seed")
     try:
-        return PlantParams(
-            **base, seed=seed, effects=effects.effects_from_query(effect_values)
-        )
+        return PlantParams(**base, seed=seed, effects=effects.effects_from_query(effect_values))
     except UsageError as err:
         raise DriveConfigError(f"bad sim plant: {err}") from None

@@ -16,8 +16,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unit", type=int, default=1, help="Modbus unit id")
     p.add_argument("--map", default="servobench-sim", help="Modbus register map name or file")
     p.add_argument("--dialect", default="odrive", help="serial dialect name or file")
-    p.add_argument("--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE")
-    p.add_argument("--fault", action="append", default=[], metavar="SPEC", help="inject a fault (repeatable)")
+    p.add_argument(
+        "--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE"
+    )
+    p.add_argument(
+        "--fault", action="append", default=[], metavar="SPEC", help="inject a fault (repeatable)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
