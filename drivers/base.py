@@ -31,8 +31,10 @@ import numpy as np
 from drivers.errors import DriveError, LimitExceededError, UsageError
 from drivers.url import DriveURL, parse_drive_url
 
-#: Query keys every backend accepts: the safety envelope and the watchdog.
-COMMON_QUERY_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog"})
+#: Query keys every backend accepts: the safety envelope, the watchdog, and the
+#: host pacing (``pace=real``: the host holds the cycle rate, the default;
+#: ``pace=fast``: as fast as the link answers, for lock-step simulated drives).
+COMMON_QUERY_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace"})
 
 #: Drive-side watchdog used when the URL does not set one [s].
 DEFAULT_WATCHDOG_S = 0.5
@@ -154,6 +156,8 @@ class Drive(ABC):
 
     #: Backend-specific query keys, beyond :data:`COMMON_QUERY_KEYS`.
     query_keys: ClassVar[frozenset[str]] = frozenset()
+    #: True when :meth:`exchange_block` is faster than per-cycle exchange.
+    supports_block: ClassVar[bool] = False
     #: Human-readable units of command, velocity and position.
     units: ClassVar[Mapping[str, str]] = {"u": "", "v": "", "x": ""}
 

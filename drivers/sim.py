@@ -31,6 +31,7 @@ class SimDrive(Drive):
         if pace not in ("fast", "real"):
             raise DriveConfigError(f"sim pace must be 'fast' or 'real', got {pace!r}")
         self.realtime = pace == "real"
+        self.supports_block = not self.realtime
         self.device = SimulatedDevice(plant_from_url(self.url))
         self._t0_wall: float | None = None
 

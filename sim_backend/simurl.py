@@ -25,7 +25,7 @@ PLANT_KEYS = frozenset(
     {"M", "B", "fc_pos", "fc_neg", "brk_pos", "brk_neg", "noise", "noise_x", "res_x", "res_v"}
 )
 #: Keys that configure the simulated drive rather than the physics.
-DEVICE_KEYS = frozenset({"seed", "pace", "plant"})
+DEVICE_KEYS = frozenset({"seed", "pace", "plant"})  # "pace" is also a common key
 
 
 def sim_query_keys() -> frozenset[str]:
