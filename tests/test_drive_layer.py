@@ -1,0 +1,190 @@
+"""The Drive layer: URLs, registry, limits, lifecycle, watchdog — on the in-process sim:// drive."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from drivers.base import Drive, Feedback, Limits
+from drivers.errors import (
+    DriveConfigError,
+    DriveError,
+    DriveFaultError,
+    DriveUnavailableError,
+    LimitExceededError,
+    UsageError,
+)
+from drivers.registry import available_schemes, open_drive, resolve
+from drivers.url import parse_drive_url
+from sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from sim_backend.plant import PlantParams, simulate
+
+
+def test_url_parts():
+    url = parse_drive_url("modbus+tcp://127.0.0.1:5020?unit=3&map=x")
+    assert (url.scheme, url.host, url.port, dict(url.query)) == (
+        "modbus+tcp",
+        "127.0.0.1",
+        5020,
+        {"unit": "3", "map": "x"},
+    )
+    rtu = parse_drive_url("modbus+rtu:///dev/ttyUSB0?baud=115200")
+    assert rtu.path == "/dev/ttyUSB0" and rtu.host == ""
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["", "sim", "://x", "canopen://can0:99999", "sim://?M=1&M=2", 42],
+)
+def test_malformed_urls_raise_config_errors(bad):
+    with pytest.raises(DriveConfigError):
+        parse_drive_url(bad)
+
+
+def test_unknown_scheme_and_unknown_keys():
+    with pytest.raises(DriveUnavailableError, match="unknown drive scheme"):
+        open_drive("ethercat://eth0")
+    with pytest.raises(DriveConfigError, match="Mass"):
+        open_drive("sim://?Mass=1")
+    with pytest.raises(DriveConfigError, match="not a number"):
+        open_drive("sim://?M=heavy")
+
+
+def test_registry_lists_every_transport_scheme():
+    assert {"sim", "canopen", "modbus+tcp", "modbus+rtu", "serial"} <= set(available_schemes())
+    assert issubclass(resolve("sim"), Drive)
+
+
+def test_sim_drive_matches_the_plant_sample_by_sample():
+    u = np.sign(np.sin(np.arange(800) * 0.01)) * 3.0
+    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=2.0, fc_pos=0.3, fc_neg=0.6))
+    with open_drive("sim://?M=0.2&B=2&fc_pos=0.3&fc_neg=0.6") as drive:
+        drive.set_cycle(1e-3)
+        drive.enable()
+        got = [drive.exchange(uk)[0].velocity for uk in u]
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+
+
+def test_commands_are_clamped_to_max_u():
+    with open_drive("sim://?max_u=2") as drive:
+        drive.enable()
+        _, applied = drive.exchange(50.0)
+        assert applied == 2.0
+        assert drive.command(-9.0) == -2.0
+        block = drive.exchange_block(np.array([5.0, -5.0, 1.0]))
+        assert block.applied.tolist() == [2.0, -2.0, 1.0]
+
+
+def test_velocity_limit_stops_and_disables_the_axis():
+    with open_drive("sim://?max_v=0.5") as drive:
+        drive.set_cycle(1e-3)
+        drive.enable()
+        with pytest.raises(LimitExceededError, match="velocity"):
+            for _ in range(2000):
+                drive.exchange(5.0)
+        assert not drive.enabled
+        assert drive.device.state is PowerState.DISABLED
+        assert drive.device.command == 0.0
+
+
+def test_travel_limit_in_block_mode():
+    with open_drive("sim://?xmax=0.01") as drive:
+        drive.enable()
+        with pytest.raises(LimitExceededError, match="travel"):
+            drive.exchange_block(np.full(5000, 3.0))
+        assert drive.device.state is PowerState.DISABLED
+
+
+def test_close_stops_disables_and_is_idempotent():
+    drive = open_drive("sim://")
+    drive.open()
+    drive.enable()
+    drive.exchange(3.0)
+    drive.close()
+    drive.close()
+    assert drive.device.state is PowerState.DISABLED and drive.device.command == 0.0
+    with pytest.raises(DriveError, match="not open"):
+        drive.exchange(1.0)
+
+
+def test_context_manager_disables_on_exception():
+    with pytest.raises(RuntimeError), open_drive("sim://") as drive:
+        drive.enable()
+        drive.exchange(3.0)
+        raise RuntimeError("operator error")
+    assert drive.device.state is PowerState.DISABLED
+
+
+def test_unclosed_drive_warns():
+    drive = open_drive("sim://").open()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        drive.__del__()
+    assert any(issubclass(w.category, ResourceWarning) for w in caught)
+    drive.close()
+
+
+def test_fault_is_reported_and_reset():
+    with open_drive("sim://") as drive:
+        drive.enable()
+        drive.device.fault(0x2310, "overcurrent")
+        with pytest.raises(DriveFaultError, match="0x2310") as info:
+            drive.exchange(1.0)
+        assert info.value.code == 0x2310
+        assert drive.fault_code() == 0x2310
+        drive.reset_fault()
+        assert drive.fault_code() == 0
+        drive.enable()
+        drive.exchange(1.0)
+
+
+def test_device_watchdog_trips_when_the_host_is_silent():
+    now = [0.0]
+    dev = SimulatedDevice(PlantParams(), watchdog_s=0.1, clock=lambda: now[0])
+    dev.enable()
+    dev.exchange(2.0)
+    now[0] = 0.05
+    assert not dev.check_watchdog()
+    now[0] = 0.2
+    assert dev.check_watchdog()
+    assert dev.state is PowerState.FAULT and dev.fault_code == WATCHDOG_FAULT
+    assert dev.command == 0.0
+    with pytest.raises(DriveFaultError):
+        dev.enable()
+
+
+def test_disabled_device_applies_no_torque():
+    dev = SimulatedDevice(PlantParams())
+    dev.set_command(5.0)
+    for _ in range(100):
+        s = dev.step()
+    assert s.velocity == 0.0
+
+
+def test_limits_validation():
+    with pytest.raises(UsageError):
+        Limits(max_command=0.0)
+    with pytest.raises(UsageError):
+        Limits(min_position=1.0, max_position=0.0)
+    lim = Limits(max_command=1.0, max_velocity=2.0)
+    assert lim.clamp(3.0) == 1.0 and lim.violation(2.5, 0.0) is not None
+    assert lim.violation(-1.9, 0.0) is None and math.isinf(lim.max_position)
+
+
+def test_base_class_demands_a_watchdog():
+    class NoWatchdog(Drive):
+        def _open(self): ...
+        def _close(self): ...
+        def _enable(self): ...
+        def _disable(self): ...
+        def _write_command(self, u): ...
+        def _read_feedback(self):
+            return Feedback(0.0, 0.0, 0.0)
+
+    drive = NoWatchdog("custom://")
+    with pytest.raises(NotImplementedError, match="watchdog"):
+        drive.open()
+    assert not drive.is_open
