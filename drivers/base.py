@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from drivers.errors import DriveError, LimitExceededError, UsageError
+from drivers.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
 from drivers.url import DriveURL, parse_drive_url
 
 #: Query keys every backend accepts: the safety envelope, the watchdog, and the
@@ -321,6 +321,16 @@ class Drive(ABC):
         self._require_open()
         return self._info()
 
+    def record_traffic(self, path: str) -> None:
+        """Record the raw bus traffic to ``path`` until :meth:`close`.
+
+        CAN backends write python-can logger formats chosen by the suffix
+        (candump ``.log``, ``.blf``, ``.asc``, ``.csv``); other transports raise
+        :class:`DriveUnavailableError`.
+        """
+        self._require_open()
+        self._record_traffic(path)
+
     # --------------------------------------------------------- backend hooks
     @abstractmethod
     def _open(self) -> None: ...
@@ -373,3 +383,8 @@ class Drive(ABC):
 
     def _info(self) -> DriveInfo:
         return DriveInfo(transport=self.url.scheme, units=dict(self.units))
+
+    def _record_traffic(self, path: str) -> None:
+        raise DriveUnavailableError(
+            f"{self.url.scheme}:// cannot record bus traffic (python-can formats are for CAN links)"
+        )
