@@ -38,7 +38,7 @@ from collections import deque
 
 import serial
 
-from drivers.ascii_line import decode_reply, encode_line
+from drivers.ascii_line import MalformedReplyError, decode_reply, encode_line
 from drivers.base import Drive, DriveInfo, Feedback
 from drivers.dialect import COMMAND_SPECS, CommandRejectedError, Dialect, ParsedLine, load_dialect
 from drivers.errors import (
@@ -97,13 +97,16 @@ class SerialAsciiDrive(Drive):
         self.lockstep: bool | None = None
         self._serial: serial.Serial | None = None
         self._rx = bytearray()
-        self._sent: deque[str] = deque(maxlen=4)
+        self._sent: deque[str] = deque(maxlen=8)  # requests not yet followed by a reply
         self._next_poll = 0.0
+        self._out_of_step = False
 
     # ------------------------------------------------------------- line I/O
     def _send(self, *bodies: str) -> None:
-        """Write request lines in one write."""
+        """Write request lines in one write (after a resync if the last exchange broke off)."""
         ser = self._port()
+        if self._out_of_step:
+            self._resync(end_drive_line=False)
         raw = b"".join(encode_line(b, self.dialect.terminator, self.use_checksum) for b in bodies)
         self._sent.extend(bodies)
         try:
@@ -148,15 +151,28 @@ class SerialAsciiDrive(Drive):
         """Next reply body; a rejection message raises :class:`CommandRejectedError`."""
         if deadline is None:
             deadline = time.monotonic() + self.reply_timeout_s
-        body = decode_reply(self._raw_line(deadline), self.use_checksum)
-        if self.dialect.rejection(body) is not None:
-            raise CommandRejectedError(
-                f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
+        try:
+            body = decode_reply(self._raw_line(deadline), self.use_checksum)
+            if self.dialect.rejection(body) is not None:
+                raise CommandRejectedError(
+                    f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
+                )
+            return body
+        except BaseException:
+            self._out_of_step = (
+                True  # replies may still be on their way: drain before the next send
             )
-        return body
+            raise
+        finally:
+            self._sent.clear()  # what was sent before has been answered, or never will be
 
     def _read_reply(self, name: str) -> ParsedLine:
-        return self.dialect.parse_reply(name, self._read_body())
+        body = self._read_body()
+        try:
+            return self.dialect.parse_reply(name, body)
+        except MalformedReplyError:
+            self._out_of_step = True
+            raise
 
     def _query(self, command: str, **values: float) -> ParsedLine:
         """Send ``command`` and parse its reply."""
@@ -174,11 +190,12 @@ class SerialAsciiDrive(Drive):
             raise DriveConnectionError(f"{self.port} is not open")
         return self._serial
 
-    def _resync(self) -> None:
-        """End any half line the drive holds, then drop whatever it still sends."""
+    def _resync(self, end_drive_line: bool = True) -> None:
+        """Drop whatever the drive still sends until it is quiet (after ending its half line)."""
         ser = self._port()
         ser.reset_input_buffer()
-        ser.write(self.dialect.terminator)
+        if end_drive_line:
+            ser.write(self.dialect.terminator)
         quiet_until = time.monotonic() + RESYNC_QUIET_S
         while True:
             remaining = quiet_until - time.monotonic()
@@ -189,6 +206,7 @@ class SerialAsciiDrive(Drive):
                 ser.read(max(1, ser.in_waiting))
                 quiet_until = time.monotonic() + RESYNC_QUIET_S
         self._rx.clear()
+        self._out_of_step = False
 
     # ------------------------------------------------------------ lifecycle
     def _open(self) -> None:

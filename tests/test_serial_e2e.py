@@ -1,0 +1,271 @@
+"""serial:// end to end: pyserial on a real pty against ``servobench serve-sim --transport serial``."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.ascii_line import MalformedReplyError
+from drivers.dialect import DIALECT_DIR, CommandRejectedError
+from drivers.errors import (
+    DriveConfigError,
+    DriveConnectionError,
+    DriveFaultError,
+    DriveTimeoutError,
+    StateTransitionError,
+)
+from drivers.registry import open_drive
+from sim_backend.launch import ServedSim
+from sim_backend.plant import PlantParams, simulate
+from sim_backend.serve_serial import PtyPort
+
+SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
+PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+ODRIVE_WATCHDOG = 0x800
+ODRIVE_MOTOR_FAILED = 0x40
+
+
+@contextlib.contextmanager
+def served(*extra_args: str, sim: str = SIM):
+    """A serve-sim child; on exit it must shut down cleanly (exit status 0)."""
+    sim_proc = ServedSim("serial", sim, extra_args)
+    sim_proc.start()
+    try:
+        yield sim_proc.url
+    finally:
+        code = sim_proc.stop()
+    assert code == 0, sim_proc.stderr
+
+
+def square(n: int, half_period: int, amplitude: float = 1.0) -> np.ndarray:
+    return amplitude * np.where((np.arange(n) // half_period) % 2 == 0, 1.0, -1.0)
+
+
+@pytest.mark.parametrize("cycle_s", [0.001, 0.002])
+def test_square_wave_matches_the_plant(cycle_s):
+    u = square(300, 50)
+    with served() as url, open_drive(url) as drive:
+        assert url.startswith("serial:///dev/") and "baud=115200" in url and "dialect=odrive" in url
+        drive.set_cycle(cycle_s)
+        drive.enable()
+        rows = [drive.exchange(uk) for uk in u]
+        drive.disable()
+    v = np.array([fb.velocity for fb, _ in rows])
+    x = np.array([fb.position for fb, _ in rows])
+    applied = np.array([a for _, a in rows])
+    # Units: the served plant's command unit is Nm, position turn, velocity turn/s (1:1).
+    v_ref, x_ref = simulate(u, 1.0 / cycle_s, PARAMS)
+    np.testing.assert_array_equal(applied, u)
+    np.testing.assert_allclose(v, v_ref, atol=1e-6)  # replies carry 6 decimals
+    np.testing.assert_allclose(x, x_ref, atol=1e-6)
+    assert np.ptp(v) > 0.3  # it did move both ways
+    assert drive.lockstep is True
+
+
+def test_info_units_and_state():
+    with served() as url, open_drive(url + "&checksum=1") as drive:
+        drive.set_cycle(0.001)
+        info = drive.info()
+        assert info.transport == "serial"
+        assert info.firmware.startswith("servobench-sim")
+        assert info.serial_number == "SIM000000001"
+        assert dict(info.units) == {"u": "Nm", "v": "turn/s", "x": "turn"}
+        assert info.state == "disabled" and info.fault_code == 0
+        assert info.extra["vbus_V"] == pytest.approx(24.0)
+        assert info.extra["checksum"] is True and info.extra["lockstep"] is True
+        assert "docs.odriverobotics.com" in info.extra["reference"]
+        drive.enable()
+        assert drive.info().state == "enabled"
+        fb = drive.read()  # property reads: no clocking
+        assert (fb.velocity, fb.position, fb.fault_code) == (0.0, 0.0, 0)
+        for _ in range(20):
+            drive.exchange(1.0)
+        assert drive.read().velocity > 0
+
+
+def test_killed_host_trips_the_drive_watchdog():
+    streamer = (
+        "import sys\n"
+        "from drivers.registry import open_drive\n"
+        "d = open_drive(sys.argv[1]); d.open(); d.set_cycle(0.001); d.enable()\n"
+        "k = 0\n"
+        "while True:\n"
+        "    d.exchange(0.3)\n"
+        "    k += 1\n"
+        "    if k == 50:\n"
+        "        print('streaming', flush=True)\n"
+    )
+    with served() as url:
+        host = subprocess.Popen(
+            [sys.executable, "-c", streamer, url + "&watchdog=0.2"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert host.stdout.readline().strip() == "streaming"
+            os.kill(host.pid, signal.SIGKILL)
+            host.wait(5)
+        finally:
+            if host.poll() is None:
+                host.kill()
+            host.stdout.close()
+        time.sleep(0.6)  # > watchdog 0.2 s + the device's 10 ms watchdog poll
+        with open_drive(url) as fresh:
+            assert fresh.fault_code() == ODRIVE_WATCHDOG
+            with pytest.raises(DriveFaultError, match="WATCHDOG_TIMER_EXPIRED") as err:
+                fresh.enable()
+            assert err.value.code == ODRIVE_WATCHDOG
+            assert fresh.info().state == "disabled"
+            fresh.reset_fault()
+            assert fresh.fault_code() == 0
+            fresh.enable()
+            assert fresh.enabled
+
+
+def test_drive_fault_while_streaming_is_raised_with_its_code():
+    with served("--fault", "fault@30") as url, open_drive(url + "&poll=0.0001") as drive:
+        drive.set_cycle(0.001)
+        drive.enable()
+        with pytest.raises(DriveFaultError, match="MOTOR_FAILED") as err:
+            for _ in range(100):
+                drive.exchange(0.5)
+        assert err.value.code == ODRIVE_MOTOR_FAILED
+        with pytest.raises(DriveFaultError):
+            drive.enable()
+        drive.reset_fault()
+        drive.enable()
+        drive.exchange(0.5)
+
+
+def test_malformed_truncated_and_missing_replies_are_clear_errors():
+    faults = ("--fault", "garble@5", "--fault", "truncate@10", "--fault", "silence@15")
+    with served(*faults) as url, open_drive(url) as drive:
+        drive.set_cycle(0.001)
+        drive.enable()
+        outcomes = []
+        for k in range(1, 21):
+            try:
+                drive.exchange(0.5)
+                outcomes.append(None)
+            except MalformedReplyError as err:
+                outcomes.append((k, "malformed", str(err)))
+            except DriveTimeoutError as err:
+                outcomes.append((k, "timeout", str(err)))
+        errors = [o for o in outcomes if o is not None]
+        assert [(k, kind) for k, kind, _ in errors] == [
+            (5, "malformed"),
+            (10, "malformed"),
+            (15, "timeout"),
+        ]
+        assert "garbled feedback reply" in errors[0][2]
+        assert "garbled feedback reply" in errors[1][2]
+        assert "no reply to 'c 0 0.5 / f 0'" in errors[2][2]
+        drive.exchange(0.5)  # the link is in step again
+
+
+def test_the_link_gets_back_in_step_after_a_broken_exchange():
+    # Every exchange also polls the error register, so a garbled feedback reply leaves
+    # the error reply unread; the driver must drain it rather than read it as feedback.
+    with served("--fault", "garble@5") as url, open_drive(url + "&poll=0.0001") as drive:
+        drive.set_cycle(0.001)
+        drive.enable()
+        for _ in range(4):
+            drive.exchange(1.0)
+        with pytest.raises(MalformedReplyError):
+            drive.exchange(1.0)
+        rows = [drive.exchange(1.0)[0] for _ in range(10)]
+    v = np.array([fb.velocity for fb in rows])
+    assert np.all(np.diff(v) > 0)  # accelerating: fresh, ordered samples
+
+
+def test_checksums_catch_a_garbled_reply():
+    with served("--fault", "garble@3") as url, open_drive(url + "&checksum=1") as drive:
+        drive.set_cycle(0.001)
+        drive.enable()
+        drive.exchange(0.1)
+        drive.exchange(0.1)
+        with pytest.raises(MalformedReplyError, match="checksum"):
+            drive.exchange(0.1)
+        drive.exchange(0.1)
+
+
+def _dialect_copy(tmp_path: Path, edit) -> str:
+    text = edit((DIALECT_DIR / "odrive.toml").read_text(encoding="utf-8"))
+    path = tmp_path / "variant.toml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)
+
+
+def test_a_stock_drive_without_the_cycle_extension_is_free_running(tmp_path):
+    stock = _dialect_copy(
+        tmp_path, lambda t: t.split("[extensions]")[0] + "[replies]" + t.split("[replies]")[1]
+    )
+    with (
+        served("--dialect", stock) as url,
+        open_drive(url.replace(f"dialect={stock}", "dialect=odrive")) as drive,
+    ):
+        assert "dialect=odrive" in drive.url.raw
+        drive.set_cycle(0.001)  # the drive answers "unknown command" to the probe
+        assert drive.lockstep is False
+        drive.enable()
+        drive.exchange(0.2)
+
+
+def test_enable_that_never_arrives_is_a_state_transition_error(tmp_path):
+    # The host expects closed loop to read back as 7; the drive reports 8.
+    odd = _dialect_copy(tmp_path, lambda t: t.replace("enabled = 8", "enabled = 7"))
+    with (
+        served() as url,
+        open_drive(url.replace("dialect=odrive", f"dialect={odd}")) as drive,
+        pytest.raises(StateTransitionError, match="not enabled"),
+    ):
+        drive.enable()
+
+
+def test_a_rejected_command_names_what_was_sent(tmp_path):
+    wrong = _dialect_copy(
+        tmp_path, lambda t: t.replace('vbus = "r vbus_voltage"', 'vbus = "r vbus_volts"')
+    )
+    with (
+        served() as url,
+        open_drive(url.replace("dialect=odrive", f"dialect={wrong}")) as drive,
+        pytest.raises(CommandRejectedError, match="'unknown command' to 'r vbus_volts'"),
+    ):
+        drive.info()
+
+
+def test_silent_port_times_out_on_open():
+    with PtyPort() as port:  # a port with nobody answering
+        drive = open_drive(f"serial://{port.path}?timeout=0.05")
+        with pytest.raises(DriveTimeoutError, match="no reply to 'r axis0.error'"):
+            drive.open()
+        assert not drive.is_open
+
+
+@pytest.mark.parametrize(
+    ("url", "error", "message"),
+    [
+        ("serial://?baud=9600", DriveConfigError, "needs a port"),
+        ("serial:///dev/ttyX?baud=0", DriveConfigError, "baud must be > 0"),
+        ("serial:///dev/ttyX?bauds=9600", DriveConfigError, "bauds"),
+        ("serial:///dev/ttyX?dialect=nope", DriveConfigError, "unknown serial dialect"),
+        ("serial:///dev/ttyX?timeout=0", DriveConfigError, "timeout must be > 0"),
+    ],
+)
+def test_bad_urls(url, error, message):
+    with pytest.raises(error, match=message):
+        open_drive(url)
+
+
+def test_missing_port_is_a_connection_error(tmp_path):
+    drive = open_drive(f"serial://{tmp_path}/no-such-tty")
+    with pytest.raises(DriveConnectionError, match="cannot open"):
+        drive.open()
