@@ -100,6 +100,9 @@ class SerialAsciiDrive(Drive):
         self._sent: deque[str] = deque(maxlen=8)  # requests not yet followed by a reply
         self._next_poll = 0.0
         self._out_of_step = False
+        #: Bytes written to / read from the port since it was opened (for rate figures).
+        self.bytes_sent = 0
+        self.bytes_received = 0
 
     # ------------------------------------------------------------- line I/O
     def _send(self, *bodies: str) -> None:
@@ -111,6 +114,7 @@ class SerialAsciiDrive(Drive):
         self._sent.extend(bodies)
         try:
             ser.write(raw)
+            self.bytes_sent += len(raw)
         except serial.SerialTimeoutException as err:
             raise DriveTimeoutError(f"{self.port}: write blocked for {WRITE_TIMEOUT_S} s") from err
         except (serial.SerialException, OSError) as err:
@@ -144,6 +148,7 @@ class SerialAsciiDrive(Drive):
                     if not chunk:
                         raise DriveConnectionError(f"{self.port}: port closed by the other end")
                     self._rx += chunk
+                    self.bytes_received += len(chunk)
             except (serial.SerialException, OSError) as err:
                 raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
 
