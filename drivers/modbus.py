@@ -267,22 +267,31 @@ class ModbusDrive(Drive):
         cmd, fb = m["command"], m.feedback
         words = encode(cmd, u)
         self._feed()
+        rest = [
+            self._read_block(b) for b in m.blocks[1:]
+        ]  # before the read that clocks a lock-step drive
         if m.fc23:
             rr = self._call(
-                self._client.readwrite_registers, f"FC23 command/{'/'.join(fb.names)}",
-                read_address=fb.address, read_count=fb.count, write_address=cmd.address, values=words,
-            )  # fmt: skip
+                self._client.readwrite_registers,
+                f"FC23 command/{'/'.join(fb.names)}",
+                read_address=fb.address,
+                read_count=fb.count,
+                write_address=cmd.address,
+                values=words,
+            )
             first = rr.registers
             if len(first) != fb.count:
                 raise DriveError(f"FC23: asked {fb.count} registers, got {len(first)}")
         else:
             self._write(cmd, words)
             first = self._read_block(fb)
-        return self._decode_feedback([first] + [self._read_block(b) for b in m.blocks[1:]])
+        return self._decode_feedback([first, *rest])
 
     def _read_feedback(self) -> Feedback:
         self._feed()
-        return self._decode_feedback([self._read_block(b) for b in self.regmap.blocks])
+        blocks = self.regmap.blocks
+        rest = [self._read_block(b) for b in blocks[1:]]
+        return self._decode_feedback([self._read_block(blocks[0]), *rest])
 
     def _decode_feedback(self, block_words: list[list[int]]) -> Feedback:
         values: dict[str, list[int]] = {}
