@@ -27,6 +27,24 @@ ODrive runs its own loop; there the reply is the latest estimate. Every
 raises :class:`~drivers.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
 protocol carries no drive clock).
+
+Set-up on the drive: :meth:`open` resynchronises the line and reads the error
+register; the watchdog is armed as ``w axis0.config.watchdog_timeout <s>``,
+``u 0``, ``w axis0.config.enable_watchdog 1`` and read back; :meth:`enable`
+refuses a drive in fault, sends ``c 0 0`` (torque control, zero torque) and
+``w axis0.requested_state 8`` and waits for ``r axis0.current_state`` to read
+8 (:class:`~drivers.errors.StateTransitionError` if it does not, or
+:class:`~drivers.errors.DriveFaultError` with ``axis0.error`` if that is set);
+:meth:`reset_fault` is ``sc``; :meth:`set_cycle` uses the dialect's servobench
+extension and, if the drive rejects it (a stock ODrive), records the drive as
+free-running (:attr:`SerialAsciiDrive.lockstep` is False).
+
+Not confirmed against hardware (no ODrive here): see the caveats at the top
+of ``drivers/data/dialects/odrive.toml`` (firmware 0.6 property names, the
+9-character limit of ``r`` replies, the ``sc`` command's first release, the
+"lu" error-read bug). Without ``checksum=1`` a reply that loses digits, not its line end,
+still parses (e.g. ``0.12345`` for ``0.123456``); only checksums catch that.
+POSIX only (waits with ``select`` on the port's file descriptor).
 """
 
 from __future__ import annotations
@@ -60,6 +78,8 @@ STATE_TIMEOUT_S = 2.0
 STATE_POLL_S = 0.005
 #: Silence that ends the resynchronisation drain on open [s].
 RESYNC_QUIET_S = 0.05
+#: Longest resynchronisation before the drive is deemed to talk nonstop [s].
+RESYNC_MAX_S = 1.0
 #: Default period of the error-register read while streaming [s].
 FAULT_POLL_S = 0.1
 #: Longest reply line accepted [bytes] (the ODrive's transmit buffer is 64).
@@ -198,18 +218,26 @@ class SerialAsciiDrive(Drive):
     def _resync(self, end_drive_line: bool = True) -> None:
         """Drop whatever the drive still sends until it is quiet (after ending its half line)."""
         ser = self._port()
-        ser.reset_input_buffer()
-        if end_drive_line:
-            ser.write(self.dialect.terminator)
-        quiet_until = time.monotonic() + RESYNC_QUIET_S
-        while True:
-            remaining = quiet_until - time.monotonic()
-            if remaining <= 0:
-                break
-            ready, _, _ = select.select([ser.fileno()], [], [], remaining)
-            if ready:
-                ser.read(max(1, ser.in_waiting))
-                quiet_until = time.monotonic() + RESYNC_QUIET_S
+        try:
+            ser.reset_input_buffer()
+            if end_drive_line:
+                ser.write(self.dialect.terminator)
+            quiet_until = time.monotonic() + RESYNC_QUIET_S
+            give_up = time.monotonic() + RESYNC_MAX_S
+            while (remaining := quiet_until - time.monotonic()) > 0:
+                if time.monotonic() > give_up:
+                    raise DriveConnectionError(
+                        f"{self.port}: the drive talks without pause for {RESYNC_MAX_S} s "
+                        "(stdout on this port? wrong baud?)"
+                    )
+                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
+                if ready:
+                    ser.read(max(1, ser.in_waiting))
+                    quiet_until = time.monotonic() + RESYNC_QUIET_S
+        except DriveConnectionError:
+            raise
+        except (serial.SerialException, OSError) as err:
+            raise DriveConnectionError(f"{self.port}: resynchronising failed: {err}") from err
         self._rx.clear()
         self._out_of_step = False
 

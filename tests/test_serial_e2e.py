@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -248,6 +249,27 @@ def test_silent_port_times_out_on_open():
         with pytest.raises(DriveTimeoutError, match="no reply to 'r axis0.error'"):
             drive.open()
         assert not drive.is_open
+
+
+def test_a_port_that_never_stops_talking_is_refused():
+    stop = threading.Event()
+    with PtyPort() as port:
+
+        def chatter() -> None:
+            while not stop.is_set():
+                with contextlib.suppress(BlockingIOError):
+                    os.write(port.master, b"hello\r\n")
+                time.sleep(0.002)
+
+        talker = threading.Thread(target=chatter)
+        talker.start()
+        try:
+            drive = open_drive(f"serial://{port.path}")
+            with pytest.raises(DriveConnectionError, match="talks without pause"):
+                drive.open()
+        finally:
+            stop.set()
+            talker.join(5)
 
 
 @pytest.mark.parametrize(
