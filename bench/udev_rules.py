@@ -164,7 +164,10 @@ def install(
             os.replace(tmp, target / name)
             written.append(target / name)
     except OSError as err:
-        raise UsageError(f"cannot write udev rules to {target}: {err.strerror or err}") from err
+        hint = " (run as root, or give --root DIR)" if isinstance(err, PermissionError) else ""
+        raise UsageError(
+            f"cannot write udev rules to {target}: {err.strerror or err}{hint}"
+        ) from err
     return InstallResult(target, tuple(written))
 
 

@@ -12,6 +12,10 @@ from __future__ import annotations
 import argparse
 import grp
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from bench.udev_rules import InstallOptions
 
 RELOAD_HINT = "udevadm control --reload-rules && udevadm trigger"
 
@@ -58,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     return int(args._udev(args))
 
 
-def _options(args: argparse.Namespace):
+def _options(args: argparse.Namespace) -> InstallOptions:
     from bench.udev_rules import InstallOptions, parse_can_name
 
     return InstallOptions(
