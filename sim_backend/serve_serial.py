@@ -12,7 +12,8 @@ the latched command acts over ``[t_k, t_{k+1})``. Property reads (``r``) never
 clock. Units: the plant's command unit is served as Nm, its position unit as
 turn and its velocity unit as turn/s, one to one.
 
-Every valid request line feeds the device watchdog; when the host falls
+Every valid request line feeds the device watchdog (a real ODrive is fed
+only by ``c``/``v``/``p``/``t``/``u``, not by reads); when the host falls
 silent the device faults by itself (``sim_backend.serve`` runs a
 :class:`~sim_backend.device.WatchdogThread`), and error reads then report the
 dialect's watchdog flag (``WATCHDOG_TIMER_EXPIRED``, 0x800, for ODrive).
