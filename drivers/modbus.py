@@ -11,7 +11,9 @@ path to a TOML file (:mod:`drivers.regmap`). Further keys: ``timeout``
 
 One cycle (:meth:`ModbusDrive.exchange`) is one FC23 transaction (write the
 command, read the feedback block) when the map says the drive has FC23, else
-a write followed by a read. Nothing is ever retried: a repeated FC23 would
+a write followed by a read. Feedback registers the map scatters over further
+blocks are read first, so that against a lock-step drive they too belong to
+``t_k``. Nothing is ever retried: a repeated FC23 would
 apply a command twice, so a missing answer is a :class:`DriveTimeoutError`.
 Every pymodbus result is checked; exception responses become typed errors
 (see :func:`exception_error`). Feedback carries the drive's clock when the

@@ -18,6 +18,11 @@ FC23 writes before it reads, so one FC23 is one lock-step cycle. A refused
 enable (drive in fault) answers exception 4 (server device failure); an
 unknown control value or a partial write of a 32-bit value answers exception 3.
 
+Fault injection (``--fault KIND@N``, repeatable; ``N`` counts clocking reads
+from 1): ``fault@N`` faults the drive (code 0x1000) just before cycle ``N`` is
+sampled, ``busy@N`` answers that read with exception 6 (server device busy)
+without clocking.
+
 RTU runs on a :class:`~sim_backend.pty_link.PtyLink` that emulates the byte
 time of the configured baud rate, so RTU timing measured against the served
 drive is that of a real line (without the drive's own turnaround time).
@@ -45,7 +50,7 @@ from drivers.regmap import (
     encode_string,
     load_map,
 )
-from sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from sim_backend.device import GENERIC_FAULT, DeviceSample, PowerState, SimulatedDevice
 from sim_backend.pty_link import PtyLink
 
 DEFAULT_MAP = "servobench-sim"
@@ -53,6 +58,7 @@ DEFAULT_MAP = "servobench-sim"
 DEFAULT_BAUD = 115200
 #: How often the serving loop looks at the stop event [s].
 STOP_POLL_S = 0.05
+FAULT_KINDS = frozenset({"fault", "busy"})
 #: Modbus RTU inter-frame silence above 19200 baud, fixed by the serial-line spec [s].
 T35_FAST_S = 1.75e-3
 
@@ -66,12 +72,36 @@ def rtu_frame_gap_s(baud: int) -> float:
 IDENTITY = {"vendor": "servobench", "product": "simulated DC servo", "firmware": "sim-1"}
 
 
-class RegisterBridge:
-    """Register access of one map, applied to a :class:`SimulatedDevice`."""
+def parse_faults(spec: str) -> dict[int, str]:
+    """``"fault@50;busy@80"`` -> ``{50: "fault", 80: "busy"}``."""
+    out: dict[int, str] = {}
+    for item in filter(None, (s.strip() for s in spec.split(";"))):
+        kind, _, at = item.partition("@")
+        if kind not in FAULT_KINDS or not at.isdigit() or int(at) < 1:
+            raise DriveConfigError(
+                f"modbus serve-sim: bad --fault {item!r} (use KIND@N, N >= 1, "
+                f"KIND one of {', '.join(sorted(FAULT_KINDS))})"
+            )
+        out[int(at)] = kind
+    return out
 
-    def __init__(self, device: SimulatedDevice, regmap: RegisterMap) -> None:
+
+class RegisterBridge:
+    """Register access of one map, applied to a :class:`SimulatedDevice`.
+
+    ``faults`` maps clocking-read numbers (from 1) to an injected fault kind.
+    """
+
+    def __init__(
+        self,
+        device: SimulatedDevice,
+        regmap: RegisterMap,
+        faults: Mapping[int, str] | None = None,
+    ) -> None:
         self.device = device
         self.map = regmap
+        self.faults = dict(faults or {})
+        self.cycles = 0
         self.regs = sorted(regmap.registers.values(), key=lambda r: r.address)
         for a, b in zip(self.regs, self.regs[1:], strict=False):
             if b.address < a.end:  # holding and input share one store here
@@ -129,12 +159,11 @@ class RegisterBridge:
         try:
             if set_values is not None:
                 return self._write(address, [int(v) for v in set_values])
-            self._read(start_address, address, count, registers)
+            return self._read(start_address, address, count, registers)
         except DriveError:
             return ExcCodes.DEVICE_FAILURE
         except (UsageError, ValueError):
             return ExcCodes.ILLEGAL_VALUE
-        return None
 
     def _overlapping(self, address: int, count: int) -> list[Register]:
         return [r for r in self.regs if r.address < address + count and address < r.end]
@@ -160,15 +189,25 @@ class RegisterBridge:
                 self.device.set_cycle(decode(reg, words))
         return None
 
-    def _read(self, start_address: int, address: int, count: int, registers: list[int]) -> None:
+    def _read(
+        self, start_address: int, address: int, count: int, registers: list[int]
+    ) -> ExcCodes | None:
         touched = [r for r in self._overlapping(address, count) if r.name in FEEDBACK]
         if not touched:
-            return
+            return None
         clocked = any(r.name == "velocity" for r in touched)
+        if clocked:
+            self.cycles += 1
+            injected = self.faults.get(self.cycles)
+            if injected == "busy":
+                return ExcCodes.DEVICE_BUSY
+            if injected == "fault":
+                self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self.cycles}")
         sample = self.device.step() if clocked else self.device.sample()
         for reg in touched:
             offset = reg.address - start_address
             registers[offset : offset + reg.count] = self._feedback_words(reg, sample)
+        return None
 
     def _feedback_words(self, reg: Register, s: DeviceSample) -> list[int]:
         if reg.name == "velocity":
@@ -204,7 +243,7 @@ async def _serve(
 ) -> None:
     map_name = options.get("map") or DEFAULT_MAP
     unit = int(options.get("unit") or 1)
-    bridge = RegisterBridge(device, load_map(map_name))
+    bridge = RegisterBridge(device, load_map(map_name), parse_faults(options.get("fault") or ""))
     simdevice = SimDevice(id=unit, simdata=bridge.simdata(), action=bridge.action)
     transport = options.get("transport", "modbus-tcp")
     link: PtyLink | None = None

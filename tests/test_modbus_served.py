@@ -34,6 +34,7 @@ from sim_backend.device import (
     device_from_url,
 )
 from sim_backend.plant import PlantParams, simulate
+from sim_backend.serve_modbus import parse_faults
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
@@ -42,7 +43,7 @@ SIM_MAP = Path(resolve_map("servobench-sim")).read_text()
 
 @contextlib.contextmanager
 def served(
-    map_name: str = "servobench-sim", transport: str = "modbus-tcp"
+    map_name: str = "servobench-sim", transport: str = "modbus-tcp", fault: str = ""
 ) -> Iterator[tuple[SimulatedDevice, str]]:
     """The simulated drive served in a thread; yields (device, URL)."""
     device = device_from_url(SIM_URL)
@@ -51,7 +52,10 @@ def served(
     def run() -> None:
         try:
             serve_modbus.serve(
-                device, stop, urls.put, {"transport": transport, "port": "0", "map": map_name}
+                device,
+                stop,
+                urls.put,
+                {"transport": transport, "port": "0", "map": map_name, "fault": fault},
             )
         except BaseException as err:  # surface start-up errors in the test
             urls.put(err)
@@ -182,6 +186,26 @@ def test_refused_enable_is_a_device_failure_with_the_fault_code():
         with pytest.raises(DriveFaultError, match="exception 4") as err:
             drive._control(drive.regmap.control.enable)
         assert err.value.code == GENERIC_FAULT
+
+
+def test_injected_faults():
+    with served(fault="busy@3;fault@5") as (device, url), open_drive(url) as drive:
+        drive.enable()
+        drive.exchange(1.0)
+        drive.exchange(1.0)
+        with pytest.raises(DriveTimeoutError, match=r"exception 6 \(server device busy\)"):
+            drive.exchange(1.0)  # cycle 3 is answered busy, not clocked
+        drive.exchange(1.0)
+        with pytest.raises(DriveFaultError) as err:
+            drive.exchange(1.0)
+        assert err.value.code == GENERIC_FAULT
+        assert device.plant.state.x > 0  # cycles 1, 2, 4 ran
+
+
+@pytest.mark.parametrize("spec", ["fault", "fault@0", "garble@3", "busy@x"])
+def test_bad_fault_specs(spec):
+    with pytest.raises(DriveConfigError, match="bad --fault"):
+        parse_faults(spec)
 
 
 def test_silent_drive_is_a_timeout():
