@@ -1,0 +1,142 @@
+"""The socketcand codec (golden vectors, python-can interop) and the TCP hub."""
+
+from __future__ import annotations
+
+import time
+
+import can
+import pytest
+from can.interfaces.socketcand.socketcand import (
+    convert_ascii_message_to_can_message,
+    convert_can_message_to_ascii_message,
+)
+
+from sim_backend.can_wire import (
+    CanFrame,
+    WireError,
+    encode_frame,
+    encode_send,
+    parse_frame,
+    parse_send,
+    split_commands,
+)
+from sim_backend.socketcand_server import JOIN_GRACE_S, SocketcandHub
+
+FRAMES = [
+    CanFrame(0x000, b""),
+    CanFrame(0x080, b""),
+    CanFrame(0x182, bytes([0x27, 0x02, 0xE8, 0x03, 0x10, 0x27, 0x00, 0x00])),
+    CanFrame(0x7FF, b"\x00\x0f\xf0"),
+    CanFrame(0x1ABCDEF, b"\x01", is_extended=True),
+]
+
+
+@pytest.mark.parametrize(
+    ("frame", "send", "delivered"),
+    [
+        (
+            CanFrame(0x202, b"\x0f\x00\xe8\x03"),
+            "< send 202 4 f 0 e8 3 >",
+            "< frame 202 12.500000 0F00E803 >",
+        ),
+        (CanFrame(0x080, b""), "< send 080 0 >", "< frame 080 12.500000  >"),
+        (
+            CanFrame(0x12345, b"\xff", True),
+            "< send 00012345 1 ff >",
+            "< frame 00012345 12.500000 FF >",
+        ),
+    ],
+)
+def test_golden_vectors(frame: CanFrame, send: str, delivered: str) -> None:
+    assert encode_send(frame) == send
+    assert parse_send(send) == frame
+    assert encode_frame(frame, 12.5) == delivered
+    assert parse_frame(delivered) == (frame, 12.5)
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_codec_matches_python_can(frame: CanFrame) -> None:
+    msg = can.Message(
+        arbitration_id=frame.can_id, data=frame.data, is_extended_id=frame.is_extended
+    )
+    assert parse_send(convert_can_message_to_ascii_message(msg)) == frame
+    back = convert_ascii_message_to_can_message(encode_frame(frame, 1700000000.25))
+    assert (back.arbitration_id, bytes(back.data), back.is_extended_id) == (
+        frame.can_id,
+        frame.data,
+        frame.is_extended,
+    )
+    assert back.timestamp == pytest.approx(1700000000.25)
+
+
+def test_split_commands_keeps_the_unfinished_tail() -> None:
+    assert split_commands("< hi >< ok >< send 1") == (["< hi >", "< ok >"], "< send 1")
+    assert split_commands("junk< ok >junk") == (["< ok >"], "")
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["< send 123 2 1 >", "< send 800 0 >", "< send xyz 0 >", "< send 123 9 1 2 3 4 5 6 7 8 9 >"],
+)
+def test_malformed_send_is_rejected(bad: str) -> None:
+    with pytest.raises(WireError):
+        parse_send(bad)
+
+
+def _bus(hub: SocketcandHub, channel: str = "vcan0") -> can.BusABC:
+    host, port = hub.address
+    return can.Bus(interface="socketcand", channel=channel, host=host, port=port, tcp_tune=True)
+
+
+def _recv_all(bus: can.BusABC, n: int, timeout_s: float = 2.0) -> list[can.Message]:
+    out, deadline = [], time.monotonic() + timeout_s
+    while len(out) < n and time.monotonic() < deadline:
+        msg = bus.recv(0.1)
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+def test_hub_is_a_bus_for_python_can_clients_and_local_ports() -> None:
+    local: list[CanFrame] = []
+    with SocketcandHub() as hub:
+        port = hub.attach(local.append)
+        a, b = _bus(hub), _bus(hub)
+        try:
+            time.sleep(
+                JOIN_GRACE_S * 1.5
+            )  # listeners that have not sent yet get frames after the grace
+            for frame in FRAMES:
+                a.send(
+                    can.Message(
+                        arbitration_id=frame.can_id,
+                        data=frame.data,
+                        is_extended_id=frame.is_extended,
+                    )
+                )
+            got = _recv_all(b, len(FRAMES))
+            assert [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in got] == [
+                (f.can_id, f.data, f.is_extended) for f in FRAMES
+            ]
+            deadline = time.monotonic() + 2.0
+            while len(local) < len(FRAMES) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert local == FRAMES
+            assert a.recv(0.05) is None  # a station does not hear itself
+            port.send(CanFrame(0x701, b"\x05"))
+            for bus in (a, b):
+                (msg,) = _recv_all(bus, 1)
+                assert (msg.arbitration_id, bytes(msg.data)) == (0x701, b"\x05")
+            assert hub.client_count == 2
+        finally:
+            a.shutdown()
+            b.shutdown()
+        deadline = time.monotonic() + 2.0
+        while hub.client_count and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert hub.client_count == 0
+
+
+def test_hub_refuses_an_unknown_channel() -> None:
+    with SocketcandHub() as hub, pytest.raises(can.CanError, match="error"):
+        _bus(hub, channel="can7")
