@@ -108,6 +108,10 @@ def stream_runs(
 ) -> RunResult:
     """Apply each ``(run_number, u)`` to an open drive and log ``run,t,u,v,x,t_host``.
 
+    ``t`` is the drive's sample clock when the drive has one; otherwise the
+    host's reception time, except with ``pace="fast"`` (a lock-step drive
+    clocked once per exchange), where it is the nominal grid ``k/fs``.
+
     Parameters
     ----------
     drive : Drive
@@ -188,6 +192,9 @@ def _stream_samples(
     t_drive = np.empty(n)
     t0_host = time.monotonic()
     t0_drive = None
+    # Without a drive clock, a lock-step drive streamed fast is clocked once per
+    # exchange: its sample times are the nominal grid, not host reception times.
+    nominal = dt if (pace == "fast" and not drive.drive_clock) else None
     every = max(1, n // 200)
     for k in range(n):
         if pace == "real":
@@ -197,7 +204,7 @@ def _stream_samples(
         if t0_drive is None:
             t0_drive = fb.t_s
         t_host[k] = now - t0_host
-        t_drive[k] = fb.t_s - t0_drive
+        t_drive[k] = fb.t_s - t0_drive if nominal is None else k * nominal
         writer.append(number, t_drive[k], applied, fb.velocity, fb.position, t_host[k])
         if progress is not None and k % every == 0:
             progress(done + k + 1, total)

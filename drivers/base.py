@@ -156,6 +156,8 @@ class Drive(ABC):
 
     #: Backend-specific query keys, beyond :data:`COMMON_QUERY_KEYS`.
     query_keys: ClassVar[frozenset[str]] = frozenset()
+    #: True when ``Feedback.t_s`` is the drive's own sample clock (not host reception time).
+    drive_clock: ClassVar[bool] = False
     #: True when :meth:`exchange_block` is faster than per-cycle exchange.
     supports_block: ClassVar[bool] = False
     #: Human-readable units of command, velocity and position.

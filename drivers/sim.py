@@ -23,6 +23,7 @@ class SimDrive(Drive):
     """The simulated drive of :mod:`sim_backend`, driven in-process."""
 
     query_keys = sim_query_keys()
+    drive_clock = True
     units = {"u": "command units", "v": "units/s", "x": "units"}
 
     def __init__(self, url) -> None:

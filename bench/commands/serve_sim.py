@@ -14,6 +14,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=0, help="TCP port (0: pick a free one)")
     p.add_argument("--node", type=int, default=2, help="CANopen node id")
     p.add_argument("--unit", type=int, default=1, help="Modbus unit id")
+    p.add_argument("--baud", type=int, default=115200, help="baud rate emulated on pty links")
     p.add_argument("--map", default="servobench-sim", help="Modbus register map name or file")
     p.add_argument("--dialect", default="odrive", help="serial dialect name or file")
     p.add_argument(
@@ -30,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
         "port": str(args.port),
         "node": str(args.node),
         "unit": str(args.unit),
+        "baud": str(args.baud),
         "map": args.map,
         "dialect": args.dialect,
         "can": args.can,
