@@ -191,6 +191,7 @@ class ModbusDrive(Drive):
             client.close()
             raise DriveConnectionError(f"cannot connect to Modbus unit {self.unit} at {self.where}")
         self._client = client
+        self._t_offset_s, self._t_last_s = 0.0, None
         try:
             self._fault_code()  # the unit answers, and the map's fault register exists
             for s in self.regmap.setup:
@@ -205,8 +206,19 @@ class ModbusDrive(Drive):
             self._client.close()
             self._client = None
 
-    def _call(self, method: Callable[..., ModbusPDU], what: str, **kwargs: Any) -> ModbusPDU:
-        """Run one pymodbus request; translate every failure into a typed error."""
+    def _call(
+        self,
+        method: Callable[..., ModbusPDU],
+        what: str,
+        *,
+        lookup_fault: bool = True,
+        **kwargs: Any,
+    ) -> ModbusPDU:
+        """Run one pymodbus request; translate every failure into a typed error.
+
+        On exception 4 (device failure) the fault register is read for the error's
+        code, unless ``lookup_fault`` is false (the request was that read).
+        """
         if self._client is None:
             raise DriveConnectionError(f"Modbus link to {self.where} is closed")
         try:
@@ -222,7 +234,7 @@ class ModbusDrive(Drive):
         if response is None or response.isError():
             code = getattr(response, "exception_code", 0)
             fault = 0
-            if code == 4 and "fault" not in what:
+            if code == 4 and lookup_fault:
                 try:
                     fault = self._fault_code()
                 except DriveError:
@@ -238,18 +250,24 @@ class ModbusDrive(Drive):
         else:
             self._call(c.write_registers, what, address=reg.address, values=list(words))
 
-    def _read(self, kind: str, address: int, count: int, what: str) -> list[int]:
+    def _read(
+        self, kind: str, address: int, count: int, what: str, lookup_fault: bool = True
+    ) -> list[int]:
         c = self._client
         method = c.read_holding_registers if kind == "holding" else c.read_input_registers
         rr = self._call(
-            method, f"read {what} ({address:#06x}+{count})", address=address, count=count
+            method,
+            f"read {what} ({address:#06x}+{count})",
+            lookup_fault=lookup_fault,
+            address=address,
+            count=count,
         )
         if len(rr.registers) != count:
             raise DriveError(f"read {what}: asked {count} registers, got {len(rr.registers)}")
         return rr.registers
 
-    def _read_reg(self, reg: Register) -> list[int]:
-        return self._read(reg.kind, reg.address, reg.count, reg.name)
+    def _read_reg(self, reg: Register, lookup_fault: bool = True) -> list[int]:
+        return self._read(reg.kind, reg.address, reg.count, reg.name, lookup_fault)
 
     def _read_block(self, block: Block) -> list[int]:
         return self._read(block.kind, block.address, block.count, "/".join(block.names))
@@ -261,18 +279,24 @@ class ModbusDrive(Drive):
     def _feed(self) -> None:
         if self.regmap.watchdog_feed == "register":
             reg = self.regmap["watchdog_feed"]
-            self._feed_count = (self._feed_count + 1) & 0xFFFF
-            self._write(reg, encode_raw(reg, self._feed_count % (1 << (16 * reg.count))))
+            self._feed_count = self._feed_count % 0x7FFF + 1  # 1..32767 fits every format
+            self._write(reg, encode_raw(reg, self._feed_count))
+
+    def _cycle(self, primary: Callable[[], list[int]]) -> Feedback:
+        """Feed, read the secondary feedback blocks, then ``primary()`` (the read that clocks)."""
+        self._feed()
+        rest = [self._read_block(b) for b in self.regmap.blocks[1:]]
+        return self._decode_feedback([primary(), *rest])
 
     def _exchange(self, u: float) -> Feedback:
         m = self.regmap
         cmd, fb = m["command"], m.feedback
         words = encode(cmd, u)
-        self._feed()
-        rest = [
-            self._read_block(b) for b in m.blocks[1:]
-        ]  # before the read that clocks a lock-step drive
-        if m.fc23:
+
+        def primary() -> list[int]:
+            if not m.fc23:
+                self._write(cmd, words)
+                return self._read_block(fb)
             rr = self._call(
                 self._client.readwrite_registers,
                 f"FC23 command/{'/'.join(fb.names)}",
@@ -281,19 +305,14 @@ class ModbusDrive(Drive):
                 write_address=cmd.address,
                 values=words,
             )
-            first = rr.registers
-            if len(first) != fb.count:
-                raise DriveError(f"FC23: asked {fb.count} registers, got {len(first)}")
-        else:
-            self._write(cmd, words)
-            first = self._read_block(fb)
-        return self._decode_feedback([first, *rest])
+            if len(rr.registers) != fb.count:
+                raise DriveError(f"FC23: asked {fb.count} registers, got {len(rr.registers)}")
+            return rr.registers
+
+        return self._cycle(primary)
 
     def _read_feedback(self) -> Feedback:
-        self._feed()
-        blocks = self.regmap.blocks
-        rest = [self._read_block(b) for b in blocks[1:]]
-        return self._decode_feedback([self._read_block(blocks[0]), *rest])
+        return self._cycle(lambda: self._read_block(self.regmap.feedback))
 
     def _decode_feedback(self, block_words: list[list[int]]) -> Feedback:
         values: dict[str, list[int]] = {}
@@ -376,7 +395,7 @@ class ModbusDrive(Drive):
     # ----------------------------------------------------------------- status
     def _fault_code(self) -> int:
         reg = self.regmap["fault"]
-        return int(decode_raw(reg, self._read_reg(reg)))
+        return int(decode_raw(reg, self._read_reg(reg, lookup_fault=False)))
 
     def _reset_fault(self) -> None:
         self._control(self.regmap.control.reset_fault)

@@ -123,6 +123,20 @@ def test_drive_clock_unwraps_a_rolling_timestamp(tmp_path):
     np.testing.assert_allclose(t, np.arange(800) * 1e-3, rtol=0, atol=1e-8)
 
 
+def test_watchdog_fed_through_a_register(tmp_path):
+    path = client_map(tmp_path, 'feed = "any_request"', 'feed = "register"')
+    text = (
+        Path(path).read_text()
+        + '\n[registers.watchdog_feed]\naddress = 0x0004\nformat = "uint16"\n'
+    )
+    Path(path).write_text(text)
+    with served(path) as (_, url), open_drive(url) as drive:
+        drive.enable()
+        for _ in range(5):
+            drive.exchange(0.0)
+        assert drive._read("holding", 0x0004, 1, "watchdog_feed") == [5]  # the counter written
+
+
 def test_zlac8015d_map_is_self_consistent():
     # the sim served with the real drive's layout: setup write, write-then-read, a gapped feedback read
     with served("zlac8015d") as (device, url), open_drive(url + "&watchdog=0.4") as drive:
