@@ -304,7 +304,7 @@ class _Table:
         value = self.data[key]
         if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
             names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
-            raise self.error(key, f"{value!r} is not a {names}")
+            raise self.error(key, f"expected {names}, got {value!r}")
         return value
 
     def choice(self, key: str, options: Sequence[str], default: str) -> str:
