@@ -31,7 +31,7 @@ from collections import deque
 from enum import Enum
 from typing import NamedTuple
 
-from drivers.errors import DriveError, StateTransitionError
+from drivers.errors import DriveError, StateTransitionError, UsageError
 
 
 class CiA402State(Enum):
@@ -199,6 +199,24 @@ def next_state(current: CiA402State, controlword: int, previous: int = 0) -> CiA
     if state is S.SWITCHED_ON and command == CW_ENABLE_OPERATION:
         state = _DRIVE_EDGES[(state, command)]
     return state
+
+
+def interpolation_period(period_s: float) -> tuple[int, int]:
+    """0x60C2 ``(value, index)`` with ``period_s = value * 10**index``, the coarsest exact one.
+
+    Raises
+    ------
+    UsageError
+        When no ``value`` in 1..255 with ``index`` in -6..0 gives ``period_s``
+        to within 1 ns.
+    """
+    for index in range(0, -7, -1):
+        value = round(period_s * 10**-index)
+        if 1 <= value <= 255 and abs(value * 10.0**index - period_s) < 1e-9:
+            return value, index
+    raise UsageError(
+        f"cycle period {period_s} s has no 0x60C2 form value * 10^index (value 1..255)"
+    )
 
 
 def plan(current: CiA402State, target: CiA402State) -> list[Step]:
