@@ -85,6 +85,11 @@ def _stats(run: int, t_host: np.ndarray, t_drive: np.ndarray) -> TimingStats:
     return TimingStats(run, int(t_host.size), hm, hs, hx, dm, ds)
 
 
+def _default_pace(drive: Drive) -> str:
+    """``"fast"`` for drives that say they are not real-time (``realtime = False``), else ``"real"``."""
+    return "fast" if getattr(drive, "realtime", True) is False else "real"
+
+
 def _sleep_until(deadline: float) -> None:
     """Sleep coarsely, then spin for the last half millisecond (jitter << 1 ms)."""
     while True:
@@ -125,7 +130,8 @@ def stream_runs(
     metadata : mapping
         Extra ``# key = value`` header lines (``fs`` is always written).
     pace : {"real", "fast"}, optional
-        Default: the drive's ``pace`` URL key, else ``"real"``.
+        Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose
+        ``realtime`` attribute is False (``sim://``), else ``"real"``.
     settle_s : float
         Longest rest with zero command between runs [s].
     progress : callable(done, total), optional
@@ -137,7 +143,7 @@ def stream_runs(
     """
     if not (math.isfinite(fs_hz) and fs_hz > 0):
         raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
-    pace = pace or drive.url.get_str("pace", "real")
+    pace = pace or drive.url.get_str("pace", "") or _default_pace(drive)
     if pace not in ("real", "fast"):
         raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
     dt = 1.0 / fs_hz
