@@ -41,6 +41,10 @@ from importlib import resources
 
 import can
 import canopen
+from can.interfaces.socketcand.socketcand import (
+    SocketCanDaemonBus,
+    convert_can_message_to_ascii_message,
+)
 
 from drivers.base import Drive, DriveInfo, Feedback
 from drivers.cia402 import (
@@ -81,6 +85,8 @@ HOST_HEARTBEAT_FRACTION = 0.25
 STATE_POLL_S = 0.002
 #: Modes of operation by URL name: (0x6060 value, description).
 MODES = {"cst": (10, "cyclic synchronous torque"), "pt": (4, "profile torque")}
+#: COB-ID of the SYNC the host produces (0x1005).
+SYNC_COB_ID = 0x80
 #: COB-ID bit 31: PDO not valid.
 COB_INVALID = 0x80000000
 #: SDO aborts meaning "this drive has no such object".
@@ -127,15 +133,26 @@ class _Network(canopen.Network):
         self.taps: list[can.Listener] = []
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self.send_messages([(can_id, data)], remote)
+
+    def send_messages(self, frames: list[tuple[int, bytes]], remote: bool = False) -> None:
+        """Send frames back to back; over socketcand in one TCP write (one wake-up of the hub)."""
         if self.bus is None:
             raise DriveConnectionError("CAN bus is closed")
-        msg = can.Message(
-            arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF, is_remote_frame=remote
-        )
+        msgs = [
+            can.Message(arbitration_id=i, data=d, is_extended_id=i > 0x7FF, is_remote_frame=remote)
+            for i, d in frames
+        ]
         with self.send_lock:
-            self.bus.send(msg)
+            if isinstance(self.bus, SocketCanDaemonBus) and len(msgs) > 1:
+                # python-can sends one TCP write per frame; its own encoder, joined, is one write
+                self.bus._tcp_send("".join(map(convert_can_message_to_ascii_message, msgs)))
+            else:
+                for msg in msgs:
+                    self.bus.send(msg)
             for tap in self.taps:
-                tap.on_message_received(msg)
+                for msg in msgs:
+                    tap.on_message_received(msg)
         self.check()
 
 
@@ -301,7 +318,7 @@ class CANopen402Drive(Drive):
         self._write(0x6071, 0, 0)
         self._set_mode()
         self._map_pdos()
-        self._write(0x1005, 0, 0x80)
+        self._write(0x1005, 0, SYNC_COB_ID)
         node.nmt.send_command(NMT_OPERATIONAL)
         self._await_nmt(NMT_OPERATIONAL)
         state = self._state()
@@ -503,9 +520,9 @@ class CANopen402Drive(Drive):
         self._torque = self._permille(u)
         self._rx1 = self._rx2 = None
         self._rx_event.clear()
-        self._send_rpdo()
-        with self._sdo("SYNC"):
-            self.network.sync.transmit()
+        rpdo = struct.pack("<Hh", self._controlword, self._torque)
+        with self._sdo("RPDO1 + SYNC"):
+            self.network.send_messages([(0x200 + self.node_id, rpdo), (SYNC_COB_ID, b"")])
         if not self._rx_event.wait(self.pdo_timeout_s):
             raise DriveTimeoutError(
                 f"no TPDO from node {self.node_id} within {self.pdo_timeout_s * 1e3:.0f} ms of SYNC"

@@ -401,5 +401,9 @@ class ServedCiA402Drive:
                 ]
             finally:
                 self._frozen = None
+        send_batch = getattr(self.network, "send_messages", None)
+        if send_batch is not None:  # the hub: all TPDOs of this SYNC in one TCP write
+            send_batch(frames)
+            return
         for cob_id, payload in frames:
             self.network.send_message(cob_id, payload)

@@ -90,6 +90,12 @@ class HubNetwork(canopen.Network):
             raise DriveConfigError("the socketcand hub carries no remote frames")
         self._port.send(CanFrame(can_id, bytes(data), can_id > 0x7FF))
 
+    def send_messages(self, messages: list[tuple[int, bytes]]) -> None:
+        """Send several frames back to back, in one TCP write per client."""
+        self._port.send(
+            *(CanFrame(can_id, bytes(data), can_id > 0x7FF) for can_id, data in messages)
+        )
+
     def send_periodic(
         self, can_id: int, data: bytes, period: float, remote: bool = False
     ) -> _PeriodicSend:

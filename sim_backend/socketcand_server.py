@@ -25,7 +25,7 @@ import selectors
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from drivers.errors import DriveConnectionError
 from sim_backend.can_wire import (
@@ -61,8 +61,9 @@ class LocalPort:
         self._hub = hub
         self.receive = receive
 
-    def send(self, frame: CanFrame) -> None:
-        self._hub.broadcast(frame, source=self)
+    def send(self, *frames: CanFrame) -> None:
+        """Put ``frames`` on the bus, back to back."""
+        self._hub.broadcast(frames, source=self)
 
     def close(self) -> None:
         self._hub.detach(self)
@@ -179,10 +180,15 @@ class SocketcandHub:
         with self._lock:
             return sum(not c.closed for c in self._clients)
 
-    def broadcast(self, frame: CanFrame, source: object = None) -> None:
-        """Deliver ``frame`` to every station except ``source``."""
+    def broadcast(self, frames: Sequence[CanFrame], source: object = None) -> None:
+        """Deliver ``frames``, in order, to every station except ``source``.
+
+        Each TCP client gets them in one write (one segment, one wake-up).
+        """
+        if not frames:
+            return
         now = time.time()
-        text = encode_frame(frame, now)
+        text = "".join(encode_frame(frame, now) for frame in frames)
         with self._lock:
             clients = list(self._clients)
             ports = list(self._ports)
@@ -195,7 +201,8 @@ class SocketcandHub:
                 client.drop()
         for port in ports:
             if port is not source:
-                port.receive(frame)
+                for frame in frames:
+                    port.receive(frame)
 
     # ------------------------------------------------------------ the thread
     def _run(self) -> None:
@@ -256,14 +263,18 @@ class SocketcandHub:
         commands, client.pending = split_commands(client.pending + data.decode("ascii", "replace"))
         if len(client.pending) > MAX_PENDING_CHARS:
             client.pending = ""
-        for command in commands:
-            try:
-                self._handle(client, command)
-            except OSError:
-                client.drop()
-                return
+        frames: list[CanFrame] = []
+        try:
+            for command in commands:
+                frame = self._handle(client, command)
+                if frame is not None:
+                    frames.append(frame)
+            self.broadcast(frames, source=client)
+        except OSError:
+            client.drop()
 
-    def _handle(self, client: _Client, command: str) -> None:
+    def _handle(self, client: _Client, command: str) -> CanFrame | None:
+        """Answer one command; return the frame of a ``< send >`` for the caller to forward."""
         words = command_words(command)
         verb = words[0] if words else ""
         if verb == "send" and client.state in ("open", "raw"):
@@ -271,10 +282,10 @@ class SocketcandHub:
                 frame = parse_send(command)
             except WireError as err:
                 client.send_text(f"< error {err} >")
-                return
+                return None
             client.has_sent = True
-            self.broadcast(frame, source=client)
-        elif verb == "open" and client.state == "hello":
+            return frame
+        if verb == "open" and client.state == "hello":
             if words[1:] == [self.channel]:
                 client.state = "open"
                 client.send_text("< ok >")
@@ -288,3 +299,4 @@ class SocketcandHub:
             client.send_text("< echo >")
         else:
             client.send_text(f"< error unsupported command {command!r} >")
+        return None
