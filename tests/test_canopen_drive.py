@@ -332,3 +332,20 @@ def test_link_options_and_announced_urls(link: str, kwargs: dict | None, url: st
 def test_bad_links_are_refused(link: str) -> None:
     with pytest.raises(DriveConfigError):
         serve_canopen.link_bus_kwargs(link)
+
+
+def test_second_served_drive_joins_the_hub() -> None:
+    with served() as (dev2, url2):
+        q = parse_drive_url(url2)
+        join = f"socketcand://{q.get_str('host')}:{q.get_int('port')}"
+        with served(can=join, node="3") as (dev3, url3):
+            assert url3 == url2.replace("node=2", "node=3")
+            with open_drive(url2) as drive2, open_drive(url3) as drive3:
+                assert drive2.info().state == drive3.info().state == "SWITCH ON DISABLED"
+                drive3.set_cycle(0.001)
+                drive3.enable()
+                u = square(60, period=20)
+                rows = [drive3.exchange(uk)[0].velocity for uk in u]
+            v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, fc_pos=0.5, fc_neg=0.4))
+            np.testing.assert_allclose(rows, v_ref, atol=1e-6)
+            assert dev2.state is PowerState.DISABLED  # node 2 was not touched
