@@ -232,6 +232,7 @@ class CANopen402Drive(Drive):
         self.node: canopen.RemoteNode | None = None
         self.torque_actual = 0.0  #: last 0x6077 [rated torques]
         self._heartbeat: _HeartbeatProducer | None = None
+        self._consumer_armed = False
         self._controlword = 0
         self._torque = 0  # 0x6071 [per-mille]
         self._max_permille = 0x7FFF
@@ -247,7 +248,7 @@ class CANopen402Drive(Drive):
 
     # -------------------------------------------------------------- SDO layer
     @contextmanager
-    def _sdo(self, what: str, error: type[DriveError] = DriveConfigError) -> Iterator[None]:
+    def _translated(self, what: str, error: type[DriveError] = DriveConfigError) -> Iterator[None]:
         try:
             yield
         except canopen.SdoAbortedError as err:
@@ -268,13 +269,13 @@ class CANopen402Drive(Drive):
         return var
 
     def _read(self, index: int, sub: int = 0):
-        with self._sdo(f"read 0x{index:04X}:{sub}"):
+        with self._translated(f"read 0x{index:04X}:{sub}"):
             return self._var(index, sub).raw
 
     def _write(
         self, index: int, sub: int, value, error: type[DriveError] = DriveConfigError
     ) -> None:
-        with self._sdo(f"write 0x{index:04X}:{sub} = {value!r}", error):
+        with self._translated(f"write 0x{index:04X}:{sub} = {value!r}", error):
             self._var(index, sub).raw = value
 
     # -------------------------------------------------------------- lifecycle
@@ -391,13 +392,17 @@ class CANopen402Drive(Drive):
             self._heartbeat = _HeartbeatProducer(self.network, self.host_node, period_s)
             self._heartbeat.start()
         self._write(0x1016, 1, self.host_node << 16 | time_ms)
+        self._consumer_armed = True
         self._write(0x6007, 0, 1)
 
     def _close(self) -> None:
         try:
-            if self._heartbeat is not None and self.node is not None:
+            if self._consumer_armed and self.node is not None:
+                self._consumer_armed = False
                 self._write(0x1016, 1, 0)  # a clean exit is no heartbeat loss
-                self.node.nmt.send_command(NMT_PRE_OPERATIONAL)
+            if self.node is not None:
+                with self._translated("NMT pre-operational"):
+                    self.node.nmt.send_command(NMT_PRE_OPERATIONAL)
         finally:
             self._disconnect()
 
@@ -498,7 +503,7 @@ class CANopen402Drive(Drive):
         return max(-self._max_permille, min(self._max_permille, round(u * 1000.0)))
 
     def _send_rpdo(self) -> None:
-        with self._sdo("RPDO1"):
+        with self._translated("RPDO1"):
             self.network.send_message(
                 0x200 + self.node_id, struct.pack("<Hh", self._controlword, self._torque)
             )
@@ -521,7 +526,7 @@ class CANopen402Drive(Drive):
         self._rx1 = self._rx2 = None
         self._rx_event.clear()
         rpdo = struct.pack("<Hh", self._controlword, self._torque)
-        with self._sdo("RPDO1 + SYNC"):
+        with self._translated("RPDO1 + SYNC"):
             self.network.send_messages([(0x200 + self.node_id, rpdo), (SYNC_COB_ID, b"")])
         if not self._rx_event.wait(self.pdo_timeout_s):
             raise DriveTimeoutError(

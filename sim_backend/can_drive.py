@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import struct
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import canopen
 from canopen.objectdictionary import ODVariable
@@ -40,7 +40,7 @@ from canopen.sdo import SdoAbortedError
 from drivers.cia402 import CiA402State, encode_statusword, next_state
 from drivers.errors import DriveConfigError
 from sim_backend import can_pdo
-from sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from sim_backend.device import GENERIC_FAULT, DeviceSample, PowerState, SimulatedDevice
 
 S = CiA402State
 
@@ -51,6 +51,8 @@ VEL_SCALE = 1e-6
 SUPPORTED_MODES = {4: "profile torque", 10: "cyclic synchronous torque"}
 #: 0x6007 values the simulated drive implements: 0 no action, 1 fault.
 ABORT_OPTIONS = (0, 1)
+#: ``--fault KIND@N`` kinds, N counting SYNCs from 1.
+SYNC_FAULTS = frozenset({"fault", "silence"})
 #: SDO abort: attempt to write a read only object.
 ABORT_READ_ONLY = 0x06010002
 #: EMCY: PDO not processed due to length error.
@@ -67,28 +69,38 @@ _I32 = (-(2**31), 2**31 - 1)
 class FaultInjection:
     """Misbehaviour of the served drive, from ``serve-sim --fault`` specs.
 
-    ``reject_mode=N``: SDO abort when 0x6060 is set to N.
-    ``ignore_mode=N``: 0x6060 = N is accepted but 0x6061 does not follow.
+    ``fault@N``: the drive faults (code 0x1000) at SYNC ``N`` (counted from 1),
+    before sampling. ``silence@N``: the TPDOs of SYNC ``N`` are not sent.
+    ``reject_mode=M``: SDO abort when 0x6060 is set to ``M``.
+    ``ignore_mode=M``: 0x6060 = ``M`` is accepted but 0x6061 does not follow.
     """
 
+    at_sync: Mapping[int, str] = field(default_factory=dict)
     reject_modes: frozenset[int] = frozenset()
     ignore_modes: frozenset[int] = frozenset()
 
     @classmethod
     def parse(cls, specs: str) -> FaultInjection:
-        """Parse ``"reject_mode=10;ignore_mode=4"`` (``;``-separated, empty for none)."""
-        found: dict[str, set[int]] = {"reject_mode": set(), "ignore_mode": set()}
+        """Parse ``"fault@50;silence@20;reject_mode=10"`` (``;``-separated, empty for none)."""
+        at_sync: dict[int, str] = {}
+        modes: dict[str, set[int]] = {"reject_mode": set(), "ignore_mode": set()}
         for spec in filter(None, (s.strip() for s in specs.split(";"))):
-            name, _, value = spec.partition("=")
-            if name not in found:
-                raise DriveConfigError(
-                    f"canopen serve-sim does not know fault {spec!r} (known: reject_mode=N, ignore_mode=N)"
-                )
+            kind, at, count = spec.partition("@")
+            name, eq, mode = spec.partition("=")
             try:
-                found[name].add(int(value, 0))
+                if at and kind in SYNC_FAULTS and int(count) >= 1:
+                    at_sync[int(count)] = kind
+                    continue
+                if eq and name in modes:
+                    modes[name].add(int(mode, 0))
+                    continue
             except ValueError:
-                raise DriveConfigError(f"fault {spec!r} needs an integer mode") from None
-        return cls(frozenset(found["reject_mode"]), frozenset(found["ignore_mode"]))
+                pass  # reported below
+            raise DriveConfigError(
+                f"canopen serve-sim: bad --fault {spec!r} "
+                "(use fault@N, silence@N with N >= 1, reject_mode=M or ignore_mode=M)"
+            )
+        return cls(at_sync, frozenset(modes["reject_mode"]), frozenset(modes["ignore_mode"]))
 
 
 def _clamp(value: float, bounds: tuple[int, int]) -> int:
@@ -311,6 +323,8 @@ class ServedCiA402Drive:
                 permille = min(round(self._initial_max_command * 1000.0), 0xFFFF)
                 self.node.data_store.setdefault(0x6072, {})[0] = struct.pack("<H", permille)
             self.device.max_command = struct.unpack("<H", self.node.get_data(0x6072, 0))[0] / 1000.0
+            cycle_us = round(self.device.cycle_s * 1e6)  # 0x1006 tells the device's cycle
+            self.node.data_store.setdefault(0x1006, {})[0] = struct.pack("<I", cycle_us)
             self._abort_option = struct.unpack("<h", self.node.get_data(0x6007, 0))[0]
             self._set_consumer(int.from_bytes(self.node.get_data(0x1016, 1), "little"))
             self._mode = struct.unpack("<b", self.node.get_data(0x6060, 0))[0]
@@ -390,8 +404,11 @@ class ServedCiA402Drive:
             if self._nmt != NMT_OPERATIONAL:
                 return
             self._rebuild_pdos()
-            self._sync_device()
             self._sync_count += 1
+            injected = self.faults.at_sync.get(self._sync_count)
+            if injected == "fault":
+                self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self._sync_count}")
+            self._sync_device()
             self._frozen = self.device.step()
             try:
                 frames = [
@@ -401,6 +418,8 @@ class ServedCiA402Drive:
                 ]
             finally:
                 self._frozen = None
+            if injected == "silence":
+                return
         send_batch = getattr(self.network, "send_messages", None)
         if send_batch is not None:  # the hub: all TPDOs of this SYNC in one TCP write
             send_batch(frames)

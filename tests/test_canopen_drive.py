@@ -349,3 +349,24 @@ def test_second_served_drive_joins_the_hub() -> None:
             v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, fc_pos=0.5, fc_neg=0.4))
             np.testing.assert_allclose(rows, v_ref, atol=1e-6)
             assert dev2.state is PowerState.DISABLED  # node 2 was not touched
+
+
+def test_injected_fault_at_a_sync() -> None:
+    with served(fault="fault@20") as (device, url), open_drive(url) as drive:
+        drive.enable()
+        for _ in range(19):
+            drive.exchange(0.6)
+        with pytest.raises(DriveFaultError, match="0x1000") as err:
+            drive.exchange(0.6)
+        assert err.value.code == 0x1000
+        assert device.command == 0.0
+
+
+def test_silent_sync_times_out_then_the_cycle_recovers() -> None:
+    with served(fault="silence@5") as (_, url), open_drive(url + "&pdo_timeout=0.05") as drive:
+        drive.enable()
+        t = [drive.exchange(0.0)[0].t_s for _ in range(4)]
+        with pytest.raises(DriveTimeoutError, match="no TPDO"):
+            drive.exchange(0.0)
+        t.append(drive.exchange(0.0)[0].t_s)
+        assert t == pytest.approx([0.0, 0.001, 0.002, 0.003, 0.005])  # SYNC 5 clocked, unreported
