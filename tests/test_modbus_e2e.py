@@ -35,12 +35,14 @@ def square_wave(n: int, half_period: int = 60, amplitude: float = 1.0) -> np.nda
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_square_wave_matches_the_plant(transport):
     u = square_wave(CYCLES[transport])
-    with ServedSim(transport, SIM_URL) as served, open_drive(served.url) as drive:
+    with ServedSim(transport, SIM_URL) as served:
         assert served.url.startswith(transport.replace("-", "+") + "://")
-        drive.set_cycle(0.001)
-        drive.enable()
-        rows = [drive.exchange(float(uk))[0] for uk in u]
-        info = drive.info()
+        with open_drive(served.url) as drive:
+            drive.set_cycle(0.001)
+            drive.enable()
+            rows = [drive.exchange(float(uk))[0] for uk in u]
+            info = drive.info()
+        assert served.stop() == 0  # SIGINT: server, pty link and sockets shut down cleanly
     v_ref, x_ref = simulate(u, 1000.0, PARAMS)
     v = np.array([r.velocity for r in rows])
     x = np.array([r.position for r in rows])
