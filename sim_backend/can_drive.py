@@ -146,8 +146,6 @@ class ServedCiA402Drive:
         self._consumer_s: float | None = None
         self._abort_option = 1
         self._initial_max_command = device.max_command
-        #: EMCY codes sent, oldest first (0 is an error reset).
-        self.emcy_sent: list[int] = []
         node.add_read_callback(self._on_read)
         node.add_write_callback(self._on_write)
 
@@ -178,12 +176,6 @@ class ServedCiA402Drive:
     def close(self) -> None:
         self.node.nmt.stop_heartbeat()
 
-    @property
-    def state(self) -> CiA402State:
-        with self._lock:
-            self._sync_device()
-            return self._state
-
     # ------------------------------------------------------------- 402 states
     def _sync_device(self) -> None:
         """Follow what the device did by itself (fault, watchdog, external disable)."""
@@ -208,7 +200,6 @@ class ServedCiA402Drive:
         return 0x01 | comm
 
     def _send_emcy(self, code: int, register: int) -> None:
-        self.emcy_sent.append(code)
         if self.network is not None:
             self.node.emcy.send(code, register)
 

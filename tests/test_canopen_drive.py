@@ -370,3 +370,20 @@ def test_silent_sync_times_out_then_the_cycle_recovers() -> None:
             drive.exchange(0.0)
         t.append(drive.exchange(0.0)[0].t_s)
         assert t == pytest.approx([0.0, 0.001, 0.002, 0.003, 0.005])  # SYNC 5 clocked, unreported
+
+
+def test_nmt_reset_node_reboots_the_served_drive() -> None:
+    with served() as (device, url), open_drive(url) as drive, station(url) as node:
+        drive.enable()
+        drive.exchange(0.5)
+        seen: list[int] = []
+        node.nmt.add_heartbeat_callback(seen.append)
+        node.nmt.send_command(0x81)  # reset node
+        deadline = time.monotonic() + 1.0
+        while 0 not in seen and time.monotonic() < deadline:  # 0: the boot-up message
+            time.sleep(0.005)
+        assert 0 in seen
+        quiet()
+        assert device.state is PowerState.DISABLED
+        assert node.sdo[0x1A00][1].raw == 0x60410010  # mapping back to the EDS default
+        assert drive.info().state == "SWITCH ON DISABLED"
