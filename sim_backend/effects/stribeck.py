@@ -1,0 +1,114 @@
+"""``stribeck`` -- friction that is higher at low speed than the Coulomb level.
+
+Model: in motion the friction magnitude in direction ``d`` is
+``fc_d + (fs - fc_d) * exp(-(|v| / vs)^2)``; at rest the axis breaks away at
+``fs``. ``fs`` [command units] is the static level (>= both Coulomb levels),
+``vs`` [units/s] the Stribeck velocity. The friction depends on velocity
+inside an interval, so the integrator sub-steps (about ``vs / 4`` of velocity
+change per sub-step).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sim_backend.effects.spec import (
+    EffectSpec,
+    ParamSpec,
+    Screening,
+    ScreenInput,
+    Terms,
+    base_columns,
+    base_fit,
+    explained,
+    regress,
+    target,
+)
+
+EFFECT = EffectSpec(
+    name="stribeck",
+    summary="friction rising towards a static level at low speed",
+    params=(
+        ParamSpec("fs", "stribeck_fs", "command units", "static friction level", 0.0, default=None),
+        ParamSpec(
+            "vs", "stribeck_vs", "units/s", "Stribeck velocity", 0.0, open_lower=True, default=None
+        ),
+    ),
+    signature="the residual force is largest just after each start and reversal and decays "
+    "with speed over a characteristic velocity: friction falls from a static to the Coulomb level",
+    fit="equation error with a sign(v)*exp(-(v/vs)^2) regressor over a grid of vs, then "
+    "simulation error on fs and vs together with the base",
+)
+
+
+def check(p, plant) -> None:
+    from drivers.errors import UsageError
+
+    if p["fs"] < max(plant.fc_pos, plant.fc_neg):
+        raise UsageError(
+            f"stribeck_fs = {p['fs']:g} must be at least the Coulomb levels "
+            f"({plant.fc_pos:g}, {plant.fc_neg:g})"
+        )
+
+
+def contribute(p, plant, terms: Terms) -> None:
+    fs, vs = float(p["fs"]), float(p["vs"])
+    dp, dn = fs - plant.fc_pos, fs - plant.fc_neg
+    inv = 1.0 / vs
+    exp = math.exp
+
+    def excess(speed: float, direction: int) -> float:
+        z = speed * inv
+        return (dp if direction > 0 else dn) * exp(-z * z)
+
+    terms.friction_excess = excess
+    terms.static_pos = max(terms.static_pos, fs)
+    terms.static_neg = max(terms.static_neg, fs)
+    drop = max(dp, dn, 1e-12)
+    terms.substep_s = min(terms.substep_s, 0.25 * plant.M * vs / drop)
+
+
+def screen(ctx: ScreenInput) -> Screening:
+    m = ctx.moving
+    v = ctx.cat("v_f")[m]
+    y = target(ctx)
+    cols = base_columns(ctx)
+    coef0, sse0 = base_fit(ctx)
+    speed = np.abs(v)
+    scale = float(np.sqrt(np.mean(v * v))) or 1.0
+    best = None
+    for vs in scale * np.geomspace(0.01, 1.0, 40):
+        col = np.sign(v) * np.exp(-((speed / vs) ** 2))
+        coef, sse = regress([*cols, col], y)
+        if coef[4] > 0 and (best is None or sse < best[0]):
+            best = (sse, vs, coef)
+    bounds = {
+        "fs": (0.0, 10.0 * max(abs(coef0[2]), abs(coef0[3]), 1e-9)),
+        "vs": (1e-3 * scale, 3 * scale),
+    }
+    if best is None:
+        fc = max(coef0[2], coef0[3], 0.0)
+        return Screening(
+            0.0, {"fs": 1.5 * fc, "vs": 0.1 * scale}, bounds, "no friction excess at low speed"
+        )
+    sse, vs, coef = best
+    fcp, fcn = max(coef[2], 0.0), max(coef[3], 0.0)
+    fs = 0.5 * (fcp + fcn) + coef[4]
+    fs = max(fs, fcp, fcn)
+    bounds["fs"] = (0.0, max(bounds["fs"][1], 3 * fs))
+    evidence = (
+        f"friction rises at low speed: the force residual follows a Stribeck curve with "
+        f"static level {fs:.3g} over vs = {vs:.3g} units/s "
+        f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
+    )
+    base = {"M": coef[0], "B": coef[1], "fc_pos": fcp, "fc_neg": fcn}
+    return Screening(
+        explained(sse0, sse, 2, y.size), {"fs": fs, "vs": vs}, bounds, evidence, base=base
+    )
+
+
+def project(p, base):
+    """Keep the static level at or above both Coulomb levels (for the refit)."""
+    return {**p, "fs": max(p["fs"], base["fc_pos"], base["fc_neg"])}

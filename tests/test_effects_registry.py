@@ -1,0 +1,99 @@
+"""The effect library's contract: names, sim:// keys, units, validation, URL round trip."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+from drivers.errors import DriveConfigError, UsageError
+from sim_backend import effects
+from sim_backend.effects.spec import EffectSpec, Screening
+from sim_backend.simurl import DEVICE_KEYS, PLANT_KEYS, plant_from_url
+
+LIBRARY = (
+    "stribeck",
+    "viscous_asymmetry",
+    "offset",
+    "time_delay",
+    "resonance",
+    "cogging",
+    "saturation",
+    "backlash",
+    "deadzone",
+    "quantization",
+)
+
+
+def test_library_names_are_the_contract():
+    assert set(effects.names()) == set(LIBRARY)
+
+
+@pytest.mark.parametrize("name", LIBRARY)
+def test_every_module_declares_spec_term_and_screening(name):
+    mod = importlib.import_module(effects.EFFECT_MODULES[name])
+    assert isinstance(mod.EFFECT, EffectSpec) and mod.EFFECT.name == name
+    assert callable(mod.contribute) and callable(mod.screen)
+    assert mod.EFFECT.signature and mod.EFFECT.fit and mod.__doc__
+    for p in mod.EFFECT.params:
+        assert p.unit and p.doc and p.key
+
+
+def test_keys_are_unique_and_do_not_shadow_plant_or_device_keys():
+    keys = [p.key for n in LIBRARY for p in effects.spec(n).params]
+    assert len(keys) == len(set(keys))
+    assert not set(keys) & (PLANT_KEYS | DEVICE_KEYS)
+    assert effects.query_keys() == frozenset(keys)
+
+
+def test_query_groups_keys_and_fills_defaults():
+    got = effects.effects_from_query({"res_wn": 200.0, "stribeck_vs": 0.05, "stribeck_fs": 0.8})
+    assert list(got) == ["stribeck", "resonance"]  # library order
+    assert got["stribeck"] == {"fs": 0.8, "vs": 0.05}
+    assert got["resonance"] == {"wn": 200.0, "zeta": 0.1, "ratio": 0.5}
+
+
+@pytest.mark.parametrize(
+    "query, message",
+    [
+        ({"stribeck_fs": 0.8}, "needs stribeck_vs"),
+        ({"stribeck_fs": 0.8, "stribeck_vs": 0.0}, "out of range"),
+        ({"sat": -1.0}, "out of range"),
+        ({"res_wn": 100.0, "res_ratio": 1.5}, "out of range"),
+        ({"wobble": 1.0}, "unknown effect keys: wobble"),
+    ],
+)
+def test_bad_effect_values_are_usage_errors(query, message):
+    with pytest.raises(UsageError, match=message):
+        effects.effects_from_query(query)
+
+
+def test_sim_url_carries_effects_and_rejects_bad_ones_as_config_errors():
+    p = plant_from_url("sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&stribeck_fs=0.8&stribeck_vs=0.05")
+    assert p.effects == {"stribeck": {"fs": 0.8, "vs": 0.05}}
+    with pytest.raises(DriveConfigError, match="stribeck"):
+        plant_from_url("sim://?stribeck_fs=0.8")
+    with pytest.raises(DriveConfigError, match="not a number"):
+        plant_from_url("sim://?delay=soon")
+
+
+def test_to_query_inverts_effects_from_query():
+    query = {"cog_amp": 0.2, "cog_period": 0.1, "cog_phase": 0.3, "delay": 0.004}
+    assert effects.to_query(effects.effects_from_query(query)) == query
+
+
+def test_cross_checks_against_the_base_plant_happen_when_the_model_is_built():
+    from sim_backend.plant import Plant
+
+    with pytest.raises(UsageError, match="at least the Coulomb"):
+        Plant(plant_from_url("sim://?fc_pos=0.5&stribeck_fs=0.3&stribeck_vs=0.1"))
+    with pytest.raises(UsageError, match="below B"):
+        Plant(plant_from_url("sim://?B=1&visc_asym=1.2"))
+    with pytest.raises(UsageError, match="cannot be combined"):
+        Plant(plant_from_url("sim://?res_wn=100&backlash=0.01"))
+
+
+def test_screening_result_is_frozen():
+    s = Screening(0.1, {"a": 1.0}, {"a": (0.0, 2.0)}, "found it")
+    with pytest.raises(AttributeError):
+        s.score = 0.5  # type: ignore[misc]
