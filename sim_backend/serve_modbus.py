@@ -21,7 +21,8 @@ unknown control value or a partial write of a 32-bit value answers exception 3.
 Fault injection (``--fault KIND@N``, repeatable; ``N`` counts clocking reads
 from 1): ``fault@N`` faults the drive (code 0x1000) just before cycle ``N`` is
 sampled, ``busy@N`` answers that read with exception 6 (server device busy)
-without clocking.
+and ``silence@N`` does not answer it at all (the host times out); neither
+clocks the drive.
 
 RTU runs on a :class:`~sim_backend.pty_link.PtyLink` that emulates the byte
 time of the configured baud rate, so RTU timing measured against the served
@@ -36,6 +37,7 @@ from collections.abc import Callable, Mapping
 from urllib.parse import quote
 
 from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -58,7 +60,7 @@ DEFAULT_MAP = "servobench-sim"
 DEFAULT_BAUD = 115200
 #: How often the serving loop looks at the stop event [s].
 STOP_POLL_S = 0.05
-FAULT_KINDS = frozenset({"fault", "busy"})
+FAULT_KINDS = frozenset({"fault", "busy", "silence"})
 #: Modbus RTU inter-frame silence above 19200 baud, fixed by the serial-line spec [s].
 T35_FAST_S = 1.75e-3
 
@@ -201,6 +203,8 @@ class RegisterBridge:
             injected = self.faults.get(self.cycles)
             if injected == "busy":
                 return ExcCodes.DEVICE_BUSY
+            if injected == "silence":  # pymodbus drops the answer (ignore_missing_devices)
+                raise NoSuchIdException(f"--fault silence@{self.cycles}")
             if injected == "fault":
                 self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self.cycles}")
         sample = self.device.step() if clocked else self.device.sample()
@@ -249,14 +253,18 @@ async def _serve(
     link: PtyLink | None = None
     if transport == "modbus-tcp":
         host = options.get("host") or "127.0.0.1"
-        server = ModbusTcpServer(simdevice, address=(host, int(options.get("port") or 0)))
+        server = ModbusTcpServer(
+            simdevice, address=(host, int(options.get("port") or 0)), ignore_missing_devices=True
+        )
         await server.serve_forever(background=True)
         port = server.transport.sockets[0].getsockname()[1]
         url = f"modbus+tcp://{host}:{port}?{_url_tail(unit, map_name)}"
     elif transport == "modbus-rtu":
         baud = int(options.get("baud") or DEFAULT_BAUD)
         link = PtyLink(baud=baud, frame_gap_s=rtu_frame_gap_s(baud)).start()
-        server = ModbusSerialServer(simdevice, port=link.b_path, baudrate=baud)
+        server = ModbusSerialServer(
+            simdevice, port=link.b_path, baudrate=baud, ignore_missing_devices=True
+        )
         await server.serve_forever(background=True)
         url = f"modbus+rtu://{link.a_path}?baud={baud}&{_url_tail(unit, map_name)}"
     else:

@@ -216,6 +216,19 @@ def test_injected_faults():
         assert device.plant.state.x > 0  # cycles 1, 2, 4 ran
 
 
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
+def test_injected_silence_is_a_timeout_and_the_link_recovers(transport):
+    with (
+        served(transport=transport, fault="silence@2") as (_, url),
+        open_drive(url + "&timeout=0.1") as drive,
+    ):
+        drive.enable()
+        t0 = drive.exchange(1.0)[0].t_s
+        with pytest.raises(DriveTimeoutError, match="no answer"):
+            drive.exchange(1.0)
+        assert drive.exchange(1.0)[0].t_s == pytest.approx(t0 + 1e-3)  # not clocked
+
+
 @pytest.mark.parametrize("spec", ["fault", "fault@0", "garble@3", "busy@x"])
 def test_bad_fault_specs(spec):
     with pytest.raises(DriveConfigError, match="bad --fault"):
