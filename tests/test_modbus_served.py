@@ -109,6 +109,12 @@ def test_fc23_and_write_then_read_give_the_same_cycles(tmp_path, fc23):
     np.testing.assert_allclose(v, simulate(u, 500.0, PARAMS)[0], rtol=0, atol=1e-6)
 
 
+def test_read_clocks_the_lock_step_drive():
+    with served() as (_, url), open_drive(url) as drive:
+        drive.set_cycle(0.001)
+        assert [drive.read().t_s for _ in range(3)] == pytest.approx([0.0, 1e-3, 2e-3])
+
+
 def test_drive_clock_unwraps_a_rolling_timestamp(tmp_path):
     # a 16-bit timestamp of 10 us rolls over every 0.65536 s: 800 cycles of 1 ms cross it;
     # it now sits in a feedback read of its own, which must still see t_k
