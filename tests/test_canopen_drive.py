@@ -69,9 +69,8 @@ def served(sim_url: str = SIM, **options: str) -> Iterator[tuple[SimulatedDevice
 def station(url: str) -> Iterator[canopen.RemoteNode]:
     """A second host on the same bus: a plain canopen RemoteNode of the served node.
 
-    It shares the default SDO channel with the driver, as two CANopen clients
-    would: each sees the other's SDO responses, so the test lets the bus go
-    :func:`quiet` before switching between them.
+    For NMT, or SDO while no driver is open: two SDO clients on the default
+    channel see each other's responses, as on a real bus.
     """
     q = parse_drive_url(url)
     network = canopen.Network()
@@ -91,17 +90,13 @@ def station(url: str) -> Iterator[canopen.RemoteNode]:
         network.disconnect()
 
 
-def quiet() -> None:
-    """Let the other SDO client's last responses arrive (and be discarded)."""
-    time.sleep(0.05)
-
-
 def square(n: int, period: int = 100, amp: float = 1.0) -> np.ndarray:
     return np.where((np.arange(n) // (period // 2)) % 2 == 0, amp, -amp)
 
 
 def test_open_reports_identity_and_sets_up_cycle() -> None:
-    with served() as (device, url), open_drive(url) as drive, station(url) as node:
+    with served() as (device, url), open_drive(url) as drive:
+        node = drive.node  # the driver's own canopen RemoteNode, for raw SDO checks
         info = drive.info()
         assert info.transport == "canopen"
         assert info.state == "SWITCH ON DISABLED"
@@ -109,7 +104,6 @@ def test_open_reports_identity_and_sets_up_cycle() -> None:
         assert info.firmware == "0.1.0"
         assert info.extra["mode"] == 10
         drive.set_cycle(0.0005)
-        quiet()
         assert device.cycle_s == pytest.approx(0.0005)
         assert node.sdo[0x1006].raw == 500
         assert (node.sdo[0x60C2][1].raw, node.sdo[0x60C2][2].raw) == (5, -4)
@@ -193,11 +187,11 @@ def test_leaving_operational_quick_stops_and_exchange_times_out() -> None:
 
 
 def test_drive_clamps_to_max_torque() -> None:
-    with served() as (device, url), open_drive(url + "&max_u=0.5") as drive, station(url) as node:
+    with served() as (device, url), open_drive(url + "&max_u=0.5") as drive:
+        node = drive.node
         assert node.sdo[0x6072].raw == 500
         assert device.max_command == pytest.approx(0.5)
         node.sdo[0x6072].raw = 300
-        quiet()
         drive.enable()
         drive.exchange(0.5)
         assert device.command == pytest.approx(0.3)
@@ -383,7 +377,6 @@ def test_nmt_reset_node_reboots_the_served_drive() -> None:
         while 0 not in seen and time.monotonic() < deadline:  # 0: the boot-up message
             time.sleep(0.005)
         assert 0 in seen
-        quiet()
         assert device.state is PowerState.DISABLED
-        assert node.sdo[0x1A00][1].raw == 0x60410010  # mapping back to the EDS default
+        assert drive.node.sdo[0x1A00][1].raw == 0x60410010  # mapping back to the EDS default
         assert drive.info().state == "SWITCH ON DISABLED"
