@@ -25,7 +25,15 @@ the cycle in OPERATIONAL: :meth:`exchange` sends RPDO1 (controlword, target
 torque) and a SYNC, and waits for the SYNC's TPDO1 (statusword, torque
 actual, 0x1013) and TPDO2 (velocity 0x606C, position 0x6064). The CiA 402
 state machine is walked with :func:`drivers.cia402.plan`, each step under a
-deadline; failures raise, never log.
+deadline; failures raise, never log. :meth:`read` uses SDO and sends no
+SYNC, so it does not clock a lock-step simulated drive. Position (0x6064)
+and the time stamp (0x1013) are unwrapped across their 32-bit roll-over.
+
+Watchdog: the host produces heartbeats every ``watchdog / 4`` (node
+``host_node``); the drive consumes them (0x1016, time ``watchdog``) and
+faults (abort connection option 0x6007 = 1) when they stop, e.g. when the
+host process dies. Opening leaves the drive disabled (a drive found enabled
+is switched off); closing disarms the consumer.
 """
 
 from __future__ import annotations
