@@ -1,0 +1,27 @@
+"""Field commissioning: from "plugged in" to "identified, compensated, documented".
+
+The step sequence (:mod:`bench.commission.sequence`) checks the link and the
+drive, confirms the limits, bump-tests the axis, runs SIDBE with its
+verification loop and the diagnosis, designs friction feed-forward and a
+velocity-loop PI from the identified model, checks both in simulation and
+writes the commissioning record (``model.json``, the log, ``report.html``,
+``commission.mat``).
+
+Modules
+-------
+errors       CommissionRefused
+config       the ``bench.toml`` commissioning configuration
+limits       confirm the safety limits and put them into the drive URL
+checks       link, identity, state and fault checks
+bump         the bump test: does it move, in the right direction, with sane feedback
+design       friction feed-forward and PI design (pure)
+closedloop   velocity-loop simulation of the design on the identified plant
+integration  the thin adapter to identification, SIDBE and diagnose
+record       model.json, .mat export, the commissioning summary
+report       the self-contained HTML report
+sequence     the steps, Ctrl-C safe
+"""
+
+from bench.commission.errors import CommissionRefused
+
+__all__ = ["CommissionRefused"]

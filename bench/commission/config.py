@@ -1,0 +1,251 @@
+"""The commissioning configuration, ``bench.toml``.
+
+Every table and key is optional except where a step needs it (``[limits]``
+under ``--yes``); unknown tables or keys are an error, never ignored, so a
+misspelled limit cannot pass silently. See ``examples/bench.toml`` for the
+documented layout::
+
+    [limits]        max_u, max_v, xmin, xmax      (drive units; +-inf for unlimited travel)
+    [bump]          fractions, pulse_s, rest_s, fs_hz, max_speed_fraction, position_tolerance
+    [sidbe]         passed to the SIDBE procedure as its options
+    [diagnose]      passed to the diagnosis
+    [design]        phase_margin_deg, delay_cycles, pi_zero_ratio, max_bandwidth_hz, fs_hz
+    [compensation]  ref_amplitude, ref_frequency_hz, periods, sign_band
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import UsageError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+#: The four limit keys, as in the drive URL query.
+LIMIT_KEYS = ("max_u", "max_v", "xmin", "xmax")
+
+
+@dataclass(frozen=True)
+class LimitSettings:
+    """Limits as written in the configuration; ``None`` where absent.
+
+    Attributes
+    ----------
+    max_u : float or None
+        Largest ``|command|`` [command units] (torque/current).
+    max_v : float or None
+        Largest ``|velocity|`` [velocity units/s].
+    xmin, xmax : float or None
+        Allowed travel [position units]; ``-inf``/``inf`` for unlimited (rotary) travel.
+    """
+
+    max_u: float | None = None
+    max_v: float | None = None
+    xmin: float | None = None
+    xmax: float | None = None
+
+    def missing(self) -> list[str]:
+        """Names of the limits not given."""
+        return [k for k in LIMIT_KEYS if getattr(self, k) is None]
+
+
+@dataclass(frozen=True)
+class BumpSettings:
+    """The bump test.
+
+    Attributes
+    ----------
+    fractions : tuple of float
+        Pulse amplitudes tried in turn until the axis moves [fraction of max_u], each in (0, 0.5].
+    pulse_s : float
+        Length of one pulse [s].
+    rest_s : float
+        Longest zero-command wait after a pulse for the axis to come to rest [s].
+    fs_hz : float
+        Cycle rate of the bump test [Hz].
+    max_speed_fraction : float
+        A pulse ends early when ``|v|`` exceeds this fraction of max_v.
+    position_tolerance : float
+        Largest relative mismatch between the position change and the integrated velocity.
+    """
+
+    fractions: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3)
+    pulse_s: float = 0.1
+    rest_s: float = 2.0
+    fs_hz: float = 1000.0
+    max_speed_fraction: float = 0.5
+    position_tolerance: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not self.fractions or not all(0 < f <= 0.5 for f in self.fractions):
+            raise UsageError("[bump] fractions must be a non-empty list of values in (0, 0.5]")
+        for name in ("pulse_s", "rest_s", "fs_hz", "max_speed_fraction", "position_tolerance"):
+            if not getattr(self, name) > 0:
+                raise UsageError(f"[bump] {name} must be > 0")
+
+
+@dataclass(frozen=True)
+class DesignSettings:
+    """Velocity-loop PI design.
+
+    Attributes
+    ----------
+    phase_margin_deg : float
+        Target phase margin [deg], in (20, 85).
+    delay_cycles : float
+        Host/drive delay beyond the zero-order hold [cycles]; 1 for a lock-step
+        exchange (the command computed from ``v_k`` acts from ``t_{k+1}``).
+    pi_zero_ratio : float
+        Crossover over PI zero frequency, ``wc * Ti`` (>= 1; 4 costs ~14 deg of phase).
+    max_bandwidth_hz : float or None
+        Upper bound on the crossover frequency [Hz] (noise, resonances); none by default.
+    fs_hz : float or None
+        Loop sample rate [Hz]; default: the identification rate.
+    """
+
+    phase_margin_deg: float = 60.0
+    delay_cycles: float = 1.0
+    pi_zero_ratio: float = 4.0
+    max_bandwidth_hz: float | None = None
+    fs_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        if not 20.0 < self.phase_margin_deg < 85.0:
+            raise UsageError("[design] phase_margin_deg must be in (20, 85)")
+        if not self.delay_cycles >= 0:
+            raise UsageError("[design] delay_cycles must be >= 0")
+        if not self.pi_zero_ratio >= 1:
+            raise UsageError("[design] pi_zero_ratio must be >= 1")
+        for name in ("max_bandwidth_hz", "fs_hz"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise UsageError(f"[design] {name} must be > 0")
+
+
+@dataclass(frozen=True)
+class CompensationSettings:
+    """The low-speed reversing reference that checks the friction compensation.
+
+    Attributes
+    ----------
+    ref_amplitude : float or None
+        Velocity amplitude [velocity units/s]; default: twice the Coulomb
+        breakaway velocity ``mean(Fc)/B``, at most a quarter of max_v.
+    ref_frequency_hz : float
+        Reversal rate of the sinusoidal reference [Hz].
+    periods : float
+        Periods simulated.
+    sign_band : float
+        Reference speed below which the Coulomb feed-forward fades linearly to
+        zero [fraction of ref_amplitude].
+    """
+
+    ref_amplitude: float | None = None
+    ref_frequency_hz: float = 1.0
+    periods: float = 2.0
+    sign_band: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.ref_amplitude is not None and not self.ref_amplitude > 0:
+            raise UsageError("[compensation] ref_amplitude must be > 0")
+        for name in ("ref_frequency_hz", "periods"):
+            if not getattr(self, name) > 0:
+                raise UsageError(f"[compensation] {name} must be > 0")
+        if not 0 <= self.sign_band < 1:
+            raise UsageError("[compensation] sign_band must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class CommissionConfig:
+    """The whole configuration; ``source`` names the file ("" for defaults)."""
+
+    limits: LimitSettings = field(default_factory=LimitSettings)
+    bump: BumpSettings = field(default_factory=BumpSettings)
+    design: DesignSettings = field(default_factory=DesignSettings)
+    compensation: CompensationSettings = field(default_factory=CompensationSettings)
+    sidbe: Mapping[str, Any] = field(default_factory=dict)
+    diagnose: Mapping[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+
+_SECTIONS = {
+    "limits": LimitSettings,
+    "bump": BumpSettings,
+    "design": DesignSettings,
+    "compensation": CompensationSettings,
+}
+_FREE_SECTIONS = ("sidbe", "diagnose")
+
+
+def _number(where: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UsageError(f"{where} must be a number, got {value!r}")
+    return float(value)
+
+
+def _section(name: str, cls: type, table: object, source: str) -> object:
+    where = f"{source}: [{name}]"
+    if not isinstance(table, dict):
+        raise UsageError(f"{where} must be a table")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        raise UsageError(
+            f"{where} has unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})"
+        )
+    values: dict[str, object] = {}
+    for key, raw in table.items():
+        if key == "fractions":
+            if not isinstance(raw, list):
+                raise UsageError(f"{where} fractions must be a list of numbers")
+            values[key] = tuple(_number(f"{where} fractions", v) for v in raw)
+        else:
+            value = _number(f"{where} {key}", raw)
+            if math.isnan(value) or (math.isinf(value) and key not in ("xmin", "xmax")):
+                raise UsageError(f"{where} {key} must be finite")
+            values[key] = value
+    try:
+        return cls(**values)
+    except UsageError as err:
+        raise UsageError(f"{source}: {err}") from None
+
+
+def parse_config(data: Mapping[str, object], source: str = "bench.toml") -> CommissionConfig:
+    """Build a :class:`CommissionConfig` from a parsed TOML document."""
+    unknown = sorted(set(data) - set(_SECTIONS) - set(_FREE_SECTIONS))
+    if unknown:
+        known = ", ".join([*_SECTIONS, *_FREE_SECTIONS])
+        raise UsageError(f"{source}: unknown table(s) {', '.join(unknown)} (known: {known})")
+    parts: dict[str, object] = {
+        name: _section(name, cls, data[name], source) for name, cls in _SECTIONS.items() if name in data
+    }
+    for name in _FREE_SECTIONS:
+        if name in data:
+            if not isinstance(data[name], dict):
+                raise UsageError(f"{source}: [{name}] must be a table")
+            parts[name] = dict(data[name])
+    return CommissionConfig(**parts, source=source)  # type: ignore[arg-type]
+
+
+def load_config(path: str | Path | None) -> CommissionConfig:
+    """Read ``bench.toml``; ``None`` gives the defaults (no limits)."""
+    if path is None:
+        return CommissionConfig()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise UsageError(f"cannot read config {path}: {err.strerror or err}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise UsageError(f"config {path} is not valid TOML: {err}") from None
+    return parse_config(data, source=str(path))

@@ -1,0 +1,356 @@
+"""The commissioning steps, in order, Ctrl-C safe.
+
+1. link and drive: identity, firmware, state, faults (one reset), feedback;
+2. limits: confirmed at the terminal or taken from the config under ``--yes``,
+   then put into the drive URL so the Drive layer enforces them;
+3. bump test;
+4. SIDBE with its verification loop, then the diagnosis;
+5. design (friction feed-forward, velocity PI), simulation check, record and report.
+
+Step 1 runs on a read-only connection opened with the URL as given; the
+moving steps run on a second connection opened with the confirmed limits.
+Every connection is a context manager, so on any exit -- refusal, error,
+Ctrl-C -- the axis is stopped and disabled; logs are written as samples
+arrive and kept, and ``commission.json`` records how far it got.
+``--dry-run`` stops after step 2 and says what the rest would do.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from bench.commission import document, integration
+from bench.commission.bump import plan_text, run_bump_test
+from bench.commission.checks import check_drive
+from bench.commission.closedloop import check_compensation, reference_amplitude
+from bench.commission.config import CommissionConfig
+from bench.commission.design import design_pi, friction_feed_forward
+from bench.commission.errors import CommissionRefused
+from bench.commission.limits import (
+    ConfirmedLimits,
+    TerminalPrompter,
+    confirm_at_terminal,
+    limits_from_config,
+    merge_limits,
+    url_with_limits,
+)
+from bench.commission.record import (
+    MAT_FILE,
+    MODEL_FILE,
+    STATUS_FILE,
+    Design,
+    Progress,
+    model_record,
+    write_json,
+    write_mat,
+)
+from bench.commission.report import REPORT_FILE, write_report
+from bench.commission.ui import Console
+from bench.logio import read_log
+from drivers.base import Drive
+from drivers.errors import DriveError, DriveUnavailableError, UsageError
+from drivers.url import parse_drive_url
+
+BUMP_LOG = "bump.csv"
+DIAGNOSE_DIR = "diagnose"
+
+
+@dataclass(frozen=True)
+class CommissionOptions:
+    """What the technician asked for.
+
+    Attributes
+    ----------
+    drive_url : str
+        The drive URL as given (its own limit keys, if any, count as limits too).
+    config : CommissionConfig
+    out_dir : Path
+        The commissioning record folder (created; must not hold a previous record).
+    assume_yes : bool
+        Take the limits from the config and reset a fault without asking.
+    dry_run : bool
+        Read only: no enable, no command; say what would be done.
+    record_bus : Path or None
+        Raw bus traffic file (python-can formats by suffix).
+    """
+
+    drive_url: str
+    config: CommissionConfig
+    out_dir: Path
+    assume_yes: bool = False
+    dry_run: bool = False
+    record_bus: Path | None = None
+
+
+@dataclass(frozen=True)
+class CommissionResult:
+    """A finished commissioning: the model, the design and the files written."""
+
+    status: str
+    out_dir: Path
+    model: integration.IdentifiedModel | None = None
+    design: Design | None = None
+
+
+DriveFactory = Callable[[str], Drive]
+
+
+def _default_factory(url: str) -> Drive:
+    from drivers.registry import open_drive
+
+    return open_drive(url)
+
+
+class Commissioning:
+    """One commissioning session; :meth:`run` executes the steps.
+
+    Parameters
+    ----------
+    options : CommissionOptions
+    console : Console
+    prompter : TerminalPrompter, optional
+        Questions at the terminal (limits, fault reset); needed without ``--yes``.
+    drive_factory : callable(url) -> Drive
+        Creates (not opens) a drive; :func:`drivers.registry.open_drive` by default.
+    """
+
+    def __init__(
+        self,
+        options: CommissionOptions,
+        console: Console,
+        prompter: TerminalPrompter | None = None,
+        drive_factory: DriveFactory = _default_factory,
+    ) -> None:
+        self.o = options
+        self.console = console
+        self.prompter = prompter
+        self.factory = drive_factory
+        self.progress = Progress(drive_url=options.drive_url)
+        self.out = options.out_dir
+
+    # ------------------------------------------------------------------ driver
+    def run(self) -> CommissionResult:
+        self._prepare_out_dir()
+        try:
+            result = self._steps()
+        except KeyboardInterrupt:
+            self.progress.status, self.progress.reason = "interrupted", "Ctrl-C"
+            raise
+        except CommissionRefused as err:
+            self.progress.status, self.progress.reason = "refused", str(err)
+            raise
+        except BaseException as err:
+            self.progress.status, self.progress.reason = "error", str(err) or type(err).__name__
+            raise
+        finally:
+            self._keep_files()
+            write_json(self.out / STATUS_FILE, self.progress.as_dict())
+        return result
+
+    def _prepare_out_dir(self) -> None:
+        if (self.out / STATUS_FILE).exists():
+            raise UsageError(f"{self.out} already holds a commissioning record; choose another --out")
+        self.out.mkdir(parents=True, exist_ok=True)
+
+    def _keep_files(self) -> None:
+        self.progress.files.extend(p.name for p in self.out.iterdir() if p.name != STATUS_FILE)
+
+    def _done(self, step: str, **facts: object) -> None:
+        self.progress.steps.append(step)
+        self.progress.facts.update(facts)
+
+    # ------------------------------------------------------------------- steps
+    def _steps(self) -> CommissionResult:
+        c = self.console
+        config = self.o.config
+        url = parse_drive_url(self.o.drive_url)
+        settings = merge_limits(config.limits, url)
+        preset = limits_from_config(settings) if self.o.assume_yes else None
+
+        c.step(1, "link and drive")
+        with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
+            check = check_drive(drive, c, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
+            units = dict(check.info.units) or dict(drive.units)
+        self._done("check", drive_info=check.as_dict())
+
+        c.step(2, "limits")
+        limits = preset or self._confirm(settings)
+        self._check_start_position(limits, check.feedback.position)
+        limited_url = url_with_limits(self.o.drive_url, limits)
+        c.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
+        self._done("limits", limits=limits.as_dict())
+
+        if self.o.dry_run:
+            self._say_plan(limited_url, limits)
+            self.progress.status = "dry-run"
+            return CommissionResult("dry-run", self.out)
+
+        with self._connect(limited_url, record=True) as drive:
+            if drive.fault_code():
+                raise CommissionRefused(f"drive reports fault 0x{drive.fault_code():04X} on reconnecting")
+            pace = drive.url.get_str("pace", "real") or "real"
+            c.step(3, "bump test")
+            with c.progress("bump test") as tick:
+                bump = run_bump_test(drive, limits, config.bump, self.out / BUMP_LOG, pace=pace, progress=tick)
+            c.ok(
+                f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g}), "
+                "positive command gives positive velocity, feedback consistent"
+            )
+            self._done("bump", bump=bump.as_dict())
+
+            c.step(4, "SIDBE identification with verification")
+            with c.progress("SIDBE") as tick:
+                sidbe = integration.run_sidbe(drive, config.sidbe, self.out, tick)
+        model = sidbe.model
+        c.ok(
+            f"M = {model.M:.5g}, B = {model.B:.5g} (pole {model.pole:.4g} 1/s, DC gain {model.dc_gain:.4g}), "
+            f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {model.fit_percent:.1f} %"
+        )
+        self._done("sidbe", sidbe=dict(sidbe.details))
+        diag = integration.diagnose(sidbe.log_path, model, config.diagnose, self.out / DIAGNOSE_DIR)
+        if diag.available:
+            c.ok(f"diagnosis: {', '.join(diag.effects) or 'no missing effect'}; gap {diag.gap_before:.3g} -> {diag.gap_after:.3g}")
+        else:
+            c.warn(f"diagnosis not run: {diag.note}")
+        self._done("diagnose", diagnose={"available": diag.available, "effects": list(diag.effects),
+                                         "gap_before": diag.gap_before, "gap_after": diag.gap_after})  # fmt: skip
+
+        c.step(5, "compensation, PI and the record")
+        design = self._design(model, limits, sidbe.fs_hz)
+        self._done("design")
+        self._write_record(check, limits, limited_url, bump, sidbe, diag, design, units)
+        self.progress.status = "complete"
+        c.ok(f"commissioning record in {self.out}")
+        return CommissionResult("complete", self.out, model, design)
+
+    # ----------------------------------------------------------------- helpers
+    def _connect(self, url: str, *, record: bool) -> Drive:
+        try:
+            drive = self.factory(url)
+            drive.open()
+        except DriveError as err:
+            raise CommissionRefused(f"cannot connect to the drive: {err}") from err
+        if record and self.o.record_bus is not None:
+            try:
+                drive.record_traffic(str(self.o.record_bus))
+                self.console.ok(f"recording bus traffic to {self.o.record_bus}")
+            except DriveUnavailableError as err:
+                self.console.warn(f"{err}; continuing without a bus recording")
+            except BaseException:
+                drive.close()
+                raise
+        return drive
+
+    def _allow_reset(self, code: int) -> bool:
+        if self.o.assume_yes:
+            return True
+        if self.prompter is None:
+            return False
+        return self.prompter.ask_yes_no(f"Drive in fault 0x{code:04X}. Attempt one fault reset?")
+
+    def _confirm(self, settings) -> ConfirmedLimits:
+        if self.prompter is None:
+            raise CommissionRefused(
+                "the limits must be confirmed: run at a terminal, or pass --yes with every limit "
+                "in the [limits] table of --config"
+            )
+        return confirm_at_terminal(settings, self.prompter)
+
+    @staticmethod
+    def _check_start_position(limits: ConfirmedLimits, position: float) -> None:
+        if math.isfinite(position) and not limits.xmin <= position <= limits.xmax:
+            raise CommissionRefused(
+                f"the axis is at {position:.4g}, outside the allowed travel "
+                f"[{limits.xmin:g}, {limits.xmax:g}]; move it inside or correct xmin/xmax"
+            )
+
+    def _say_plan(self, url: str, limits: ConfirmedLimits) -> None:
+        c = self.console
+        cfg = self.o.config
+        c.step(3, "plan (dry run: nothing is enabled or commanded)")
+        c.say(f"would reconnect as {url}")
+        c.say("would " + plan_text(limits, cfg.bump))
+        opts = ", ".join(f"{k}={v}" for k, v in cfg.sidbe.items()) or "defaults"
+        c.say(f"would run SIDBE with its verification loop ({opts}) and the diagnosis")
+        c.say(
+            f"would design friction feed-forward and a velocity PI "
+            f"(phase margin {cfg.design.phase_margin_deg:g} deg, delay {cfg.design.delay_cycles:g} cycles)"
+        )
+        c.say(f"would write {MODEL_FILE}, log.csv, {BUMP_LOG}, {REPORT_FILE}, {MAT_FILE} in {self.out}")
+
+    def _design(self, model: integration.IdentifiedModel, limits: ConfirmedLimits, fs_hz: float) -> Design:
+        cfg = self.o.config
+        d = cfg.design
+        pi = design_pi(model.M, model.B, d.fs_hz or fs_hz, phase_margin_deg=d.phase_margin_deg,
+                       delay_cycles=d.delay_cycles, pi_zero_ratio=d.pi_zero_ratio,
+                       max_bandwidth_hz=d.max_bandwidth_hz)  # fmt: skip
+        amplitude = reference_amplitude(model.M, model.B, model.coulomb_pos, model.coulomb_neg,
+                                        limits.max_u, limits.max_v, cfg.compensation)  # fmt: skip
+        ff = friction_feed_forward(model.B, model.coulomb_pos, model.coulomb_neg,
+                                   cfg.compensation.sign_band * amplitude)  # fmt: skip
+        check = check_compensation(model.M, model.B, model.coulomb_pos, model.coulomb_neg, pi, ff,
+                                   limits.max_u, limits.max_v, cfg.compensation)  # fmt: skip
+        c = self.console
+        c.ok(f"friction feed-forward: +{ff.coulomb_pos:.4g} / -{ff.coulomb_neg:.4g}, viscous {ff.viscous:.4g}")
+        c.ok(
+            f"velocity PI: Kp {pi.kp:.4g}, Ki {pi.ki:.4g} (crossover {pi.crossover_hz:.3g} Hz, "
+            f"phase margin {pi.phase_margin_deg:.1f} deg, gain margin {pi.gain_margin_db:.1f} dB)"
+        )
+        say = c.ok if check.rms_ratio < 1 else c.warn
+        say(
+            f"simulated tracking error (rms) {check.without_ff.rms_error:.3g} without, "
+            f"{check.with_ff.rms_error:.3g} with compensation"
+        )
+        return Design(ff, pi, check)
+
+    def _write_record(self, check, limits, url, bump, sidbe, diag, design, units) -> None:
+        model = sidbe.model
+        facts = {
+            "drive": check.as_dict(),
+            "drive_url": url,
+            "limits": limits.as_dict(),
+            "bump": bump.as_dict(),
+            "sidbe": dict(sidbe.details),
+            "diagnose": {"available": diag.available, "effects": list(diag.effects),
+                         "gap_before": diag.gap_before, "gap_after": diag.gap_after, **diag.details},  # fmt: skip
+            "log": sidbe.log_path.name,
+        }
+        write_json(self.out / MODEL_FILE, model_record(model, design, facts, units))
+        log = read_log(sidbe.log_path)
+        write_mat(self.out / MAT_FILE, log, model, design)
+        sections = [
+            document.drive_section(check, limits, url),
+            document.bump_section(bump),
+            document.model_section(model, sidbe),
+            *document.plot_sections(log, model, sidbe),
+            document.diagnose_section(diag),
+            document.design_section(design, units),
+        ]
+        meta = {"drive": url, "started": self.progress.started, "servobench": _version()}
+        write_report(self.out / REPORT_FILE, "servobench commissioning record", "complete", sections, meta)
+
+
+def _version() -> str:
+    from bench import __version__
+
+    return __version__
+
+
+def commission(
+    options: CommissionOptions,
+    console: Console | None = None,
+    prompter: TerminalPrompter | None = None,
+    drive_factory: DriveFactory = _default_factory,
+) -> CommissionResult:
+    """Run a commissioning session (see :class:`Commissioning`)."""
+    console = console or Console()
+    if prompter is None and not options.assume_yes and sys.stdin.isatty():
+        prompter = TerminalPrompter(console.rich)
+    return Commissioning(options, console, prompter, drive_factory).run()
+
+
+__all__ = ["CommissionOptions", "CommissionResult", "Commissioning", "commission"]
