@@ -1,0 +1,89 @@
+"""Excitation options shared by ``servobench sidbe`` and ``servobench run``."""
+
+from __future__ import annotations
+
+import argparse
+
+from bench import excitation as exc
+from drivers.errors import UsageError
+
+
+def add_excitation_arguments(p: argparse.ArgumentParser) -> None:
+    """``--drive``, ``--amplitude``, ``--ratio``, ``--fs``, ``--periods``, ``--period``, ``--freqs``."""
+    p.add_argument(
+        "--drive", required=True, metavar="URL", help="drive URL, e.g. sim:// or canopen://..."
+    )
+    p.add_argument(
+        "--amplitude",
+        type=float,
+        default=exc.DEFAULT_AMPLITUDE,
+        metavar="A",
+        help=f"level of the binary excitation u1 = ±A [command units] (default {exc.DEFAULT_AMPLITUDE:g}; "
+        "must not exceed the drive's max_u)",
+    )
+    p.add_argument(
+        "--ratio",
+        type=float,
+        default=exc.DEFAULT_RATIO,
+        metavar="R",
+        help=f"u2 = R * u1, 0 < R < 1 (default {exc.DEFAULT_RATIO:g})",
+    )
+    p.add_argument(
+        "--fs",
+        type=float,
+        default=exc.DEFAULT_FS_HZ,
+        metavar="HZ",
+        help=f"cycle rate [Hz] (default {exc.DEFAULT_FS_HZ:g})",
+    )
+    p.add_argument(
+        "--periods",
+        type=int,
+        default=exc.DEFAULT_PERIODS,
+        metavar="N",
+        help=f"excitation periods per run, >= 2; the first is the transient (default {exc.DEFAULT_PERIODS})",
+    )
+    p.add_argument(
+        "--period",
+        type=float,
+        default=exc.DEFAULT_PERIOD_S,
+        metavar="S",
+        help=f"length of one excitation period [s] (default {exc.DEFAULT_PERIOD_S:g})",
+    )
+    p.add_argument(
+        "--freqs",
+        default=None,
+        metavar="F1,F2,...",
+        help="excited lines [Hz], multiples of 1/period below Nyquist "
+        f"(default: {exc.DEFAULT_LINES} log-spaced lines from 1/period to min(40 Hz, fs/20))",
+    )
+
+
+def parse_freqs(text: str | None) -> tuple[float, ...] | None:
+    """``"0.25,1,4"`` -> ``(0.25, 1.0, 4.0)``; UsageError for anything else."""
+    if text is None:
+        return None
+    try:
+        freqs = tuple(float(f) for f in text.split(",") if f.strip())
+    except ValueError:
+        raise UsageError(f"--freqs must be comma-separated numbers in Hz, got {text!r}") from None
+    if not freqs:
+        raise UsageError("--freqs names no frequency")
+    return freqs
+
+
+def design_from_args(args: argparse.Namespace) -> exc.ExcitationDesign:
+    """Validated excitation design from the parsed options."""
+    return exc.make_design(
+        args.amplitude,
+        ratio=args.ratio,
+        fs_hz=args.fs,
+        periods=args.periods,
+        period_s=args.period,
+        freqs_hz=parse_freqs(args.freqs),
+    )
+
+
+def check_amplitude(amplitude: float, max_u: float) -> None:
+    """UsageError when the amplitude exceeds the drive's command limit."""
+    if amplitude > max_u:
+        raise UsageError(f"amplitude {amplitude:g} exceeds the drive limit max_u = {max_u:g}")

@@ -1,0 +1,59 @@
+"""``servobench identify LOG``: identify the model from a log (CSV or MATLAB .mat)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", metavar="LOG", help="servobench CSV log or MATLAB .mat file")
+    p.add_argument(
+        "--method",
+        choices=("auto", "sidbe", "joint"),
+        default="auto",
+        help="sidbe (needs the u1/u2 pair), joint (any log), or auto (default: both when possible, "
+        "the better on held-out data)",
+    )
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument(
+        "--mat-map",
+        default=None,
+        metavar="MAP",
+        help="variables of a .mat file, e.g. t=t,u=vir*gtau,x=qm",
+    )
+    p.add_argument("--resonance", action="store_true", help="let SIDBE fit a series resonance")
+    p.add_argument(
+        "--cutoff",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="cut-off of the zero-phase position filter for logs without velocity (default fs/20)",
+    )
+    p.add_argument("--plots", default=None, metavar="DIR", help="also write PNG plots to DIR")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from bench.commands.summary import print_json, print_result
+    from bench.identify import identify
+    from bench.logio import read_log
+
+    log = read_log(args.log, mat_map=args.mat_map)
+    result = identify(log, args.method, resonance=args.resonance, velocity_cutoff_hz=args.cutoff)
+    if args.plots:
+        from bench.plots import write_plots
+
+        out = Path(args.plots)
+        out.mkdir(parents=True, exist_ok=True)
+        write_plots(result, out)
+    if args.json:
+        print_json(result.to_json())
+    else:
+        extra = (
+            {}
+            if log.complete
+            else {"warning": "the log is incomplete (no 'status = complete' trailer)"}
+        )
+        print_result(result, f"Identified model: {args.log}", extra)
+    return 0

@@ -1,0 +1,34 @@
+"""A rich progress bar on stderr for streaming runs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+
+@contextmanager
+def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], None]]:
+    """Yield ``update(round, done, total)``; one bar per round, drawn on stderr."""
+    if not enabled:
+        yield lambda _i, _d, _t: None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    tasks: dict[int, int] = {}
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    ) as bar:
+
+        def update(index: int, done: int, total: int) -> None:
+            if index not in tasks:
+                tasks[index] = bar.add_task(f"streaming round {index}", total=total)
+            bar.update(tasks[index], completed=done)
+
+        yield update

@@ -1,0 +1,60 @@
+"""``servobench run --drive URL --out LOG``: apply u1 and u2 to a drive and log them, nothing else."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from bench.commands.excitation_args import (
+    add_excitation_arguments,
+    check_amplitude,
+    design_from_args,
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_excitation_arguments(p)
+    p.add_argument(
+        "--out", required=True, metavar="LOG", help="CSV log to write (run 1 = u1, run 2 = u2)"
+    )
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    from bench.commands.progress import stream_progress
+    from bench.commands.summary import print_json
+    from bench.excitation import design_excitation
+    from bench.runner import stream_runs
+    from drivers.registry import open_drive
+
+    design = design_from_args(args)
+    drive = open_drive(args.drive)
+    check_amplitude(design.amplitude, drive.limits.max_command)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        out.parent.mkdir(parents=True)
+    excitation = design_excitation(design)
+    meta = {**design.metadata(), "loop": "open"}
+    with drive, stream_progress() as progress:
+        res = stream_runs(
+            drive,
+            excitation.runs(),
+            design.fs_hz,
+            out,
+            metadata=meta,
+            progress=lambda done, total: progress(1, done, total),
+        )
+    if args.json:
+        print_json(
+            {
+                "log": str(res.log_path),
+                "samples": res.samples,
+                "complete": res.complete,
+                **design.metadata(),
+            }
+        )
+    else:
+        print(
+            f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g})"
+        )
+    return 0

@@ -1,0 +1,118 @@
+"""``servobench sidbe --drive URL``: the whole SIDBE procedure on a drive.
+
+Designs the excitation, streams u1 and u2, identifies and verifies the
+model, repeats with a larger amplitude (or a redesigned spectrum) while the
+verification fit is below the threshold (step 6), and writes ``log.csv``,
+``model.json`` and PNG plots to the output folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from bench.commands.excitation_args import add_excitation_arguments, parse_freqs
+
+#: Parent of the default output folders.
+RUNS_DIR = "servobench-runs"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from bench.procedure import DEFAULT_FIT_THRESHOLD, DEFAULT_MAX_ITERATIONS
+
+    add_excitation_arguments(p)
+    p.add_argument(
+        "--method",
+        choices=("auto", "sidbe", "joint"),
+        default="auto",
+        help="identification method (default auto: both, the better on held-out data)",
+    )
+    p.add_argument(
+        "--fit-threshold",
+        type=float,
+        default=DEFAULT_FIT_THRESHOLD,
+        metavar="PCT",
+        help=f"verification fit [%%] that ends the procedure (default {DEFAULT_FIT_THRESHOLD:g})",
+    )
+    p.add_argument(
+        "--max-iterations",
+        type=int,
+        default=DEFAULT_MAX_ITERATIONS,
+        metavar="N",
+        help=f"most excite-identify rounds of step 6 (default {DEFAULT_MAX_ITERATIONS})",
+    )
+    p.add_argument(
+        "--max-amplitude",
+        type=float,
+        default=None,
+        metavar="A",
+        help="highest amplitude step 6 may use (default: the drive's max_u, else 8x --amplitude)",
+    )
+    p.add_argument("--resonance", action="store_true", help="let SIDBE fit a series resonance")
+    p.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help=f"output folder (default: a new folder ./{RUNS_DIR}/<timestamp>)",
+    )
+
+
+def default_out_dir(base: Path | None = None) -> Path:
+    """A new ``./servobench-runs/<YYYYmmdd-HHMMSS>[-n]`` folder name."""
+    root = (base or Path.cwd()) / RUNS_DIR
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = root / stamp
+    n = 1
+    while path.exists():
+        n += 1
+        path = root / f"{stamp}-{n}"
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    from bench.commands.progress import stream_progress
+    from bench.commands.summary import print_json, print_result
+    from bench.procedure import SidbeOptions, run_sidbe
+    from drivers.registry import open_drive
+
+    options = SidbeOptions(
+        amplitude=args.amplitude,
+        ratio=args.ratio,
+        fs_hz=args.fs,
+        periods=args.periods,
+        period_s=args.period,
+        freqs_hz=parse_freqs(args.freqs),
+        method=args.method,
+        fit_threshold=args.fit_threshold,
+        max_iterations=args.max_iterations,
+        max_amplitude=args.max_amplitude,
+        resonance=args.resonance,
+        plots=not args.no_plots,
+    )
+    options.validate()
+    drive = open_drive(args.drive)
+    options.validate(drive)
+    out_dir = Path(args.out) if args.out else default_out_dir()
+    with drive, stream_progress() as progress:
+        result = run_sidbe(drive, options, out_dir, progress=progress)
+    if args.json:
+        print_json(result.to_json())
+        return 0
+    rounds = ", ".join(
+        f"#{it.index} ±{it.amplitude:g}: "
+        + ("no model" if it.fit_percent is None else f"{it.fit_percent:.2f} %")
+        for it in result.iterations
+    )
+    print_result(
+        result.result,
+        "SIDBE: identified model",
+        {
+            "rounds (amplitude: fit)": rounds,
+            "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
+            "output": str(result.out_dir),
+        },
+    )
+    return 0

@@ -1,0 +1,162 @@
+"""The friction-aware joint estimator: ``M``, ``B`` and Coulomb friction per direction at once.
+
+Works on any log -- one run or two, any excitation, open or closed loop:
+
+1. Exact sampled-data regression (:mod:`bench.regression`) on the sample
+   pairs that keep one strict velocity sign. For noise-free data this is
+   exact at every amplitude and the estimate is final.
+2. With sensor noise (judged from the regression residual): the pairs are
+   re-chosen on the simulated, noise-free velocity of the current estimate
+   (so the choice does not depend on the noise) and solved by instrumental
+   variables with the simulated velocity as instrument, then
+3. refined by output-error minimisation on the exact simulator
+   (:mod:`bench.output_error`) -- on the averaged steady-state period of
+   periodic logs, or on a window of raw samples otherwise.
+
+Logs with position only go to the inverse-dynamic estimator
+(:mod:`bench.identify_idim`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from bench.dataset import Dataset
+from bench.estimate import MethodEstimate
+from bench.frequency import steady_average
+from bench.model import ServoModel
+from bench.output_error import MAX_RAW_SAMPLES, Chunk, refine
+from bench.regression import (
+    ZohFit,
+    fit_pairs,
+    fit_pairs_irregular,
+    noise_std_from_residual,
+    select_pairs,
+)
+from bench.simulation import simulate_run
+from bench.verify import initial_velocity
+from drivers.errors import IdentificationError
+
+#: Noise below this fraction of the rms velocity counts as none (log rounding is ~1e-10).
+EXACT_RTOL = 1e-7
+#: Pairs closer to zero velocity than this many noise sigmas are not trusted.
+NOISE_SIGMAS = 3.0
+#: Instrumental-variable passes.
+IV_PASSES = 2
+#: Fewest samples (as a fraction) that must move clearly above the noise.
+MIN_MOVING_FRACTION = 0.01
+
+
+def identify_joint(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
+    """Identify ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` from ``data`` (see module docstring)."""
+    if data.derived:
+        from bench.identify_idim import identify_idim
+
+        return identify_idim(data, refine_oe=refine_oe)
+    dt = data.dt_s
+    vs = [s.v for s in data.segments]
+    us = [s.u for s in data.segments]
+    ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in data.segments]
+    notes: list[str] = list(data.notes)
+
+    fit = _solve(select_pairs(vs, us, ints), data, None)
+    sigma = noise_std_from_residual(fit.residual, fit.theta[0])
+    v_rms = math.sqrt(float(np.mean(np.concatenate(vs) ** 2)))
+    if sigma <= EXACT_RTOL * v_rms:
+        model = _model(fit)
+        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-ls", 0.0, tuple(notes))
+
+    threshold = NOISE_SIGMAS * sigma
+    moving = np.mean(np.abs(np.concatenate(vs)) > 2 * threshold)
+    if moving < MIN_MOVING_FRACTION:
+        raise IdentificationError(
+            f"no motion above the sensor noise (sigma {sigma:.3g}); raise the amplitude"
+        )
+    fit = _solve(select_pairs(vs, us, ints, threshold=threshold), data, fit)
+    model = _model(fit)
+    estimator = "zoh-iv"
+    for _ in range(IV_PASSES):
+        sims = [
+            simulate_run(
+                model,
+                s.u,
+                dt if s.dt_s is None else s.dt_s,
+                initial_velocity(s, sigma),
+                _period(data),
+            )
+            for s in data.segments
+        ]
+        mismatch2 = (
+            float(np.mean(np.concatenate([v - vs_ for v, vs_ in zip(vs, sims, strict=True)]) ** 2))
+            - sigma**2
+        )
+        margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
+        pairs = select_pairs(vs, us, ints, references=sims, threshold=margin)
+        try:
+            fit = _solve(pairs, data, fit, instrumental=True)
+            model = _model(fit)
+        except IdentificationError:
+            break
+    std = fit.physical_std(dt)
+    if refine_oe:
+        chunks, note = oe_chunks(data, sigma)
+        if note:
+            notes.append(note)
+        free = (
+            True,
+            True,
+            bool(np.any(np.concatenate(vs) > threshold)),
+            bool(np.any(np.concatenate(vs) < -threshold)),
+        )
+        oe = refine(model, chunks, free)
+        model, std, sigma = oe.model, oe.std, oe.sigma
+        estimator = "output-error"
+    return MethodEstimate(model, "joint", std, estimator, sigma, tuple(notes))
+
+
+def _period(data: Dataset) -> int:
+    return data.design.samples_per_period if data.design is not None else 0
+
+
+def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = False) -> ZohFit:
+    if not data.jittered:
+        return fit_pairs(pairs, data.dt_s, instrumental=instrumental)
+    if previous is None:
+        previous = fit_pairs(pairs, float(np.mean(pairs.dt)))
+    return fit_pairs_irregular(pairs, (previous.M, previous.B, previous.fc_pos, previous.fc_neg))
+
+
+def _model(fit: ZohFit) -> ServoModel:
+    return ServoModel(fit.M, fit.B, max(fit.fc_pos, 0.0), max(fit.fc_neg, 0.0))
+
+
+def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
+    """The data for the output-error refinement: averaged steady-state periods, or a raw window."""
+    design = data.design
+    if design is not None and not data.jittered and data.periodic_periods() >= 2:
+        n = design.samples_per_period
+        chunks = []
+        for s in data.segments:
+            periods = len(s) // n - 1
+            chunks.append(
+                Chunk(
+                    s.u[n : 2 * n],
+                    steady_average(s.v, n, 1),
+                    data.dt_s,
+                    periodic=True,
+                    weight=float(periods),
+                )
+            )
+        return chunks, ""
+    per_run = max(1, MAX_RAW_SAMPLES // len(data.segments))
+    note = ""
+    chunks = []
+    for s in data.segments:
+        seg = s.head(per_run) if len(s) > per_run else s
+        if len(s) > per_run:
+            note = f"output-error refinement on the first {per_run} samples of each run"
+        v0 = initial_velocity(seg, sigma)
+        chunks.append(Chunk(seg.u, seg.v, data.dt_s if seg.dt_s is None else seg.dt_s, v0))
+    return chunks, note

@@ -1,0 +1,257 @@
+"""The identified servo model and the result of an identification.
+
+Model (command units ``u``, velocity ``v``)::
+
+    M dv/dt + B v = u - F_f,   F_f = +coulomb_pos (v > 0),  -coulomb_neg (v < 0)
+
+with the linear block ``1/(M s + B)``: pole ``-B/M`` [1/s], DC gain ``1/B``
+[velocity units per command unit]. ``coulomb_pos`` and ``coulomb_neg`` are
+magnitudes (>= 0) in command units. An optional series resonance (the
+paper's eq. (2)-(3)) multiplies the linear block by
+``wn^2 / (s^2 + 2 zeta wn s + wn^2)``.
+
+This module is public API (``diagnose`` and ``commission`` build on it):
+:class:`ServoModel`, :class:`Resonance`, :class:`ModelResponse`,
+:class:`IdentificationResult`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import IdentificationError, UsageError
+from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
+
+#: Keys of :attr:`IdentificationResult.std`.
+STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
+
+
+@dataclass(frozen=True)
+class Resonance:
+    """Series resonance ``wn^2 / (s^2 + 2 zeta wn s + wn^2)``: ``wn_rad_s`` [rad/s], ``zeta`` [-]."""
+
+    wn_rad_s: float
+    zeta: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.wn_rad_s) and self.wn_rad_s > 0):
+            raise IdentificationError(f"resonance frequency must be > 0 rad/s, got {self.wn_rad_s}")
+        if not (math.isfinite(self.zeta) and self.zeta > 0):
+            raise IdentificationError(f"resonance damping must be > 0, got {self.zeta}")
+
+    @property
+    def f_hz(self) -> float:
+        return self.wn_rad_s / (2 * math.pi)
+
+    def response(self, s: np.ndarray) -> np.ndarray:
+        """Frequency response at Laplace points ``s`` [rad/s]."""
+        w2 = self.wn_rad_s**2
+        return w2 / (s * s + 2 * self.zeta * self.wn_rad_s * s + w2)
+
+    def filter_velocity(self, v: np.ndarray, dt_s: float) -> np.ndarray:
+        """Pass a sampled velocity through the resonance (ZOH-discretised, at rest initially)."""
+        from scipy import signal
+
+        num, den = [self.wn_rad_s**2], [1.0, 2 * self.zeta * self.wn_rad_s, self.wn_rad_s**2]
+        bd, ad, _ = signal.cont2discrete((num, den), dt_s, method="zoh")
+        return signal.lfilter(np.ravel(bd), ad, v)
+
+
+@dataclass(frozen=True)
+class ModelResponse:
+    """Simulated response, arrays of shape ``(n,)``: velocity and position at the start of each interval."""
+
+    v: np.ndarray
+    x: np.ndarray
+
+
+@dataclass(frozen=True)
+class ServoModel:
+    """The identified plant.
+
+    Attributes
+    ----------
+    M : float
+        Inertia/mass [command units * s^2 / position unit], > 0.
+    B : float
+        Viscous coefficient [command units * s / position unit], > 0.
+    coulomb_pos, coulomb_neg : float
+        Coulomb friction magnitude in positive / negative motion [command units], >= 0.
+    resonance : Resonance or None
+        Optional series resonance of the linear block.
+    """
+
+    M: float
+    B: float
+    coulomb_pos: float
+    coulomb_neg: float
+    resonance: Resonance | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("M", "B"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise IdentificationError(
+                    f"identified {name} = {value:.4g} is not a finite positive number; "
+                    "the data do not fit a damped first-order plant"
+                )
+        for name in ("coulomb_pos", "coulomb_neg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise IdentificationError(f"identified {name} = {value!r} is not >= 0")
+
+    @property
+    def pole(self) -> float:
+        """Pole of the linear block, ``-B/M`` [1/s]."""
+        return -self.B / self.M
+
+    @property
+    def dc_gain(self) -> float:
+        """DC gain of the linear block, ``1/B`` [velocity units per command unit]."""
+        return 1.0 / self.B
+
+    @property
+    def time_constant_s(self) -> float:
+        """``M/B`` [s]."""
+        return self.M / self.B
+
+    def to_plant_params(self, **extra: Any) -> PlantParams:
+        """The rigid-body part as :class:`~sim_backend.plant.PlantParams` (the resonance is not carried).
+
+        ``extra`` sets other plant fields (``noise``, ``seed``, ...).
+        """
+        try:
+            return PlantParams(
+                M=self.M, B=self.B, fc_pos=self.coulomb_pos, fc_neg=self.coulomb_neg, **extra
+            )
+        except UsageError as err:
+            raise IdentificationError(f"model cannot be simulated: {err}") from None
+
+    def frequency_response(self, f_hz: np.ndarray, dt_s: float | None = None) -> np.ndarray:
+        """Linear-block response at ``f_hz`` [Hz]; with ``dt_s`` the exact ZOH-sampled one."""
+        from bench.frequency import model_frf
+
+        return model_frf(self, np.asarray(f_hz, dtype=float), dt_s)
+
+    def simulate(self, u: np.ndarray, fs_hz: float, v0: float = 0.0) -> ModelResponse:
+        """Noise-free response to ``u`` held over each of ``1/fs_hz`` [s] (exact ZOH with stick-slip).
+
+        Parameters
+        ----------
+        u : ndarray, shape (n,)
+            Command [command units].
+        fs_hz : float
+            Sample rate [Hz].
+        v0 : float
+            Initial velocity [units/s] (position starts at 0).
+
+        Returns
+        -------
+        ModelResponse
+            ``v[k]``, ``x[k]`` sampled at ``t_k`` before ``u[k]`` acts. With a
+            resonance, the rigid-body velocity is passed through it (an
+            approximation: friction acts on the rigid-body velocity).
+        """
+        if not (math.isfinite(fs_hz) and fs_hz > 0):
+            raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
+        dt = 1.0 / fs_hz
+        v, x, _ = simulate_coulomb(
+            np.asarray(u, dtype=float), dt, self.to_plant_params(), PlantState(v0, 0.0)
+        )
+        if self.resonance is not None:
+            v = self.resonance.filter_velocity(v, dt)
+            x = np.concatenate(([0.0], np.cumsum(v[:-1]) * dt))
+        return ModelResponse(v, x)
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "M": self.M,
+            "B": self.B,
+            "pole": self.pole,
+            "dc_gain": self.dc_gain,
+            "coulomb_pos": self.coulomb_pos,
+            "coulomb_neg": self.coulomb_neg,
+        }
+        if self.resonance is not None:
+            out["resonance"] = {"wn_rad_s": self.resonance.wn_rad_s, "zeta": self.resonance.zeta}
+        return out
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """A model with how it was found and how well it reproduces the data.
+
+    Attributes
+    ----------
+    model : ServoModel
+    method : str
+        ``"sidbe"`` or ``"joint"``.
+    fit_percent : float
+        ``100 * (1 - ||v - v_sim|| / ||v - mean(v)||)`` over all runs, ``v_sim``
+        simulated from the logged ``u`` (100 = perfect).
+    std : mapping
+        1-sigma uncertainties of ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg``.
+    selection : str
+        One sentence: which method was used and why.
+    estimator : str
+        The estimator inside the method (e.g. ``"zoh-ls"``, ``"output-error"``, ``"idim-ls"``, ``"frf"``).
+    noise_std : float
+        Estimated velocity-sensor noise [velocity units] (0 for noise-free data).
+    validation : mapping
+        Held-out fit [%] per candidate method when ``auto`` compared them.
+    notes : tuple of str
+        Caveats (derived velocity, fallbacks, ...).
+    frf : FrequencyResponse or None
+        SIDBE's measured differential FRF (for plots).
+    verification : Verification or None
+        Measured and simulated velocity per run (for plots).
+    """
+
+    model: ServoModel
+    method: str
+    fit_percent: float
+    std: Mapping[str, float]
+    selection: str = ""
+    estimator: str = ""
+    noise_std: float = 0.0
+    validation: Mapping[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+    frf: Any = None
+    verification: Any = None
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain-JSON dict with the contract keys (``M``, ``B``, ``pole``, ``dc_gain``,
+        ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``, ``method``, ``std``, ``selection``)."""
+        out = self.model.as_dict()
+        out.update(
+            {
+                "fit_percent": _finite(self.fit_percent),
+                "method": self.method,
+                "std": {k: _finite(self.std.get(k, math.nan)) for k in STD_KEYS},
+                "selection": self.selection,
+                "estimator": self.estimator,
+                "noise_std": _finite(self.noise_std),
+                "validation": {k: _finite(v) for k, v in self.validation.items()},
+                "notes": list(self.notes),
+            }
+        )
+        return out
+
+
+def _finite(value: float) -> float | None:
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def fit_percent(measured: np.ndarray, simulated: np.ndarray) -> float:
+    """``100 * (1 - ||v - v_sim|| / ||v - mean(v)||)`` [%]; -inf when ``v`` is constant."""
+    measured = np.asarray(measured, dtype=float)
+    den = float(np.linalg.norm(measured - measured.mean()))
+    if den == 0.0:
+        return -math.inf
+    return 100.0 * (1.0 - float(np.linalg.norm(measured - np.asarray(simulated))) / den)

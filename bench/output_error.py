@@ -1,0 +1,207 @@
+"""Output-error refinement and the Cramér-Rao bound, on the exact stick-slip simulator.
+
+The parameters ``(M, B, coulomb_pos, coulomb_neg)`` minimise the squared
+difference between the measured velocity and the velocity the model
+simulates from the logged command. With white velocity noise this is the
+maximum-likelihood estimate; it is unbiased at every amplitude, including
+where the axis sticks. Periodic SIDBE runs are first averaged over their
+steady-state periods (a sufficient statistic for white noise), so each
+evaluation simulates one period per run, whatever the log length.
+
+The covariance of the estimate is ``sigma^2 (J^T J)^-1`` with ``J`` the
+sensitivity of the simulated velocity to the parameters; evaluated at the
+true parameters with the true noise this is the Cramér-Rao bound.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.derivative import DerivedMotion, differentiate_position
+from bench.model import STD_KEYS, ServoModel
+from bench.simulation import simulate_steady_period, simulate_velocity
+from drivers.errors import IdentificationError
+from sim_backend.plant import PlantState, simulate_coulomb
+
+#: Largest number of raw samples used by the refinement of a non-periodic log.
+MAX_RAW_SAMPLES = 60_000
+#: Relative finite-difference step of the sensitivities.
+DIFF_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """A piece of data the model must reproduce.
+
+    Attributes
+    ----------
+    u : ndarray, shape (n,)
+        Command [command units].
+    v : ndarray, shape (n,)
+        Measured velocity [units/s] (for ``periodic`` chunks: the average period).
+    dt_s : float or ndarray
+        Sample interval [s] (per interval for irregular sampling).
+    v0 : float
+        Initial velocity [units/s] (ignored for periodic chunks).
+    periodic : bool
+        ``u`` is one period of a periodic command and ``v`` its steady state.
+    skip : int
+        Leading samples left out of the comparison (initial transient of unknown state).
+    weight : float
+        Number of raw samples each compared sample stands for (periods averaged).
+    derive : DerivedMotion or None
+        Set when ``v`` was derived from position: the simulated position then goes
+        through the same filter and derivative, so both sides are filtered alike.
+    x0 : float
+        Initial position [units] (derived chunks).
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    dt_s: float | np.ndarray
+    v0: float = 0.0
+    periodic: bool = False
+    skip: int = 0
+    weight: float = 1.0
+    derive: DerivedMotion | None = None
+    x0: float = 0.0
+
+
+def simulate_chunk(model: ServoModel, chunk: Chunk) -> np.ndarray:
+    """Simulated velocity of ``chunk`` (compared samples only)."""
+    if chunk.periodic:
+        v = simulate_steady_period(model, chunk.u, float(chunk.dt_s))
+    elif chunk.derive is not None:
+        dt = float(np.mean(chunk.dt_s))
+        _, x, _ = simulate_coulomb(
+            chunk.u, dt, model.to_plant_params(), PlantState(chunk.v0, chunk.x0)
+        )
+        d = chunk.derive
+        v = differentiate_position(x, 1.0 / dt, d.cutoff_hz, d.method).v
+    else:
+        v = simulate_velocity(model, chunk.u, chunk.dt_s, chunk.v0)
+    end = len(v) - chunk.skip if chunk.derive is not None else len(v)
+    return v[chunk.skip : end]
+
+
+def measured_chunk(chunk: Chunk) -> np.ndarray:
+    """The measured samples ``simulate_chunk`` is compared with."""
+    end = len(chunk.v) - chunk.skip if chunk.derive is not None else len(chunk.v)
+    return chunk.v[chunk.skip : end]
+
+
+def _model(p: np.ndarray, base: ServoModel) -> ServoModel:
+    return ServoModel(
+        math.exp(p[0]), math.exp(p[1]), max(p[2], 0.0), max(p[3], 0.0), base.resonance
+    )
+
+
+@dataclass(frozen=True)
+class OutputErrorFit:
+    """Refined model, 1-sigma stds, residual noise sigma [units/s] of a raw sample, evaluations."""
+
+    model: ServoModel
+    std: dict[str, float]
+    sigma: float
+    nfev: int
+
+
+def refine(
+    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool] = (True,) * 4
+) -> OutputErrorFit:
+    """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``.
+
+    ``free`` fixes parameters the data cannot see (e.g. friction in a direction
+    never travelled) at their starting value.
+    """
+    from scipy.optimize import least_squares
+
+    free_idx = [i for i in range(4) if free[i]]
+    p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg])
+    weights = [math.sqrt(c.weight) for c in chunks]
+
+    def full(q: np.ndarray) -> np.ndarray:
+        p = p0.copy()
+        p[free_idx] = q
+        return p
+
+    def residual(q: np.ndarray) -> np.ndarray:
+        m = _model(full(q), model0)
+        return np.concatenate(
+            [
+                w * (simulate_chunk(m, c) - measured_chunk(c))
+                for c, w in zip(chunks, weights, strict=True)
+            ]
+        )
+
+    lower = np.array([-np.inf, -np.inf, 0.0, 0.0])[free_idx]
+    upper = np.full(len(free_idx), np.inf)
+    q0 = np.clip(p0[free_idx], lower, upper)
+    step = np.array([DIFF_STEP, DIFF_STEP, DIFF_STEP, DIFF_STEP])[free_idx]
+    try:
+        sol = least_squares(
+            residual,
+            q0,
+            bounds=(lower, upper),
+            x_scale="jac",
+            diff_step=step,
+            xtol=1e-10,
+            ftol=1e-12,
+            gtol=1e-12,
+            max_nfev=60,
+        )
+    except (ValueError, FloatingPointError) as err:
+        raise IdentificationError(f"output-error refinement failed: {err}") from None
+    p = full(sol.x)
+    model = _model(p, model0)
+    m = sol.fun.size
+    sigma2_weighted = 2.0 * sol.cost / max(1, m - len(free_idx))
+    # the residual of an averaged chunk has variance sigma^2 / weight; the weighting undoes it
+    sigma = math.sqrt(sigma2_weighted)
+    std = _std_from_jacobian(sol.jac, sigma2_weighted, p, free_idx)
+    return OutputErrorFit(model, std, sigma, int(sol.nfev))
+
+
+def _std_from_jacobian(
+    jac: np.ndarray, sigma2: float, p: np.ndarray, free_idx: list[int]
+) -> dict[str, float]:
+    scale = np.array([math.exp(p[0]), math.exp(p[1]), 1.0, 1.0])[free_idx]
+    Jn = np.asarray(jac) / scale  # d r / d natural parameter
+    try:
+        cov = sigma2 * np.linalg.inv(Jn.T @ Jn)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(free_idx), len(free_idx)), np.nan)
+    sd = np.full(4, np.nan)
+    sd[free_idx] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return dict(zip(STD_KEYS, (float(x) for x in sd), strict=True))
+
+
+def sensitivity(model: ServoModel, chunks: Sequence[Chunk]) -> np.ndarray:
+    """``d v_sim / d (M, B, coulomb_pos, coulomb_neg)`` by central differences, rows weighted by ``sqrt(weight)``."""
+    p = np.array([model.M, model.B, model.coulomb_pos, model.coulomb_neg])
+    cols = []
+    for i in range(4):
+        h = DIFF_STEP * max(abs(p[i]), 1e-3 * max(abs(p[2]), abs(p[3]), 1e-9))
+        sims = []
+        for sign in (1.0, -1.0):
+            q = p.copy()
+            q[i] += sign * h
+            m = ServoModel(q[0], q[1], max(q[2], 0.0), max(q[3], 0.0), model.resonance)
+            sims.append(
+                np.concatenate([math.sqrt(c.weight) * simulate_chunk(m, c) for c in chunks])
+            )
+        cols.append((sims[0] - sims[1]) / (2 * h))
+    return np.column_stack(cols)
+
+
+def cramer_rao(model: ServoModel, chunks: Sequence[Chunk], noise_std: float) -> dict[str, float]:
+    """Cramér-Rao bound (1-sigma) of ``M, B, coulomb_pos, coulomb_neg`` for white velocity noise ``noise_std``."""
+    J = sensitivity(model, chunks)
+    cov = noise_std**2 * np.linalg.inv(J.T @ J)
+    return dict(
+        zip(STD_KEYS, (float(x) for x in np.sqrt(np.clip(np.diag(cov), 0.0, None))), strict=True)
+    )

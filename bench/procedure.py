@@ -1,0 +1,364 @@
+"""The whole SIDBE procedure on a drive, including the paper's step 6.
+
+1. Design the periodic binary excitation ``u1`` and ``u2 = ratio * u1``
+   (:mod:`bench.excitation`).
+2.-3. Apply both to the drive and log them (:func:`bench.runner.stream_runs`).
+4.-5. Identify the model (:func:`bench.identify.identify`: SIDBE and/or the
+   joint estimator) and verify it by simulation.
+6. When the verification fit falls short of ``fit_threshold`` (or the data
+   cannot yield a model, e.g. the axis did not break away), raise the
+   amplitude by ``growth`` up to the drive's limit; once at the limit,
+   redesign the spectrum around the identified corner frequency
+   ``B / (2 pi M)``; then run again, at most ``max_iterations`` times.
+
+Public API (``commission`` builds on it): :class:`SidbeOptions`,
+:class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from bench import excitation as exc
+from bench.identify import METHODS, identify
+from bench.logio import read_log
+from bench.model import IdentificationResult
+from bench.runner import DEFAULT_SETTLE_S, stream_runs
+from drivers.base import Drive
+from drivers.errors import IdentificationError, UsageError
+
+#: Default verification fit that ends the procedure [%].
+DEFAULT_FIT_THRESHOLD = 90.0
+#: Default number of excite-identify rounds.
+DEFAULT_MAX_ITERATIONS = 4
+#: Default amplitude growth per round.
+DEFAULT_GROWTH = 2.0
+#: Without a drive limit (max_u), the amplitude may grow to this multiple of the first.
+UNLIMITED_GROWTH_CAP = 8.0
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class SidbeOptions:
+    """Options of :func:`run_sidbe` (frequencies in Hz, amplitudes in command units).
+
+    Attributes
+    ----------
+    amplitude, ratio, fs_hz, periods, period_s, freqs_hz
+        The excitation (see :func:`bench.excitation.make_design`); ``freqs_hz``
+        None means log-spaced default lines.
+    method : {"auto", "sidbe", "joint"}
+    fit_threshold : float
+        Verification fit [%] that ends the procedure.
+    max_iterations : int
+        Most excite-identify rounds (1 disables step 6).
+    growth : float
+        Amplitude factor per round (> 1).
+    max_amplitude : float or None
+        Highest amplitude step 6 may use; default the drive's ``max_u``, or
+        ``8 * amplitude`` when the drive sets none.
+    pace : {"real", "fast"} or None
+        Streaming pace (default: the drive's).
+    settle_s : float
+        Longest rest between runs [s].
+    resonance : bool
+        Let SIDBE fit a series resonance.
+    plots : bool
+        Write PNG plots.
+    """
+
+    amplitude: float = exc.DEFAULT_AMPLITUDE
+    ratio: float = exc.DEFAULT_RATIO
+    fs_hz: float = exc.DEFAULT_FS_HZ
+    periods: int = exc.DEFAULT_PERIODS
+    period_s: float = exc.DEFAULT_PERIOD_S
+    freqs_hz: tuple[float, ...] | None = None
+    method: str = "auto"
+    fit_threshold: float = DEFAULT_FIT_THRESHOLD
+    max_iterations: int = DEFAULT_MAX_ITERATIONS
+    growth: float = DEFAULT_GROWTH
+    max_amplitude: float | None = None
+    pace: str | None = None
+    settle_s: float = DEFAULT_SETTLE_S
+    resonance: bool = False
+    plots: bool = True
+
+    def design(self) -> exc.ExcitationDesign:
+        """The first round's excitation (validates the options)."""
+        return exc.make_design(
+            self.amplitude,
+            ratio=self.ratio,
+            fs_hz=self.fs_hz,
+            periods=self.periods,
+            period_s=self.period_s,
+            freqs_hz=self.freqs_hz,
+        )
+
+    def validate(self, drive: Drive | None = None) -> exc.ExcitationDesign:
+        """Raise :class:`UsageError` for bad options (and an amplitude beyond the drive's ``max_u``)."""
+        design = self.design()
+        if self.method not in METHODS:
+            raise UsageError(f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
+        if not (int(self.max_iterations) == self.max_iterations and self.max_iterations >= 1):
+            raise UsageError("max_iterations must be an integer >= 1")
+        if not (math.isfinite(self.growth) and self.growth > 1):
+            raise UsageError("growth must be > 1")
+        if not math.isfinite(self.fit_threshold) or self.fit_threshold > 100:
+            raise UsageError("fit threshold must be a number <= 100 %")
+        if drive is not None and self.amplitude > drive.limits.max_command:
+            raise UsageError(
+                f"amplitude {self.amplitude:g} exceeds the drive limit max_u = {drive.limits.max_command:g}"
+            )
+        if self.max_amplitude is not None and not (self.max_amplitude >= self.amplitude):
+            raise UsageError("max amplitude must be >= amplitude")
+        return design
+
+    def amplitude_cap(self, drive: Drive) -> float:
+        """Highest amplitude step 6 may reach on ``drive``."""
+        limit = drive.limits.max_command
+        cap = self.max_amplitude
+        if cap is None:
+            cap = limit if math.isfinite(limit) else UNLIMITED_GROWTH_CAP * self.amplitude
+        return min(cap, limit)
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One excite-identify round: what was applied, how well the model fitted, what came next."""
+
+    index: int
+    amplitude: float
+    freqs_hz: tuple[float, ...]
+    fit_percent: float | None
+    method: str | None
+    log_path: Path
+    action: str
+    error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "amplitude": self.amplitude,
+            "freqs": list(self.freqs_hz),
+            "fit_percent": self.fit_percent,
+            "method": self.method,
+            "log": str(self.log_path),
+            "action": self.action,
+            "error": self.error,
+        }
+
+
+@dataclass(frozen=True)
+class SidbeResult:
+    """Outcome of :func:`run_sidbe`.
+
+    Attributes
+    ----------
+    result : IdentificationResult
+        The accepted (or, when the threshold was never met, the best) model.
+    iterations : tuple of Iteration
+    design : ExcitationDesign
+        The excitation of the accepted round.
+    passed : bool
+        The verification fit reached the threshold.
+    fit_threshold : float
+    out_dir, log_path, model_path : Path
+    plots : tuple of Path
+    """
+
+    result: IdentificationResult
+    iterations: tuple[Iteration, ...]
+    design: exc.ExcitationDesign
+    passed: bool
+    fit_threshold: float
+    out_dir: Path
+    log_path: Path
+    model_path: Path
+    plots: tuple[Path, ...] = field(default_factory=tuple)
+
+    def to_json(self) -> dict[str, Any]:
+        """The model keys of :meth:`IdentificationResult.to_json` plus the procedure."""
+        out = self.result.to_json()
+        d = self.design
+        out.update(
+            {
+                "amplitude": d.amplitude,
+                "ratio": d.ratio,
+                "fs": d.fs_hz,
+                "periods": d.periods,
+                "samples_per_period": d.samples_per_period,
+                "freqs": list(d.freqs_hz),
+                "iterations": [it.as_dict() for it in self.iterations],
+                "verification": {
+                    "fit_percent": out["fit_percent"],
+                    "threshold": self.fit_threshold,
+                    "passed": self.passed,
+                },
+                "out_dir": str(self.out_dir),
+                "log": str(self.log_path),
+                "model_file": str(self.model_path),
+                "plots": [str(p) for p in self.plots],
+            }
+        )
+        return out
+
+
+def run_sidbe(
+    drive: Drive,
+    options: SidbeOptions,
+    out_dir: str | Path,
+    progress: Callable[[int, int, int], None] | None = None,
+) -> SidbeResult:
+    """Run the SIDBE procedure on ``drive`` and write ``out_dir/log.csv``, ``model.json`` and plots.
+
+    Parameters
+    ----------
+    drive : Drive
+        Opened here if it is not open yet (and then closed again).
+    options : SidbeOptions
+    out_dir : path
+        Created if missing. Each round logs ``log-<i>.csv``; the accepted one
+        is copied to ``log.csv``.
+    progress : callable(iteration, done, total), optional
+        Streaming progress, samples done of total, per round.
+
+    Raises
+    ------
+    UsageError
+        Bad options. Drive errors propagate (the runner has stopped the axis).
+    IdentificationError
+        No round produced a model.
+    """
+    design = options.validate(drive)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cap = options.amplitude_cap(drive)
+    opened_here = not drive.is_open
+    if opened_here:
+        drive.open()
+    try:
+        iterations, best = _rounds(drive, options, design, cap, out, progress)
+    finally:
+        if opened_here:
+            drive.close()
+    if best is None:
+        errors = "; ".join(f"round {it.index}: {it.error}" for it in iterations if it.error)
+        raise IdentificationError(f"no round produced a model ({errors})")
+    result, best_design, best_log = best
+    log_path = out / "log.csv"
+    shutil.copyfile(best_log, log_path)
+    passed = result.fit_percent >= options.fit_threshold
+    plots: tuple[Path, ...] = ()
+    if options.plots:
+        from bench.plots import write_plots
+
+        plots = tuple(write_plots(result, out))
+    model_path = out / "model.json"
+    sr = SidbeResult(
+        result,
+        tuple(iterations),
+        best_design,
+        passed,
+        options.fit_threshold,
+        out,
+        log_path,
+        model_path,
+        plots,
+    )
+    model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
+    return sr
+
+
+def _rounds(drive, options, design, cap, out, progress):
+    iterations: list[Iteration] = []
+    best: tuple[IdentificationResult, exc.ExcitationDesign, Path] | None = None
+    redesigned = options.freqs_hz is not None
+    for index in range(1, int(options.max_iterations) + 1):
+        log_path = out / f"log-{index}.csv"
+        excitation = exc.design_excitation(design)
+        meta = {**design.metadata(), "loop": "open", "iteration": index}
+
+        def tick(done: int, total: int, _i: int = index) -> None:
+            if progress is not None:
+                progress(_i, done, total)
+
+        stream_runs(
+            drive,
+            excitation.runs(),
+            design.fs_hz,
+            log_path,
+            metadata=meta,
+            pace=options.pace,
+            settle_s=options.settle_s,
+            progress=tick,
+        )
+        result: IdentificationResult | None = None
+        error = ""
+        try:
+            result = identify(read_log(log_path), options.method, resonance=options.resonance)
+        except IdentificationError as err:
+            error = str(err)
+        fit = None if result is None else result.fit_percent
+        if result is not None and (best is None or result.fit_percent > best[0].fit_percent):
+            best = (result, design, log_path)
+        if fit is not None and fit >= options.fit_threshold:
+            iterations.append(
+                Iteration(
+                    index,
+                    design.amplitude,
+                    design.freqs_hz,
+                    fit,
+                    result.method,
+                    log_path,
+                    "accepted",
+                )
+            )
+            break
+        last = index == options.max_iterations
+        if design.amplitude < cap:
+            new_amp = min(design.amplitude * options.growth, cap)
+            action = f"fit below threshold: amplitude raised to {new_amp:g}"
+            next_design = design.with_amplitude(new_amp)
+        elif not redesigned and result is not None:
+            corner = result.model.B / (2 * math.pi * result.model.M)
+            freqs = exc.freqs_around(corner, design.fs_hz, design.samples_per_period)
+            action = f"fit below threshold at the amplitude limit: spectrum redesigned around {corner:.3g} Hz"
+            next_design = design.with_freqs(freqs)
+            redesigned = True
+        else:
+            iterations.append(
+                Iteration(
+                    index,
+                    design.amplitude,
+                    design.freqs_hz,
+                    fit,
+                    None if result is None else result.method,
+                    log_path,
+                    "stopped: threshold not reached within the drive limits",
+                    error,
+                )
+            )
+            break
+        if last:
+            action = "stopped: iteration limit reached"
+        iterations.append(
+            Iteration(
+                index,
+                design.amplitude,
+                design.freqs_hz,
+                fit,
+                None if result is None else result.method,
+                log_path,
+                action,
+                error,
+            )
+        )
+        design = replace(next_design)
+    return iterations, best
