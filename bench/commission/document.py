@@ -68,34 +68,43 @@ def model_section(model: IdentifiedModel, sidbe: SidbeOutcome) -> Section:
     return Section("Identified model", tables=tables)
 
 
-def plot_sections(log: ExperimentLog, model: IdentifiedModel, sidbe: SidbeOutcome) -> list[Section]:
-    M, B, fp, fn = model.M, model.B, model.coulomb_pos, model.coulomb_neg
-    out = [
-        Section("Excitation", figures=[("Excitation command per run", figures.excitation(log))]),
-        Section("Velocities", figures=[("Measured velocity and model simulation", figures.velocities(log, M, B, fp, fn))]),
-        Section("Frequency response", figures=[("FRF of the differential pair and fitted model", figures.bode(log, M, B))]),
-        Section("Friction-velocity map", figures=[("Friction against velocity", figures.friction_map(log, M, B, fp, fn))]),
-    ]
-    extra = png_files(sidbe.plots)
-    if extra:
-        out.append(Section("SIDBE procedure plots", figures=extra))
+#: Plots of the SIDBE procedure (bench.plots) -> report section.
+SIDBE_PLOTS = {
+    "time.png": "Velocities",
+    "frf.png": "Frequency response",
+    "friction.png": "Friction-velocity map",
+}
+
+
+def plot_sections(log: ExperimentLog, sidbe: SidbeOutcome) -> list[Section]:
+    """Excitation, then the procedure's velocity, FRF and friction plots."""
+    out = [Section("Excitation", figures=[("Excitation command per run", figures.excitation(log))])]
+    written = {p.name: p for p in sidbe.plots}
+    for name, title in SIDBE_PLOTS.items():
+        if name in written:
+            out.append(Section(title, figures=png_files([written[name]])))
+        else:
+            out.append(Section(title, paragraphs=[f"not available: the procedure wrote no {name}"]))
+    rest = [p for p in sidbe.plots if p.name not in SIDBE_PLOTS]
+    if rest:
+        out.append(Section("More identification plots", figures=png_files(rest)))
     return out
 
 
 def diagnose_section(diag: DiagnoseOutcome) -> Section:
     if not diag.available:
-        return Section("Diagnosis", paragraphs=[f"Diagnosis not run: {diag.note}"])
+        return Section("Diagnosis (before / after)", paragraphs=[f"Diagnosis not run: {diag.note}"])
     rows = [
-        ("effects found", ", ".join(diag.effects) or "none"),
-        ("gap before", diag.gap_before),
-        ("gap after", diag.gap_after),
+        ("effects added", ", ".join(diag.effects) or "none"),
+        ("velocity gap before [% NRMSE]", diag.gap_before),
+        ("velocity gap after [% NRMSE]", diag.gap_after),
     ]
-    figs = []
-    if math.isfinite(diag.gap_before) and math.isfinite(diag.gap_after):
-        figs.append(("Gap before and after", figures.gaps(["gap"], [diag.gap_before], [diag.gap_after], "gap")))
-    figs.extend(png_files(diag.plots))
-    paragraphs = [diag.note] if diag.note else []
-    return Section("Diagnosis (before / after)", paragraphs=paragraphs, tables=[("", rows)], figures=figs)
+    return Section(
+        "Diagnosis (before / after)",
+        paragraphs=[diag.note] if diag.note else [],
+        tables=[("", rows)],
+        figures=png_files(diag.plots),
+    )
 
 
 def design_section(design: Design, units: Mapping[str, str]) -> Section:

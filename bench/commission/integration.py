@@ -1,20 +1,22 @@
 """The one place commissioning touches identification, SIDBE and the diagnosis.
 
-Everything the steps need from :mod:`bench.procedure`, :mod:`bench.model`
-and :mod:`bench.diagnose` passes through here and comes out as the small
-result types below, so an API change elsewhere is a fix in this module only.
+Everything the steps need from :mod:`bench.procedure` (``run_sidbe``,
+``SidbeOptions``), :mod:`bench.model` (``IdentificationResult``) and
+:mod:`bench.diagnose` (``diagnose``, ``report.to_json``/``write_report``)
+passes through here and comes out as the small result types below, so an
+API change elsewhere is a fix in this module only.
 """
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from drivers.base import Drive
+from drivers.errors import UsageError
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -22,6 +24,8 @@ ProgressCallback = Callable[[int, int], None]
 IDENTIFY_KEYS = ("M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent", "method")
 #: Parameters with a 1-sigma uncertainty.
 STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
+#: Default SIDBE amplitude over the bump pulse that moved the axis.
+AMPLITUDE_OVER_BUMP = 2.0
 
 
 @dataclass(frozen=True)
@@ -123,33 +127,110 @@ class DiagnoseOutcome:
     note: str = ""
 
 
-def _optional(module: str):
-    """Import ``module`` or return None when it is not part of this build."""
+def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> Any:
+    """:class:`bench.procedure.SidbeOptions` from the ``[sidbe]`` table.
+
+    Keys are the option names (``amplitude``, ``ratio``, ``fs_hz``, ``periods``,
+    ``period_s``, ``freqs_hz``, ``method``, ``fit_threshold``, ``max_iterations``,
+    ``growth``, ``max_amplitude``, ``settle_s``, ``resonance``); unknown keys are an
+    error. Without ``amplitude``: twice the bump pulse that moved the axis
+    (``moved_at`` [command units]), at most half of ``max_u``, so the excitation
+    starts well past friction and the verification loop may still grow it up
+    to max_u. The options are validated here (:class:`UsageError`).
+    """
+    from bench.procedure import SidbeOptions
+
+    known = {f.name for f in fields(SidbeOptions)} - {"pace", "plots"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise UsageError(f"[sidbe] has unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    values = dict(options)
+    if "freqs_hz" in values:
+        values["freqs_hz"] = tuple(float(f) for f in values["freqs_hz"])
+    if "amplitude" not in values:
+        values["amplitude"] = min(AMPLITUDE_OVER_BUMP * moved_at, 0.5 * max_u)
     try:
-        return importlib.import_module(module)
-    except ModuleNotFoundError as err:
-        if err.name == module:
-            return None
-        raise
+        opts = SidbeOptions(**values, plots=True)
+    except TypeError as err:
+        raise UsageError(f"[sidbe]: {err}") from None
+    opts.validate()
+    if opts.amplitude > max_u:
+        raise UsageError(f"[sidbe] amplitude {opts.amplitude:g} exceeds the confirmed max_u = {max_u:g}")
+    return opts
+
+
+def _model(result: Any) -> IdentifiedModel:
+    m = result.model
+    return IdentifiedModel(
+        M=m.M,
+        B=m.B,
+        coulomb_pos=m.coulomb_pos,
+        coulomb_neg=m.coulomb_neg,
+        std={k: float(result.std.get(k, math.nan)) for k in STD_KEYS},
+        fit_percent=float(result.fit_percent),
+        method=result.method,
+        identify_json=result.to_json(),
+    )
 
 
 def run_sidbe(
     drive: Drive,
-    options: Mapping[str, Any],
+    options: Any,
     out_dir: Path,
     progress: ProgressCallback | None = None,
 ) -> SidbeOutcome:
-    """SIDBE with its verification loop on an open drive; writes ``log.csv`` and plots in ``out_dir``."""
-    procedure = _optional("bench.procedure")
-    if procedure is None:
-        from bench.commission import _interim
+    """SIDBE with its verification loop on an open drive; ``log.csv``, ``log-<i>.csv`` and plots in ``out_dir``."""
+    from bench import procedure
 
-        return _interim.run_sidbe(drive, options, out_dir, progress)
-    raise NotImplementedError  # filled in when bench.procedure lands
+    def tick(iteration: int, done: int, total: int) -> None:
+        if progress is not None:
+            progress(done, total)
+
+    res = procedure.run_sidbe(drive, options, out_dir, progress=tick)
+    summary = res.to_json()
+    details = {
+        "amplitude": summary["amplitude"],
+        "ratio": summary["ratio"],
+        "fs": summary["fs"],
+        "periods": summary["periods"],
+        "freqs": summary["freqs"],
+        "verification": summary["verification"],
+        "iterations": [
+            {**it.as_dict(), "log": Path(it.log_path).name} for it in res.iterations
+        ],
+        "selection": res.result.selection,
+    }
+    return SidbeOutcome(
+        model=_model(res.result),
+        log_path=res.log_path,
+        fs_hz=float(res.design.fs_hz),
+        plots=tuple(res.plots),
+        details=details,
+    )
 
 
-def diagnose(log_path: Path, model: IdentifiedModel, options: Mapping[str, Any], out_dir: Path) -> DiagnoseOutcome:
-    """Diagnose ``log_path`` against ``model``; results and plots in ``out_dir``."""
-    if _optional("bench.diagnose") is None:
-        return DiagnoseOutcome(available=False, note="this build has no bench.diagnose")
-    raise NotImplementedError  # filled in when bench.diagnose lands
+def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> DiagnoseOutcome:
+    """Diagnose ``log_path`` (``[diagnose]`` keys: ``horizon_s``); ``comparison.csv``, plots, ``report.md`` in ``out_dir``."""
+    from bench.diagnose import diagnose as run_diagnosis
+    from bench.diagnose.report import to_json, write_report
+    from bench.logio import read_log
+
+    unknown = sorted(set(options) - {"horizon_s"})
+    if unknown:
+        raise UsageError(f"[diagnose] has unknown key(s) {', '.join(unknown)} (known: horizon_s)")
+    d = run_diagnosis(read_log(log_path), horizon_s=options.get("horizon_s"))
+    report = write_report(d, out_dir)
+    plots = tuple(sorted(report.parent.glob("*.png")))
+    data = to_json(d)
+    note = "no effect beyond the base model pays on held-out data" if not d.effects else "; ".join(
+        f"{e.name}: {e.evidence}" for e in d.effects
+    )
+    return DiagnoseOutcome(
+        available=True,
+        effects=tuple(e.name for e in d.effects),
+        gap_before=float(d.gap_before),
+        gap_after=float(d.gap_after),
+        plots=plots,
+        details={k: data[k] for k in ("effects", "gap_before", "gap_after", "comparison", "findings") if k in data},
+        note=note,
+    )

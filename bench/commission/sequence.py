@@ -157,7 +157,11 @@ class Commissioning:
         self.out.mkdir(parents=True, exist_ok=True)
 
     def _keep_files(self) -> None:
-        self.progress.files.extend(p.name for p in self.out.iterdir() if p.name != STATUS_FILE)
+        self.progress.files.extend(
+            p.relative_to(self.out).as_posix()
+            for p in self.out.rglob("*")
+            if p.is_file() and p.name != STATUS_FILE
+        )
 
     def _done(self, step: str, **facts: object) -> None:
         self.progress.steps.append(step)
@@ -181,6 +185,8 @@ class Commissioning:
         limits = preset or self._confirm(settings)
         self._check_start_position(limits, check.feedback.position)
         limited_url = url_with_limits(self.o.drive_url, limits)
+        first_pulse = config.bump.fractions[0] * limits.max_u
+        integration.sidbe_options(config.sidbe, limits.max_u, first_pulse)  # bad options refuse before moving
         c.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
         self._done("limits", limits=limits.as_dict())
 
@@ -203,15 +209,19 @@ class Commissioning:
             self._done("bump", bump=bump.as_dict())
 
             c.step(4, "SIDBE identification with verification")
+            moved_at = max(bump.breakaway_pos, bump.breakaway_neg)
+            options = integration.sidbe_options(config.sidbe, limits.max_u, moved_at)
+            c.say(f"excitation amplitude {options.amplitude:g} (the verification loop may raise it up to max_u)")
             with c.progress("SIDBE") as tick:
-                sidbe = integration.run_sidbe(drive, config.sidbe, self.out, tick)
+                sidbe = integration.run_sidbe(drive, options, self.out, tick)
         model = sidbe.model
         c.ok(
             f"M = {model.M:.5g}, B = {model.B:.5g} (pole {model.pole:.4g} 1/s, DC gain {model.dc_gain:.4g}), "
             f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {model.fit_percent:.1f} %"
         )
         self._done("sidbe", sidbe=dict(sidbe.details))
-        diag = integration.diagnose(sidbe.log_path, model, config.diagnose, self.out / DIAGNOSE_DIR)
+        c.say("diagnosing the model against the log ...")
+        diag = integration.diagnose(sidbe.log_path, config.diagnose, self.out / DIAGNOSE_DIR)
         if diag.available:
             c.ok(f"diagnosis: {', '.join(diag.effects) or 'no missing effect'}; gap {diag.gap_before:.3g} -> {diag.gap_after:.3g}")
         else:
@@ -326,7 +336,7 @@ class Commissioning:
             document.drive_section(check, limits, url),
             document.bump_section(bump),
             document.model_section(model, sidbe),
-            *document.plot_sections(log, model, sidbe),
+            *document.plot_sections(log, sidbe),
             document.diagnose_section(diag),
             document.design_section(design, units),
         ]
