@@ -231,26 +231,27 @@ class ServedCiA402Drive:
     # ---------------------------------------------------------- OD callbacks
     def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | None:
         with self._lock:
-            sample = self._frozen or self.device.sample()
             if index == 0x6041:
                 self._sync_device()
                 return encode_statusword(self._state)
+            if index == 0x603F:
+                self._sync_device()
+                return self.device.fault_code if self._state is S.FAULT else 0
+            if index == 0x6077:
+                return _clamp(self.device.command * 1000.0, _I16)
+            if index == 0x6061:
+                return self._mode
+            if index == 0x1001:
+                return self._error_register()
+            if index not in (0x6064, 0x606C, 0x1013):
+                return None
+            # at a SYNC the sample it took, otherwise the present one (no clocking)
+            sample = self._frozen or self.device.sample()
             if index == 0x6064:
                 return _wrap_i32(sample.position / POS_SCALE)
             if index == 0x606C:
                 return _clamp(sample.velocity / VEL_SCALE, _I32)
-            if index == 0x6077:
-                return _clamp(self.device.command * 1000.0, _I16)
-            if index == 0x1013:
-                return round(sample.t_s * 1e6) & 0xFFFFFFFF
-            if index == 0x6061:
-                return self._mode
-            if index == 0x603F:
-                self._sync_device()
-                return self.device.fault_code if self._state is S.FAULT else 0
-            if index == 0x1001:
-                return self._error_register()
-        return None
+            return round(sample.t_s * 1e6) & 0xFFFFFFFF
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         value = od.decode_raw(data)
@@ -276,7 +277,7 @@ class ServedCiA402Drive:
                     raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
                 self._abort_option = value
                 self._apply_watchdog()
-            elif index in (0x1600, 0x1601, 0x1602, 0x1603, 0x1A00, 0x1A01, 0x1A02, 0x1A03):
+            elif can_pdo.is_mapping_parameter(index):
                 can_pdo.check_mapping_write(self.node, index, subindex, value)
             if can_pdo.is_pdo_parameter(index) or index == 0x1005:
                 self._pdo_dirty = True

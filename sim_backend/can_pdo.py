@@ -120,9 +120,14 @@ def read_channels(node: LocalNode, comm_base: int, map_base: int) -> list[PdoCha
 
 
 def is_pdo_parameter(index: int) -> bool:
+    """A PDO communication or mapping parameter."""
     return any(
         base <= index < base + MAX_PDOS for base in (RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP)
     )
+
+
+def is_mapping_parameter(index: int) -> bool:
+    return any(base <= index < base + MAX_PDOS for base in (RPDO_MAP, TPDO_MAP))
 
 
 def _object(od: ObjectDictionary, index: int, subindex: int) -> ODVariable:
