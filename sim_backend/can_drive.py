@@ -24,6 +24,11 @@ device's command unit being one rated torque; 0x6064 in :data:`POS_SCALE`
 position units per increment, 0x606C in :data:`VEL_SCALE` velocity units per
 LSB; 0x1013 the device clock in µs. The quick stop (0x605A) keeps QUICK STOP
 ACTIVE; profile torque ignores torque slopes (the torque steps).
+
+Simplifications: synchronous RPDOs act on receipt (the device latches the
+torque for the next SYNC anyway, but a controlword changes the state at
+once); event-driven TPDOs (types 254/255) are not produced; SDO is also
+answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only.
 """
 
 from __future__ import annotations
