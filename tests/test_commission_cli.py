@@ -16,12 +16,17 @@ from drivers.sim import SimDrive
 from sim_backend.device import PowerState
 
 PLANT = {"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4}
+#: Limits for --yes, and a short SIDBE (3 periods of 1 s per run): noise-free, it is exact and fast.
 CONFIG = """
 [limits]
 max_u = 5.0
 max_v = 20.0
 xmin = -inf
 xmax = inf
+
+[sidbe]
+periods = 3
+period_s = 1.0
 """
 #: identify --json keys every model.json must carry
 IDENTIFY_KEYS = {"M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent", "method"}
@@ -238,3 +243,36 @@ def test_existing_record_is_not_overwritten(tmp_path, config, capsys):
     rc = main(["commission", "--drive", "sim://?pace=fast", "--yes", "--config", str(config), "--out", str(out)])
     assert rc == 1 and "already holds a commissioning record" in capsys.readouterr().err
     assert math.isfinite(len((out / "commission.json").read_text()))
+
+
+def test_unknown_sidbe_option_refuses_before_moving(tmp_path, drives, capsys):
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text(CONFIG + "amplitud = 1.0\n")
+    out = tmp_path / "o"
+    rc = main(["commission", "--drive", "sim://?pace=fast", "--yes", "--config", str(cfg), "--out", str(out)])
+    assert rc == 1 and "[sidbe] has unknown key(s) amplitud" in capsys.readouterr().err
+    assert not (out / "bump.csv").exists()
+    assert all(d.device.sample().t_s == 0.0 for d in drives)
+
+
+def test_interactive_confirmation_at_the_terminal(tmp_path, drives):
+    import io
+
+    from rich.console import Console as RichConsole
+
+    from bench.commission.config import load_config
+    from bench.commission.limits import TerminalPrompter
+    from bench.commission.sequence import CommissionOptions, commission
+    from bench.commission.ui import Console
+
+    console = Console(RichConsole(file=io.StringIO(), width=200))
+    answers = io.StringIO("2.5\n\n-1\n1\ny\n")  # max_v: the configured 20 is the default
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text("[limits]\nmax_v = 20.0\n")
+    options = CommissionOptions("sim://?pace=fast", load_config(cfg), tmp_path / "o", dry_run=True)
+    result = commission(options, console, TerminalPrompter(console.rich, answers))
+    assert result.status == "dry-run"
+    status = json.loads((tmp_path / "o" / "commission.json").read_text())
+    assert status["limits"] == {"max_u": 2.5, "max_v": 20.0, "xmin": -1.0, "xmax": 1.0}
+    assert any("would reconnect as sim://?pace=fast&max_u=2.5&max_v=20.0&xmin=-1.0&xmax=1.0" in line
+               for line in console.lines)  # fmt: skip

@@ -52,6 +52,7 @@ class Progress:
     status: str = "running"
     reason: str = ""
     files: list[str] = field(default_factory=list)
+    durations_s: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -60,6 +61,7 @@ class Progress:
             "drive": self.drive_url,
             "started": self.started,
             "steps_done": list(self.steps),
+            "durations_s": dict(self.durations_s),
             "files": sorted(set(self.files)),
             **self.facts,
         }

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,6 +132,7 @@ class Commissioning:
         self.factory = drive_factory
         self.progress = Progress(drive_url=options.drive_url)
         self.out = options.out_dir
+        self._t_step = time.monotonic()
 
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
@@ -164,6 +166,9 @@ class Commissioning:
         )
 
     def _done(self, step: str, **facts: object) -> None:
+        now = time.monotonic()
+        self.progress.durations_s[step] = round(now - self._t_step, 3)
+        self._t_step = now
         self.progress.steps.append(step)
         self.progress.facts.update(facts)
 

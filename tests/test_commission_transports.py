@@ -1,0 +1,68 @@
+"""``servobench commission`` end to end against served simulated drives (Modbus TCP, CANopen).
+
+The drive runs in its own process (``servobench serve-sim``) and commissioning
+talks to it over the real protocol stack, as in the field.
+"""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from test_commission_cli import CONFIG, check_record
+
+from bench.cli import main
+from drivers.registry import open_drive
+from sim_backend.launch import ServedSim
+
+#: One candump line: ``(timestamp) channel ID#DATA [R|T]``.
+CANDUMP_LINE = re.compile(r"^\(\d+\.\d+\) \S+ [0-9A-F]{3,8}#[0-9A-F]* [RT]$")
+
+
+def fast(url: str) -> str:
+    """The served URL with ``pace=fast`` (the lock-step drive answers as fast as asked)."""
+    if "pace=" in url:
+        return url
+    return url + ("&" if "?" in url else "?") + "pace=fast"
+
+
+def assert_left_disabled(url: str) -> None:
+    with open_drive(url) as drive:
+        state = drive.info().state.lower()
+        assert "disabled" in state, state
+        assert drive.fault_code() == 0
+
+
+@pytest.mark.parametrize("transport", ["modbus-tcp", "canopen"])
+def test_commission_over_a_served_drive(tmp_path, transport, capsys):
+    config = tmp_path / "bench.toml"
+    config.write_text(CONFIG)
+    out = tmp_path / "record"
+    bus = tmp_path / "bus.log"
+    with ServedSim(transport) as served:
+        url = fast(served.url)
+        rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(out),
+                   "--record-bus", str(bus)])  # fmt: skip
+        captured = capsys.readouterr()
+        assert rc == 0, captured.err
+        assert_left_disabled(url)
+    model = check_record(out)
+    drive = model["commissioning"]["drive"]
+    assert drive["transport"] == url.split("://")[0]
+    if transport == "canopen":
+        assert drive["firmware"] and drive["serial_number"]
+        lines = bus.read_text(errors="replace").splitlines()
+        assert len(lines) > 1000 and CANDUMP_LINE.match(lines[0]), lines[:2]
+    else:
+        assert "cannot record bus traffic" in captured.out and not bus.exists()
+
+
+def test_no_motion_on_a_served_drive_refuses_and_leaves_it_disabled(tmp_path, capsys):
+    config = tmp_path / "bench.toml"
+    config.write_text(CONFIG)
+    with ServedSim("modbus-tcp", "sim://?M=0.1&B=1&fc_pos=50&fc_neg=50") as served:
+        url = fast(served.url)
+        rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(tmp_path / "o")])
+        assert rc == 1
+        assert "no motion in the bump test" in capsys.readouterr().err
+        assert_left_disabled(url)
