@@ -199,6 +199,7 @@ class CANopen402Drive(Drive):
          "sdo_timeout", "pdo_timeout", "pos_scale", "vel_scale", "eds"}
     )  # fmt: skip
     units = {"u": "rated torque (0x6076)", "v": "velocity units/s", "x": "position units"}
+    drive_clock = True  # Feedback.t_s is the drive's 0x1013 time stamp
 
     def __init__(self, url) -> None:
         super().__init__(url)

@@ -145,6 +145,7 @@ class ModbusDrive(Drive):
             )
         self.regmap = load_map(map_name)
         self.units = dict(self.regmap.units)
+        self.drive_clock = "timestamp" in self.regmap
         self.unit: int = u.get_int("unit", 1)
         if not 0 <= self.unit <= 255:
             raise DriveConfigError(f"unit={self.unit} is outside 0..255")
