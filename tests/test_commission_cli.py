@@ -8,6 +8,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
+from test_commission_bump import StuckFault
 
 import drivers.registry
 from bench.cli import main
@@ -143,15 +144,6 @@ def test_without_a_terminal_and_without_yes_refuses(tmp_path, config, drives, ca
     assert rc == 1
     assert "limits must be confirmed" in capsys.readouterr().err
     assert all(d.device.sample().t_s == 0.0 for d in drives)  # nothing was clocked
-
-
-class StuckFault(SimDrive):
-    def _open(self):
-        super()._open()
-        self.device.fault(0x2310, "over-current")
-
-    def _reset_fault(self):
-        pass
 
 
 def test_fault_that_will_not_reset_refuses(tmp_path, config, drives, capsys):

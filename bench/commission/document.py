@@ -8,9 +8,9 @@ from collections.abc import Mapping
 from bench.commission import figures
 from bench.commission.bump import BumpResult
 from bench.commission.checks import DriveCheck, describe_info
-from bench.commission.integration import DiagnoseOutcome, IdentifiedModel, SidbeOutcome
+from bench.commission.integration import DiagnoseOutcome, SidbeOutcome
 from bench.commission.limits import ConfirmedLimits
-from bench.commission.record import Design
+from bench.commission.record import Design, derived_std
 from bench.commission.report import Section, png_files
 from bench.logio import ExperimentLog, read_log
 
@@ -49,17 +49,20 @@ def bump_section(bump: BumpResult) -> Section:
     return Section("Bump test", tables=[("", rows)], figures=[("Bump test: command and velocity", png)])
 
 
-def model_section(model: IdentifiedModel, sidbe: SidbeOutcome) -> Section:
-    derived = model.std_derived()
+def model_section(sidbe: SidbeOutcome) -> Section:
+    result = sidbe.result
+    model, std = result.model, result.std
+    derived = derived_std(result)
     rows = [
-        ("M (inertia)", _pm(model.M, model.std.get("M", math.nan))),
-        ("B (viscous)", _pm(model.B, model.std.get("B", math.nan))),
+        ("M (inertia)", _pm(model.M, std.get("M", math.nan))),
+        ("B (viscous)", _pm(model.B, std.get("B", math.nan))),
         ("pole -B/M [1/s]", _pm(model.pole, derived["pole"])),
         ("DC gain 1/B", _pm(model.dc_gain, derived["dc_gain"])),
-        ("Coulomb + [command units]", _pm(model.coulomb_pos, model.std.get("coulomb_pos", math.nan))),
-        ("Coulomb - [command units]", _pm(model.coulomb_neg, model.std.get("coulomb_neg", math.nan))),
-        ("fit [%]", model.fit_percent),
-        ("method", model.method),
+        ("Coulomb + [command units]", _pm(model.coulomb_pos, std.get("coulomb_pos", math.nan))),
+        ("Coulomb - [command units]", _pm(model.coulomb_neg, std.get("coulomb_neg", math.nan))),
+        ("fit [%]", result.fit_percent),
+        ("method", result.method),
+        ("selection", result.selection),
     ]
     details = [(k, v) for k, v in sidbe.details.items() if isinstance(v, (int, float, str))]
     tables = [("Identified model (± 1 sigma)", rows)]
@@ -92,8 +95,6 @@ def plot_sections(log: ExperimentLog, sidbe: SidbeOutcome) -> list[Section]:
 
 
 def diagnose_section(diag: DiagnoseOutcome) -> Section:
-    if not diag.available:
-        return Section("Diagnosis (before / after)", paragraphs=[f"Diagnosis not run: {diag.note}"])
     rows = [
         ("effects added", ", ".join(diag.effects) or "none"),
         ("velocity gap before [% NRMSE]", diag.gap_before),

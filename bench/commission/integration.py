@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from bench.model import IdentificationResult
 from drivers.base import Drive
 from drivers.errors import UsageError
 
@@ -22,56 +23,8 @@ ProgressCallback = Callable[[int, int], None]
 
 #: Model keys of ``servobench identify --json`` (bench.model.IdentificationResult.to_json()).
 IDENTIFY_KEYS = ("M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent", "method")
-#: Parameters with a 1-sigma uncertainty.
-STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
 #: Default SIDBE amplitude over the bump pulse that moved the axis.
 AMPLITUDE_OVER_BUMP = 2.0
-
-
-@dataclass(frozen=True)
-class IdentifiedModel:
-    """The identified model, as commissioning uses it.
-
-    Attributes
-    ----------
-    M, B : float
-        Linear block ``1/(M s + B)`` [command units s^2/unit, command units s/unit].
-    coulomb_pos, coulomb_neg : float
-        Coulomb friction magnitudes in positive / negative motion [command units].
-    std : mapping
-        1-sigma uncertainty of ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` (nan when unknown).
-    fit_percent : float
-        Validation fit [%].
-    method : str
-        Estimator that produced the model.
-    identify_json : mapping
-        The dictionary ``servobench identify --json`` prints for this model.
-    """
-
-    M: float
-    B: float
-    coulomb_pos: float
-    coulomb_neg: float
-    std: Mapping[str, float]
-    fit_percent: float
-    method: str
-    identify_json: Mapping[str, Any] = field(default_factory=dict)
-
-    @property
-    def pole(self) -> float:
-        """``-B/M`` [1/s]."""
-        return -self.B / self.M
-
-    @property
-    def dc_gain(self) -> float:
-        """``1/B`` [velocity units/s per command unit]."""
-        return 1.0 / self.B
-
-    def std_derived(self) -> dict[str, float]:
-        """1-sigma of pole and DC gain, first-order propagation (M, B uncorrelated)."""
-        sm, sb = self.std.get("M", math.nan), self.std.get("B", math.nan)
-        pole = math.hypot(sb / self.M, self.B * sm / self.M**2)
-        return {"pole": pole, "dc_gain": sb / self.B**2}
 
 
 @dataclass(frozen=True)
@@ -80,7 +33,10 @@ class SidbeOutcome:
 
     Attributes
     ----------
-    model : IdentifiedModel
+    result : IdentificationResult
+        The accepted model (:mod:`bench.model`): ``result.model`` (M, B,
+        coulomb_pos, coulomb_neg, pole, dc_gain), ``std``, ``fit_percent``,
+        ``method``, ``to_json()`` (the ``identify --json`` keys).
     log_path : Path
         The excitation log (all runs of the accepted experiment).
     fs_hz : float
@@ -91,7 +47,7 @@ class SidbeOutcome:
         Procedure facts for the record (iterations, amplitude ...), JSON-friendly.
     """
 
-    model: IdentifiedModel
+    result: IdentificationResult
     log_path: Path
     fs_hz: float
     plots: tuple[Path, ...] = ()
@@ -104,8 +60,6 @@ class DiagnoseOutcome:
 
     Attributes
     ----------
-    available : bool
-        False when this build has no diagnosis (``note`` says why).
     effects : tuple of str
         Named effects found, most important first.
     gap_before, gap_after : float
@@ -115,10 +69,9 @@ class DiagnoseOutcome:
     details : mapping
         The diagnosis' JSON, for the record.
     note : str
-        Human-readable summary or why it is unavailable.
+        Human-readable summary.
     """
 
-    available: bool
     effects: tuple[str, ...] = ()
     gap_before: float = math.nan
     gap_after: float = math.nan
@@ -159,20 +112,6 @@ def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> 
     return opts
 
 
-def _model(result: Any) -> IdentifiedModel:
-    m = result.model
-    return IdentifiedModel(
-        M=m.M,
-        B=m.B,
-        coulomb_pos=m.coulomb_pos,
-        coulomb_neg=m.coulomb_neg,
-        std={k: float(result.std.get(k, math.nan)) for k in STD_KEYS},
-        fit_percent=float(result.fit_percent),
-        method=result.method,
-        identify_json=result.to_json(),
-    )
-
-
 def run_sidbe(
     drive: Drive,
     options: Any,
@@ -201,7 +140,7 @@ def run_sidbe(
         "selection": res.result.selection,
     }
     return SidbeOutcome(
-        model=_model(res.result),
+        result=res.result,
         log_path=res.log_path,
         fs_hz=float(res.design.fs_hz),
         plots=tuple(res.plots),
@@ -226,7 +165,6 @@ def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> Diagn
         f"{e.name}: {e.evidence}" for e in d.effects
     )
     return DiagnoseOutcome(
-        available=True,
         effects=tuple(e.name for e in d.effects),
         gap_before=float(d.gap_before),
         gap_after=float(d.gap_after),

@@ -24,8 +24,9 @@ import numpy as np
 
 from bench.commission.closedloop import CompensationCheck
 from bench.commission.design import FrictionFeedForward, PIDesign
-from bench.commission.integration import IDENTIFY_KEYS, IdentifiedModel
+from bench.commission.integration import IDENTIFY_KEYS
 from bench.logio import ExperimentLog
+from bench.model import STD_KEYS, IdentificationResult
 
 MODEL_FILE = "model.json"
 MAT_FILE = "commission.mat"
@@ -88,17 +89,21 @@ def write_json(path: Path, data: Mapping[str, Any]) -> Path:
     return path
 
 
+def derived_std(result: IdentificationResult) -> dict[str, float]:
+    """1-sigma of the pole ``-B/M`` [1/s] and the DC gain ``1/B``, first-order propagation (M, B uncorrelated)."""
+    m = result.model
+    sm, sb = result.std.get("M", math.nan), result.std.get("B", math.nan)
+    return {"pole": math.hypot(sb / m.M, m.B * sm / m.M**2), "dc_gain": sb / m.B**2}
+
+
 def model_record(
-    model: IdentifiedModel, design: Design | None, facts: Mapping[str, Any], units: Mapping[str, str]
+    result: IdentificationResult, design: Design | None, facts: Mapping[str, Any], units: Mapping[str, str]
 ) -> dict[str, Any]:
-    """The content of ``model.json``."""
-    record: dict[str, Any] = {}
-    ident = dict(model.identify_json)
-    for key in IDENTIFY_KEYS:
-        record[key] = ident.get(key, getattr(model, key, None))
+    """The content of ``model.json``: the ``identify --json`` object, then the commissioning."""
+    ident = result.to_json()
+    record: dict[str, Any] = {key: ident[key] for key in IDENTIFY_KEYS}
     record.update({k: v for k, v in ident.items() if k not in record})
-    record["std"] = {**{k: model.std.get(k, math.nan) for k in ("M", "B", "coulomb_pos", "coulomb_neg")},
-                     **model.std_derived()}  # fmt: skip
+    record["std"] = {**{k: result.std.get(k, math.nan) for k in STD_KEYS}, **derived_std(result)}
     record["units"] = dict(units)
     if design is not None:
         record["feed_forward"] = design.feed_forward.as_dict()
@@ -109,7 +114,7 @@ def model_record(
 
 
 def write_mat(
-    path: Path, log: ExperimentLog, model: IdentifiedModel, design: Design | None
+    path: Path, log: ExperimentLog, result: IdentificationResult, design: Design | None
 ) -> Path:
     """``commission.mat``: ``run, t, u, v, x`` (column vectors over all runs), ``fs`` and the numbers.
 
@@ -117,7 +122,7 @@ def write_mat(
     """
     from scipy.io import savemat
 
-    runs = [r for r in log.runs]
+    runs = list(log.runs)
     data: dict[str, Any] = {
         "run": np.concatenate([np.full(len(r), r.run, dtype=float) for r in runs]),
         "t": np.concatenate([r.t for r in runs]),
@@ -127,9 +132,11 @@ def write_mat(
     for name in ("v", "x"):
         if all(getattr(r, name) is not None for r in runs):
             data[name] = np.concatenate([getattr(r, name) for r in runs])
-    for key in ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain", "fit_percent"):
-        data[key] = float(getattr(model, key))
-    for key, value in model.std.items():
+    m = result.model
+    for key in ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain"):
+        data[key] = float(getattr(m, key))
+    data["fit_percent"] = float(result.fit_percent)
+    for key, value in result.std.items():
         data[f"std_{key}"] = float(value)
     if design is not None:
         for key, value in design.feed_forward.as_dict().items():

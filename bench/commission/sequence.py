@@ -52,6 +52,7 @@ from bench.commission.record import (
 from bench.commission.report import REPORT_FILE, write_report
 from bench.commission.ui import Console
 from bench.logio import read_log
+from bench.model import IdentificationResult, ServoModel
 from drivers.base import Drive
 from drivers.errors import DriveError, DriveUnavailableError, UsageError
 from drivers.url import parse_drive_url
@@ -93,7 +94,7 @@ class CommissionResult:
 
     status: str
     out_dir: Path
-    model: integration.IdentifiedModel | None = None
+    identification: IdentificationResult | None = None
     design: Design | None = None
 
 
@@ -219,19 +220,19 @@ class Commissioning:
             c.say(f"excitation amplitude {options.amplitude:g} (the verification loop may raise it up to max_u)")
             with c.progress("SIDBE") as tick:
                 sidbe = integration.run_sidbe(drive, options, self.out, tick)
-        model = sidbe.model
+        model = sidbe.result.model
         c.ok(
             f"M = {model.M:.5g}, B = {model.B:.5g} (pole {model.pole:.4g} 1/s, DC gain {model.dc_gain:.4g}), "
-            f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {model.fit_percent:.1f} %"
+            f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {sidbe.result.fit_percent:.1f} %"
         )
         self._done("sidbe", sidbe=dict(sidbe.details))
         c.say("diagnosing the model against the log ...")
         diag = integration.diagnose(sidbe.log_path, config.diagnose, self.out / DIAGNOSE_DIR)
-        if diag.available:
-            c.ok(f"diagnosis: {', '.join(diag.effects) or 'no missing effect'}; gap {diag.gap_before:.3g} -> {diag.gap_after:.3g}")
-        else:
-            c.warn(f"diagnosis not run: {diag.note}")
-        self._done("diagnose", diagnose={"available": diag.available, "effects": list(diag.effects),
+        c.ok(
+            f"diagnosis: {', '.join(diag.effects) or 'no missing effect'}; "
+            f"velocity gap {diag.gap_before:.3g} % -> {diag.gap_after:.3g} %"
+        )
+        self._done("diagnose", diagnose={"effects": list(diag.effects),
                                          "gap_before": diag.gap_before, "gap_after": diag.gap_after})  # fmt: skip
 
         c.step(5, "compensation, PI and the record")
@@ -240,7 +241,7 @@ class Commissioning:
         self._write_record(check, limits, limited_url, bump, sidbe, diag, design, units)
         self.progress.status = "complete"
         c.ok(f"commissioning record in {self.out}")
-        return CommissionResult("complete", self.out, model, design)
+        return CommissionResult("complete", self.out, sidbe.result, design)
 
     # ----------------------------------------------------------------- helpers
     def _connect(self, url: str, *, record: bool) -> Drive:
@@ -297,7 +298,7 @@ class Commissioning:
         )
         c.say(f"would write {MODEL_FILE}, log.csv, {BUMP_LOG}, {REPORT_FILE}, {MAT_FILE} in {self.out}")
 
-    def _design(self, model: integration.IdentifiedModel, limits: ConfirmedLimits, fs_hz: float) -> Design:
+    def _design(self, model: ServoModel, limits: ConfirmedLimits, fs_hz: float) -> Design:
         cfg = self.o.config
         d = cfg.design
         pi = design_pi(model.M, model.B, d.fs_hz or fs_hz, phase_margin_deg=d.phase_margin_deg,
@@ -323,24 +324,23 @@ class Commissioning:
         return Design(ff, pi, check)
 
     def _write_record(self, check, limits, url, bump, sidbe, diag, design, units) -> None:
-        model = sidbe.model
         facts = {
             "drive": check.as_dict(),
             "drive_url": url,
             "limits": limits.as_dict(),
             "bump": bump.as_dict(),
             "sidbe": dict(sidbe.details),
-            "diagnose": {"available": diag.available, "effects": list(diag.effects),
-                         "gap_before": diag.gap_before, "gap_after": diag.gap_after, **diag.details},  # fmt: skip
+            "diagnose": {"effects": list(diag.effects), "gap_before": diag.gap_before,
+                         "gap_after": diag.gap_after, **diag.details},  # fmt: skip
             "log": sidbe.log_path.name,
         }
-        write_json(self.out / MODEL_FILE, model_record(model, design, facts, units))
+        write_json(self.out / MODEL_FILE, model_record(sidbe.result, design, facts, units))
         log = read_log(sidbe.log_path)
-        write_mat(self.out / MAT_FILE, log, model, design)
+        write_mat(self.out / MAT_FILE, log, sidbe.result, design)
         sections = [
             document.drive_section(check, limits, url),
             document.bump_section(bump),
-            document.model_section(model, sidbe),
+            document.model_section(sidbe),
             *document.plot_sections(log, sidbe),
             document.diagnose_section(diag),
             document.design_section(design, units),
