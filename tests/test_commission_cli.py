@@ -268,3 +268,17 @@ def test_interactive_confirmation_at_the_terminal(tmp_path, drives):
     assert status["limits"] == {"max_u": 2.5, "max_v": 20.0, "xmin": -1.0, "xmax": 1.0}
     assert any("would reconnect as sim://?pace=fast&max_u=2.5&max_v=20.0&xmin=-1.0&xmax=1.0" in line
                for line in console.lines)  # fmt: skip
+
+
+def test_leaving_the_envelope_during_sidbe_refuses_with_advice(tmp_path, drives, capsys):
+    cfg = tmp_path / "bench.toml"
+    cfg.write_text(CONFIG.replace("max_v = 20.0", "max_v = 1.0"))  # SIDBE at amplitude 2 reaches ~1.5
+    out = tmp_path / "o"
+    rc = main(["commission", "--drive", "sim://?pace=fast", "--yes", "--config", str(cfg), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "exceeds the limit 1" in err and "Lower the excitation ([sidbe] amplitude" in err
+    assert drives[-1].device.state is PowerState.DISABLED and drives[-1].device.command == 0.0
+    assert read_log(out / "bump.csv").complete
+    partial = (out / "log-1.csv").read_text()  # kept, marked incomplete with the reason
+    assert "# status = incomplete" in partial and "exceeds the limit" in partial

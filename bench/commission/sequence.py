@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bench.commission import document, integration
-from bench.commission.bump import plan_text, run_bump_test
-from bench.commission.checks import check_drive
+from bench.commission.bump import BumpResult, plan_text, run_bump_test
+from bench.commission.checks import DriveCheck, check_drive
 from bench.commission.closedloop import check_compensation, reference_amplitude
-from bench.commission.config import CommissionConfig
+from bench.commission.config import CommissionConfig, LimitSettings
 from bench.commission.design import design_pi, friction_feed_forward
 from bench.commission.errors import CommissionRefused
 from bench.commission.limits import (
@@ -54,7 +54,7 @@ from bench.commission.ui import Console
 from bench.logio import read_log
 from bench.model import IdentificationResult, ServoModel
 from drivers.base import Drive
-from drivers.errors import DriveError, DriveUnavailableError, UsageError
+from drivers.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
 from drivers.url import parse_drive_url
 
 BUMP_LOG = "bump.csv"
@@ -175,35 +175,57 @@ class Commissioning:
 
     # ------------------------------------------------------------------- steps
     def _steps(self) -> CommissionResult:
-        c = self.console
         config = self.o.config
-        url = parse_drive_url(self.o.drive_url)
-        settings = merge_limits(config.limits, url)
+        settings = merge_limits(config.limits, parse_drive_url(self.o.drive_url))
         preset = limits_from_config(settings) if self.o.assume_yes else None
-
-        c.step(1, "link and drive")
-        with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
-            check = check_drive(drive, c, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
-            units = dict(check.info.units) or dict(drive.units)
-        self._done("check", drive_info=check.as_dict())
-
-        c.step(2, "limits")
-        limits = preset or self._confirm(settings)
-        self._check_start_position(limits, check.feedback.position)
-        limited_url = url_with_limits(self.o.drive_url, limits)
-        first_pulse = config.bump.fractions[0] * limits.max_u
-        integration.sidbe_options(config.sidbe, limits.max_u, first_pulse)  # bad options refuse before moving
-        c.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
-        self._done("limits", limits=limits.as_dict())
-
+        check, units = self._check_step()
+        limits, limited_url = self._limits_step(preset or settings, check)
         if self.o.dry_run:
             self._say_plan(limited_url, limits)
             self.progress.status = "dry-run"
             return CommissionResult("dry-run", self.out)
+        try:
+            bump, sidbe = self._moving_steps(limited_url, limits)
+        except LimitExceededError as err:
+            raise CommissionRefused(
+                f"{err}; the axis was stopped and disabled. Lower the excitation ([sidbe] amplitude, "
+                "max_amplitude) or, if the machine allows, confirm a larger max_v or travel"
+            ) from err
+        diag = self._diagnose_step(sidbe)
+        self.console.step(5, "compensation, PI and the record")
+        design = self._design(sidbe.result.model, limits, sidbe.fs_hz)
+        self._done("design")
+        self._write_record(check, limits, limited_url, bump, sidbe, diag, design, units)
+        self.progress.status = "complete"
+        self.console.ok(f"commissioning record in {self.out}")
+        return CommissionResult("complete", self.out, sidbe.result, design)
 
-        with self._connect(limited_url, record=True) as drive:
-            if drive.fault_code():
-                raise CommissionRefused(f"drive reports fault 0x{drive.fault_code():04X} on reconnecting")
+    def _check_step(self) -> tuple[DriveCheck, dict[str, str]]:
+        """Step 1 on a read-only connection with the URL as given."""
+        self.console.step(1, "link and drive")
+        with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
+            check = check_drive(drive, self.console, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
+            units = dict(check.info.units) or dict(drive.units)
+        self._done("check", drive_info=check.as_dict())
+        return check, units
+
+    def _limits_step(self, given: ConfirmedLimits | LimitSettings, check: DriveCheck) -> tuple[ConfirmedLimits, str]:
+        """Step 2: the confirmed limits and the drive URL that carries them."""
+        self.console.step(2, "limits")
+        limits = given if isinstance(given, ConfirmedLimits) else self._confirm(given)
+        self._check_start_position(limits, check.feedback.position)
+        first_pulse = self.o.config.bump.fractions[0] * limits.max_u
+        integration.sidbe_options(self.o.config.sidbe, limits.max_u, first_pulse)  # bad options refuse now
+        self.console.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
+        self._done("limits", limits=limits.as_dict())
+        return limits, url_with_limits(self.o.drive_url, limits)
+
+    def _moving_steps(self, url: str, limits: ConfirmedLimits) -> tuple[BumpResult, integration.SidbeOutcome]:
+        """Steps 3 and 4 on the connection with the limits; closing it stops and disables the axis."""
+        c, config = self.console, self.o.config
+        with self._connect(url, record=True) as drive:
+            if code := drive.fault_code():
+                raise CommissionRefused(f"drive reports fault 0x{code:04X} on reconnecting")
             pace = drive.url.get_str("pace", "real") or "real"
             c.step(3, "bump test")
             with c.progress("bump test") as tick:
@@ -226,22 +248,18 @@ class Commissioning:
             f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {sidbe.result.fit_percent:.1f} %"
         )
         self._done("sidbe", sidbe=dict(sidbe.details))
-        c.say("diagnosing the model against the log ...")
-        diag = integration.diagnose(sidbe.log_path, config.diagnose, self.out / DIAGNOSE_DIR)
-        c.ok(
+        return bump, sidbe
+
+    def _diagnose_step(self, sidbe: integration.SidbeOutcome) -> integration.DiagnoseOutcome:
+        self.console.say("diagnosing the model against the log ...")
+        diag = integration.diagnose(sidbe.log_path, self.o.config.diagnose, self.out / DIAGNOSE_DIR)
+        self.console.ok(
             f"diagnosis: {', '.join(diag.effects) or 'no missing effect'}; "
             f"velocity gap {diag.gap_before:.3g} % -> {diag.gap_after:.3g} %"
         )
         self._done("diagnose", diagnose={"effects": list(diag.effects),
                                          "gap_before": diag.gap_before, "gap_after": diag.gap_after})  # fmt: skip
-
-        c.step(5, "compensation, PI and the record")
-        design = self._design(model, limits, sidbe.fs_hz)
-        self._done("design")
-        self._write_record(check, limits, limited_url, bump, sidbe, diag, design, units)
-        self.progress.status = "complete"
-        c.ok(f"commissioning record in {self.out}")
-        return CommissionResult("complete", self.out, sidbe.result, design)
+        return diag
 
     # ----------------------------------------------------------------- helpers
     def _connect(self, url: str, *, record: bool) -> Drive:
