@@ -56,8 +56,10 @@ class ServedSim:
         self.stderr = ""
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> str:
+        # -P: do not put the working folder first on sys.path (a stray bench.py there must not win).
+        safe = ["-P"] if sys.version_info >= (3, 11) else []
         cmd = [
-            sys.executable, "-m", "bench.cli", "serve-sim",
+            sys.executable, *safe, "-m", "bench.cli", "serve-sim",
             "--transport", self.transport, "--sim", self.sim_url, *self.extra_args,
         ]  # fmt: skip
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
