@@ -1,4 +1,4 @@
-"""Modbus exchange rate and jitter against the served sim, next to the RTU link limit.
+"""The served Modbus RTU link is never faster than the wire (rates are figures: benchmarks/transport_rate.py).
 
 The served RTU link emulates the line (:mod:`sim_backend.pty_link`): 10 bits
 per byte at the baud rate and the Modbus t3.5 silence (1.75 ms above 19200
@@ -14,23 +14,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivers.link_budget import modbus_rtu_cycle_s, modbus_rtu_frames
 from drivers.registry import open_drive
 from drivers.regmap import RegisterMap, load_map, resolve_map
 from sim_backend.launch import ServedSim
-from sim_backend.serve_modbus import rtu_frame_gap_s
 
 BAUD = 115200
 
 
 def rtu_cycle_limit_s(regmap: RegisterMap, fc23: bool, baud: int = BAUD) -> float:
     """Line time of one cycle [s]: the RTU frames (address + PDU + CRC) and a t3.5 after each."""
-    w, r = regmap["command"].count, regmap.feedback.count
-    if fc23:
-        frames = [13 + 2 * w, 5 + 2 * r]  # FC23 request, response
-    else:
-        write = [8, 8] if w == 1 else [9 + 2 * w, 8]  # FC06 / FC16 request, response
-        frames = [*write, 8, 5 + 2 * r]  # + FC03 request, response
-    return sum(frames) * 10 / baud + len(frames) * rtu_frame_gap_s(baud)
+    frames = modbus_rtu_frames(regmap["command"].count, regmap.feedback.count, fc23)
+    return modbus_rtu_cycle_s(frames, baud)
 
 
 def measure(url: str, n: int) -> np.ndarray:
@@ -63,14 +58,7 @@ def report(label: str, period_s: np.ndarray, limit_s: float | None = None) -> fl
 
 
 @pytest.mark.slow
-def test_tcp_exchange_rate():
-    with ServedSim("modbus-tcp") as served:
-        rate_hz = report("modbus+tcp FC23", measure(served.url, 2000))
-    assert rate_hz >= 500  # aim >= 1 kHz; margin for a loaded 2-core test machine
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(("fc23", "n"), [(True, 400), (False, 200)])
+@pytest.mark.parametrize(("fc23", "n"), [(True, 150), (False, 80)])
 def test_rtu_exchange_rate_near_the_link_limit(tmp_path, fc23, n):
     regmap = load_map("servobench-sim")
     limit_s = rtu_cycle_limit_s(regmap, fc23)
@@ -89,4 +77,4 @@ def test_rtu_exchange_rate_near_the_link_limit(tmp_path, fc23, n):
         f"modbus+rtu {BAUD} baud {'FC23' if fc23 else 'write-then-read'}", period_s, limit_s
     )
     assert rate_hz <= 1.01 / limit_s  # the line emulation holds: no faster than the wire
-    assert rate_hz >= 0.6 / limit_s  # aim is >= 80 %; margin for a loaded 2-core test machine
+    # How close to the limit it gets is a figure, not a test: benchmarks/transport_rate.py.

@@ -1,0 +1,110 @@
+"""Achieved closed-loop cycle rate and jitter per transport, beside the physical limit of the link.
+
+Each transport serves the simulated drive in its own process (``servobench
+serve-sim``) and the host streams a square wave through the real protocol
+stack as fast as the link answers (``pace=fast``); then at a fixed 1 kHz or
+80 % of the link limit (``pace=real``, the runner's deadline schedule) to show
+the jitter a bench would see. Link limits:
+
+- CANopen at 1 Mbit/s: SYNC + RPDO + TPDOs, with and without worst-case bit
+  stuffing (servobench maps SYNC + 4-byte RPDO + two 8-byte TPDOs; the
+  reference layout SYNC + 4-byte RPDO + one 8-byte TPDO is 237-285 us);
+- Modbus RTU at 115200 baud: the frames of one cycle plus a t3.5 after each;
+- Modbus TCP: the Ethernet frames at 100 Mbit/s (the wire is rarely the limit);
+- serial ASCII at 115200 baud: the bytes actually exchanged, 10 bits each.
+
+Run: ``python benchmarks/transport_rate.py [--n 3000]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bench.runner import _sleep_until
+from drivers.link_budget import (
+    canopen_cycle_s,
+    modbus_rtu_cycle_s,
+    modbus_rtu_frames,
+    modbus_tcp_cycle_s,
+    uart_cycle_s,
+)
+from drivers.registry import open_drive
+from sim_backend.launch import ServedSim
+
+PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
+
+
+def measure(url: str, n: int, rate_hz: float | None) -> tuple[np.ndarray, object]:
+    """Host-side periods [s] of ``n`` exchanges, free-running or paced at ``rate_hz``."""
+    u = np.where((np.arange(n) // 100) % 2 == 0, 0.8, -0.8)
+    with open_drive(url) as drive:
+        drive.set_cycle(1e-3)
+        drive.enable()
+        for _ in range(20):
+            drive.exchange(0.0)
+        counters = (getattr(drive, "bytes_sent", 0), getattr(drive, "bytes_received", 0))
+        t = np.empty(n + 1)
+        t[0] = time.monotonic()
+        for k in range(n):
+            if rate_hz:
+                _sleep_until(t[0] + (k + 1) / rate_hz)
+            drive.exchange(u[k])
+            t[k + 1] = time.monotonic()
+        moved = getattr(drive, "bytes_sent", 0) + getattr(drive, "bytes_received", 0) - sum(counters)
+        regmap = getattr(drive, "regmap", None)
+    return np.diff(t), (moved / n, regmap)
+
+
+def link_limit(transport: str, extra: tuple[float, object]) -> tuple[float, str]:
+    bytes_per_cycle, regmap = extra
+    if transport == "canopen":
+        best, worst = canopen_cycle_s([0, 4, 8, 8])
+        return worst, f"SYNC+RPDO(4)+2 TPDO(8): {best * 1e6:.0f}-{worst * 1e6:.0f} us"
+    if transport == "modbus-rtu":
+        frames = modbus_rtu_frames(regmap["command"].count, regmap.feedback.count, regmap.fc23)
+        return modbus_rtu_cycle_s(frames), f"{'FC23' if regmap.fc23 else 'write+read'} {frames} B + t3.5"
+    if transport == "modbus-tcp":
+        w, r = regmap["command"].count, regmap.feedback.count
+        adus = [7 + 10 + 2 * w, 7 + 2 + 2 * r]  # MBAP + FC23 request / response PDU
+        return modbus_tcp_cycle_s(adus), "FC23 on 100 Mbit/s Ethernet"
+    return uart_cycle_s(bytes_per_cycle), f"{bytes_per_cycle:.1f} B/cycle at 115200 baud"
+
+
+def stats(period_s: np.ndarray) -> str:
+    return (
+        f"{1 / period_s.mean():8.0f} /s  jitter std {period_s.std() * 1e6:6.0f} us  "
+        f"p99 {np.percentile(period_s, 99) * 1e3:6.2f} ms  max {period_s.max() * 1e3:6.2f} ms"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=3000, help="exchanges per measurement")
+    parser.add_argument(
+        "--transports", default="canopen,modbus-tcp,modbus-rtu,serial", help="comma-separated"
+    )
+    args = parser.parse_args()
+    print(f"{args.n} exchanges per row; served simulated drive in a child process\n")
+    for transport in args.transports.split(","):
+        n = args.n if transport in ("canopen", "modbus-tcp") else max(300, args.n // 5)
+        with ServedSim(transport, PLANT) as served:
+            url = served.url + "&pace=fast"
+            free, extra = measure(url, n, None)
+            limit_s, how = link_limit(transport, extra)
+            paced_hz = min(1000.0, 0.8 / limit_s)
+            paced, _ = measure(url, n, paced_hz)
+        achieved = 1 / free.mean()
+        print(f"{transport:11s} free-running {stats(free)}")
+        print(f"{'':11s} paced {paced_hz:5.0f} Hz {stats(paced)}")
+        note = "  (the socketcand hub has no bit timing)" if transport == "canopen" else ""
+        print(
+            f"{'':11s} link limit {1 / limit_s:8.0f} /s ({how}); achieved/limit = "
+            f"{100 * achieved * limit_s:.1f} %{note}\n"
+        )
+
+
+if __name__ == "__main__":
+    main()
