@@ -184,10 +184,17 @@ def default_freqs(
 def freqs_around(
     corner_hz: float, fs_hz: float, samples_per_period: int, count: int = DEFAULT_LINES
 ) -> tuple[float, ...]:
-    """Lines log-spaced over two decades centred on ``corner_hz`` (the redesign of SIDBE step 6)."""
+    """Lines log-spaced over two decades centred on ``corner_hz`` (the redesign of SIDBE step 6).
+
+    The corner is first clamped to what the period and sample rate can carry
+    (``[1/period, fs/40]``); the lines stay below ``fs/4``.
+    """
     f0 = fs_hz / samples_per_period
-    k_lo = max(1, int(math.floor(corner_hz / 10 / f0)))
-    k_hi = max(k_lo + 1, min(int(corner_hz * 10 / f0), int(fs_hz / 4 / f0)))
+    k_top = max(2, int(fs_hz / 4 / f0))
+    corner = min(max(corner_hz, f0), fs_hz / 40) if math.isfinite(corner_hz) else 10 * f0
+    k_lo = max(1, int(math.floor(corner / 10 / f0)))
+    k_hi = max(k_lo + 1, min(int(corner * 10 / f0), k_top))
+    k_lo = min(k_lo, k_hi - 1)
     ks = np.unique(np.round(np.geomspace(k_lo, k_hi, count)).astype(int))
     return tuple(float(k * f0) for k in ks)
 

@@ -133,13 +133,20 @@ def _model(fit: ZohFit) -> ServoModel:
 
 
 def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
-    """The data for the output-error refinement: averaged steady-state periods, or a raw window."""
+    """The data for the output-error refinement.
+
+    Periodic logs: each run's first period from rest (when it starts at rest)
+    and the average of its steady-state periods; otherwise a raw window.
+    """
     design = data.design
     if design is not None and not data.jittered and data.periodic_periods() >= 2:
         n = design.samples_per_period
         chunks = []
         for s in data.segments:
             periods = len(s) // n - 1
+            if initial_velocity(s, sigma) == 0.0:
+                # the transient period from rest carries information too
+                chunks.append(Chunk(s.u[:n], s.v[:n], data.dt_s))
             chunks.append(
                 Chunk(
                     s.u[n : 2 * n],

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -31,6 +31,12 @@ from sim_backend.plant import PlantState, simulate_coulomb
 MAX_RAW_SAMPLES = 60_000
 #: Relative finite-difference step of the sensitivities.
 DIFF_STEP = 1e-6
+#: Most cost evaluations of one refinement.
+MAX_NFEV = 40
+#: Free Coulomb levels start at least this fraction of the rms command above zero.
+FRICTION_FLOOR = 1e-3
+#: Restart level (fraction of the rms command) when a search ends on the zero bound.
+RESTART_FRACTION = 0.01
 
 
 @dataclass(frozen=True)
@@ -96,7 +102,7 @@ def measured_chunk(chunk: Chunk) -> np.ndarray:
 
 def _model(p: np.ndarray, base: ServoModel) -> ServoModel:
     return ServoModel(
-        math.exp(p[0]), math.exp(p[1]), max(p[2], 0.0), max(p[3], 0.0), base.resonance
+        math.exp(p[0]), math.exp(p[1]), max(float(p[2]), 0.0), max(float(p[3]), 0.0), base.resonance
     )
 
 
@@ -108,16 +114,52 @@ class OutputErrorFit:
     std: dict[str, float]
     sigma: float
     nfev: int
+    cost: float = math.nan
 
 
 def refine(
-    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool] = (True,) * 4
+    model0: ServoModel,
+    chunks: Sequence[Chunk],
+    free: Sequence[bool] = (True,) * 4,
+    friction_scale: float | None = None,
 ) -> OutputErrorFit:
     """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``.
 
     ``free`` fixes parameters the data cannot see (e.g. friction in a direction
-    never travelled) at their starting value.
+    never travelled) at their starting value. Zero friction is a kink of the
+    cost (no sticking at all), where a bounded search can stall: free Coulomb
+    levels start at least ``FRICTION_FLOOR * friction_scale`` (default scale:
+    the rms command) above it, and a search that ends on the bound is
+    restarted from ``RESTART_FRACTION * friction_scale``; the lower cost wins.
     """
+    if friction_scale is None:
+        friction_scale = math.sqrt(float(np.mean(np.concatenate([c.u for c in chunks]) ** 2)))
+    floor = FRICTION_FLOOR * friction_scale
+    fp = max(model0.coulomb_pos, floor) if free[2] else model0.coulomb_pos
+    fn = max(model0.coulomb_neg, floor) if free[3] else model0.coulomb_neg
+    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free)
+    on_bound = (free[2] and best.model.coulomb_pos <= floor * 1e-3) or (
+        free[3] and best.model.coulomb_neg <= floor * 1e-3
+    )
+    if on_bound:
+        level = RESTART_FRACTION * friction_scale
+        again = _refine_once(
+            replace(
+                best.model,
+                coulomb_pos=level if free[2] else best.model.coulomb_pos,
+                coulomb_neg=level if free[3] else best.model.coulomb_neg,
+            ),
+            chunks,
+            free,
+        )
+        if again.cost < best.cost:
+            best = again
+    return best
+
+
+def _refine_once(
+    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool]
+) -> OutputErrorFit:
     from scipy.optimize import least_squares
 
     free_idx = [i for i in range(4) if free[i]]
@@ -141,7 +183,7 @@ def refine(
     lower = np.array([-np.inf, -np.inf, 0.0, 0.0])[free_idx]
     upper = np.full(len(free_idx), np.inf)
     q0 = np.clip(p0[free_idx], lower, upper)
-    step = np.array([DIFF_STEP, DIFF_STEP, DIFF_STEP, DIFF_STEP])[free_idx]
+    step = np.full(len(free_idx), DIFF_STEP)
     try:
         sol = least_squares(
             residual,
@@ -149,21 +191,19 @@ def refine(
             bounds=(lower, upper),
             x_scale="jac",
             diff_step=step,
-            xtol=1e-10,
-            ftol=1e-12,
-            gtol=1e-12,
-            max_nfev=60,
+            xtol=1e-8,
+            ftol=1e-10,
+            gtol=1e-10,
+            max_nfev=MAX_NFEV,
         )
     except (ValueError, FloatingPointError) as err:
         raise IdentificationError(f"output-error refinement failed: {err}") from None
     p = full(sol.x)
     model = _model(p, model0)
-    m = sol.fun.size
-    sigma2_weighted = 2.0 * sol.cost / max(1, m - len(free_idx))
-    # the residual of an averaged chunk has variance sigma^2 / weight; the weighting undoes it
-    sigma = math.sqrt(sigma2_weighted)
-    std = _std_from_jacobian(sol.jac, sigma2_weighted, p, free_idx)
-    return OutputErrorFit(model, std, sigma, int(sol.nfev))
+    sigma2 = 2.0 * sol.cost / max(1, sol.fun.size - len(free_idx))
+    # an averaged chunk's residual has variance sigma^2 / weight; the weighting undoes that
+    std = _std_from_jacobian(sol.jac, sigma2, p, free_idx)
+    return OutputErrorFit(model, std, math.sqrt(sigma2), int(sol.nfev), float(sol.cost))
 
 
 def _std_from_jacobian(

@@ -329,7 +329,10 @@ def _rounds(drive, options, design, cap, out, progress):
         elif not redesigned and result is not None:
             corner = result.model.B / (2 * math.pi * result.model.M)
             freqs = exc.freqs_around(corner, design.fs_hz, design.samples_per_period)
-            action = f"fit below threshold at the amplitude limit: spectrum redesigned around {corner:.3g} Hz"
+            action = (
+                f"fit below threshold at the amplitude limit: spectrum redesigned to "
+                f"{freqs[0]:.3g}-{freqs[-1]:.3g} Hz (identified corner {corner:.3g} Hz)"
+            )
             next_design = design.with_freqs(freqs)
             redesigned = True
         else:

@@ -84,7 +84,8 @@ def simulate_variable_dt(
             continue
         vinf = (uk - f) / B
         vn = vinf + (v - vinf) * exp(-dt / tau)
-        if (vn > 0.0) == (f > 0.0) and vn != 0.0:
+        forward = v > 0.0 or (v == 0.0 and uk > bkp)
+        if (vn > 0.0) == forward and vn != 0.0:
             v = vn
             continue
         tc = tau * log((v - vinf) / -vinf)

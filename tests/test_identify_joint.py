@@ -1,0 +1,122 @@
+"""The friction-aware joint estimator against analytic (simulated) cases."""
+
+import math
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from bench.dataset import prepare
+from bench.excitation import make_design
+from bench.identify import identify
+from bench.identify_joint import identify_joint
+from bench.logio import ExperimentLog, RunData
+from bench.synthetic import simulate_experiment
+from drivers.errors import IdentificationError
+from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
+
+TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+
+
+def _params(model):
+    return [model.M, model.B, model.coulomb_pos, model.coulomb_neg]
+
+
+@pytest.mark.parametrize("amplitude", [1.0, 150.0])
+def test_noise_free_joint_is_exact_at_low_and_high_amplitude(amplitude):
+    log = simulate_experiment(TRUE, make_design(amplitude))
+    r = identify(log, "joint")
+    assert r.method == "joint"
+    assert_allclose(_params(r.model), [0.1, 1.0, 0.5, 0.4], rtol=1e-3)
+    assert_allclose([r.model.pole, r.model.dc_gain], [-10.0, 1.0], rtol=1e-3)
+    assert r.fit_percent > 99.9
+
+
+def test_noisy_joint_is_unbiased_within_its_uncertainty():
+    sigma = 0.01
+    log = simulate_experiment(TRUE.with_changes(noise=sigma, seed=7), make_design(1.0))
+    est = identify_joint(prepare(log))
+    assert est.estimator == "output-error"
+    assert est.noise_std == pytest.approx(sigma, rel=0.1)
+    for key, true in (("M", 0.1), ("B", 1.0), ("coulomb_pos", 0.5), ("coulomb_neg", 0.4)):
+        value = getattr(est.model, key)
+        assert 0 < est.std[key] < 0.02 * true
+        assert abs(value - true) < 4 * est.std[key], key
+
+
+def test_position_only_open_loop_log():
+    log = simulate_experiment(TRUE, make_design(1.0, period_s=2.0, periods=3), with_velocity=False)
+    r = identify(log, "joint")
+    assert "output-error" in r.estimator
+    assert_allclose(_params(r.model), [0.1, 1.0, 0.5, 0.4], rtol=5e-3)
+
+
+def _closed_loop_run(noise=0.0, jitter=0.0, seed=0):
+    """A PI velocity loop tracking a random step reference; exact plant between samples."""
+    rng = np.random.default_rng(seed)
+    n = 6000
+    dt = 1e-3
+    dts = dt * (1 + jitter * rng.uniform(-1, 1, n - 1))
+    ref = np.repeat(rng.uniform(-2, 2, n // 300), 300)
+    v = np.zeros(n)
+    u = np.zeros(n)
+    state = PlantState()
+    integ = 0.0
+    for k in range(n):
+        v[k] = state.v
+        meas = state.v + (rng.normal(0, noise) if noise else 0.0)
+        e = ref[k] - meas
+        integ += e * dt
+        u[k] = 2.0 * e + 5.0 * integ
+        if k < n - 1:
+            _, _, state = simulate_coulomb(np.array([u[k]]), dts[k], TRUE, state)
+    t = np.concatenate(([0.0], np.cumsum(dts)))
+    v_meas = v + (rng.normal(0, noise, n) if noise else 0.0)
+    return ExperimentLog((RunData(1, t, u, v_meas),), {"fs": "1000", "loop": "closed"}, 1000.0)
+
+
+def test_single_run_closed_loop_arbitrary_excitation():
+    r = identify(_closed_loop_run(), "auto")
+    assert r.method == "joint"
+    assert "sidbe cannot run" in r.selection
+    assert_allclose(_params(r.model), [0.1, 1.0, 0.5, 0.4], rtol=1e-3)
+
+
+def test_irregular_time_stamps_use_per_sample_intervals():
+    log = _closed_loop_run(jitter=0.2, seed=3)
+    data = prepare(log)
+    assert data.jittered
+    r = identify(log, "joint")
+    assert any("irregular" in n for n in r.notes)
+    assert_allclose(_params(r.model), [0.1, 1.0, 0.5, 0.4], rtol=1e-3)
+    # a nominal-dt fit of the same data is visibly worse: the jitter matters
+    assert r.fit_percent > 99.9
+
+
+def test_no_motion_is_an_identification_error():
+    log = simulate_experiment(TRUE, make_design(0.3))  # below both friction levels: never moves
+    with pytest.raises(IdentificationError, match="no motion"):
+        identify(log, "joint")
+
+
+def test_noise_only_motion_is_an_identification_error():
+    log = simulate_experiment(TRUE.with_changes(noise=0.01, seed=1), make_design(0.3))
+    with pytest.raises(IdentificationError, match="motion"):
+        identify(log, "joint")
+
+
+def test_one_direction_only_leaves_the_other_level_undetermined():
+    d = make_design(1.0)
+    log = simulate_experiment(TRUE, d)
+    runs = tuple(
+        RunData(r.run, r.t, np.abs(r.u), r.v, r.x) for r in log.runs
+    )  # u >= 0: never moves backwards
+    pos_only = ExperimentLog(runs, {"fs": "1000"}, 1000.0)
+    runs_sim = []
+    for r in runs:
+        v, x, _ = simulate_coulomb(r.u, 1e-3, TRUE)
+        runs_sim.append(RunData(r.run, r.t, r.u, v, x))
+    r = identify(ExperimentLog(tuple(runs_sim), pos_only.metadata, 1000.0), "joint")
+    assert_allclose([r.model.M, r.model.B, r.model.coulomb_pos], [0.1, 1.0, 0.5], rtol=1e-3)
+    assert r.model.coulomb_neg == 0.0
+    assert math.isfinite(r.fit_percent)
