@@ -14,11 +14,14 @@ config       the ``bench.toml`` commissioning configuration
 limits       confirm the safety limits and put them into the drive URL
 checks       link, identity, state and fault checks
 bump         the bump test: does it move, in the right direction, with sane feedback
+integration  the one adapter to the SIDBE procedure, the model and the diagnosis
 design       friction feed-forward and PI design (pure)
 closedloop   velocity-loop simulation of the design on the identified plant
-integration  the thin adapter to identification, SIDBE and diagnose
-record       model.json, .mat export, the commissioning summary
-report       the self-contained HTML report
+record       model.json, the .mat export, commission.json
+figures      the plots only commissioning draws (excitation, bump, compensation)
+report       the self-contained HTML page
+document     the report sections from the results
+ui           messages and progress bars (rich)
 sequence     the steps, Ctrl-C safe
 """
 
