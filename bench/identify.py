@@ -21,8 +21,6 @@ Every result is verified by simulation on the whole log
 
 from __future__ import annotations
 
-import contextlib
-
 from bench.dataset import Dataset, prepare
 from bench.estimate import MethodEstimate
 from bench.identify_joint import identify_joint
@@ -154,11 +152,10 @@ def _auto(data: Dataset, resonance: bool) -> tuple[MethodEstimate, str, dict[str
         why = f"auto: {winner} (validation fit {validation[winner]:.3f} % {where}); {failed} failed: {failures[failed]}"
     final = candidates[winner]
     if fit_data is not data:
-        final = (
-            identify_sidbe(data, resonance=resonance) if winner == "sidbe" else identify_joint(data)
-        )
+        if winner == "sidbe":
+            final = identify_sidbe(data, resonance=resonance)
+        else:
+            final = identify_joint(data, start=final)
+    # the measured FRF (for the plot) from the held-out comparison is good enough
     frf = candidates["sidbe"].frf if "sidbe" in candidates else None
-    if frf is not None and fit_data is not data and winner != "sidbe":
-        with contextlib.suppress(IdentificationError):
-            frf = identify_sidbe(data, resonance=resonance).frf
     return final, why, validation, frf

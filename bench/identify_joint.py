@@ -47,10 +47,26 @@ NOISE_SIGMAS = 3.0
 IV_PASSES = 2
 #: Fewest samples (as a fraction) that must move clearly above the noise.
 MIN_MOVING_FRACTION = 0.01
+#: Most sample pairs in one regression of noisy data (evenly thinned beyond; the
+#: regressions only start the output-error refinement, which sees all the data).
+MAX_PAIRS = 250_000
 
 
-def identify_joint(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
-    """Identify ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` from ``data`` (see module docstring)."""
+def identify_joint(
+    data: Dataset, *, refine_oe: bool = True, start: MethodEstimate | None = None
+) -> MethodEstimate:
+    """Identify ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` from ``data`` (see module docstring).
+
+    Parameters
+    ----------
+    data : Dataset
+    refine_oe : bool
+        Run the output-error refinement when the data are noisy.
+    start : MethodEstimate, optional
+        A joint estimate of (part of) the same data: its model and noise level
+        start the output-error refinement directly (used by ``auto`` to refit
+        on all data after the held-out comparison).
+    """
     if data.derived:
         from bench.identify_idim import identify_idim
 
@@ -60,23 +76,27 @@ def identify_joint(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
     us = [s.u for s in data.segments]
     ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in data.segments]
     notes: list[str] = list(data.notes)
+    v_all = np.concatenate(vs)
 
-    fit = _solve(select_pairs(vs, us, ints), data, None)
+    if start is not None and start.estimator == "output-error" and refine_oe:
+        sigma = start.noise_std
+        return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
+
+    fit = _solve(select_pairs(vs, us, ints, max_pairs=MAX_PAIRS), data, None)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
-    v_rms = math.sqrt(float(np.mean(np.concatenate(vs) ** 2)))
+    v_rms = math.sqrt(float(np.mean(v_all**2)))
     if sigma <= EXACT_RTOL * v_rms:
         model = _model(fit)
         return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-ls", 0.0, tuple(notes))
 
     threshold = NOISE_SIGMAS * sigma
-    moving = np.mean(np.abs(np.concatenate(vs)) > 2 * threshold)
+    moving = np.mean(np.abs(v_all) > 2 * threshold)
     if moving < MIN_MOVING_FRACTION:
         raise IdentificationError(
             f"no motion above the sensor noise (sigma {sigma:.3g}); raise the amplitude"
         )
-    fit = _solve(select_pairs(vs, us, ints, threshold=threshold), data, fit)
+    fit = _solve(select_pairs(vs, us, ints, threshold=threshold, max_pairs=MAX_PAIRS), data, fit)
     model = _model(fit)
-    estimator = "zoh-iv"
     for _ in range(IV_PASSES):
         sims = [
             simulate_run(
@@ -88,32 +108,33 @@ def identify_joint(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
             )
             for s in data.segments
         ]
-        mismatch2 = (
-            float(np.mean(np.concatenate([v - vs_ for v, vs_ in zip(vs, sims, strict=True)]) ** 2))
-            - sigma**2
-        )
+        mismatch2 = float(np.mean((v_all - np.concatenate(sims)) ** 2)) - sigma**2
         margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
-        pairs = select_pairs(vs, us, ints, references=sims, threshold=margin)
+        pairs = select_pairs(vs, us, ints, references=sims, threshold=margin, max_pairs=MAX_PAIRS)
         try:
             fit = _solve(pairs, data, fit, instrumental=True)
             model = _model(fit)
         except IdentificationError:
             break
-    std = fit.physical_std(dt)
-    if refine_oe:
-        chunks, note = oe_chunks(data, sigma)
-        if note:
-            notes.append(note)
-        free = (
-            True,
-            True,
-            bool(np.any(np.concatenate(vs) > threshold)),
-            bool(np.any(np.concatenate(vs) < -threshold)),
-        )
-        oe = refine(model, chunks, free)
-        model, std, sigma = oe.model, oe.std, oe.sigma
-        estimator = "output-error"
-    return MethodEstimate(model, "joint", std, estimator, sigma, tuple(notes))
+    if not refine_oe:
+        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-iv", sigma, tuple(notes))
+    return _refine(data, model, sigma, threshold, v_all, notes)
+
+
+def _refine(
+    data: Dataset,
+    model: ServoModel,
+    sigma: float,
+    threshold: float,
+    v_all: np.ndarray,
+    notes: list[str],
+) -> MethodEstimate:
+    chunks, note = oe_chunks(data, sigma)
+    if note:
+        notes.append(note)
+    free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
+    oe = refine(model, chunks, free)
+    return MethodEstimate(oe.model, "joint", oe.std, "output-error", oe.sigma, tuple(notes))
 
 
 def _period(data: Dataset) -> int:
@@ -144,18 +165,17 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
         chunks = []
         for s in data.segments:
             periods = len(s) // n - 1
+            v_bar = steady_average(s.v, n, 1)
             if initial_velocity(s, sigma) == 0.0:
-                # the transient period from rest carries information too
-                chunks.append(Chunk(s.u[:n], s.v[:n], data.dt_s))
-            chunks.append(
-                Chunk(
-                    s.u[n : 2 * n],
-                    steady_average(s.v, n, 1),
-                    data.dt_s,
-                    periodic=True,
-                    weight=float(periods),
+                # from rest: the transient period as logged, then the averaged steady one
+                weight = np.concatenate((np.ones(n), np.full(n, float(periods))))
+                chunks.append(
+                    Chunk(s.u[: 2 * n], np.concatenate((s.v[:n], v_bar)), data.dt_s, weight=weight)
                 )
-            )
+            else:
+                chunks.append(
+                    Chunk(s.u[n : 2 * n], v_bar, data.dt_s, periodic=True, weight=float(periods))
+                )
         return chunks, ""
     per_run = max(1, MAX_RAW_SAMPLES // len(data.segments))
     note = ""

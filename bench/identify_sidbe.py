@@ -31,6 +31,8 @@ from drivers.errors import IdentificationError
 
 #: Pairs closer to zero velocity than this many noise sigmas are not used for friction.
 NOISE_SIGMAS = 3.0
+#: Most sample pairs in the friction regression (evenly thinned beyond).
+MAX_PAIRS = 500_000
 
 
 def sidbe_applicable(data: Dataset) -> str:
@@ -79,7 +81,7 @@ def _friction_sampled(
     vs = [s.v for s in data.segments]
     us = [s.u for s in data.segments]
     ints = [np.full(len(s) - 1, dt) for s in data.segments]
-    pairs = select_pairs(vs, us, ints)
+    pairs = select_pairs(vs, us, ints, max_pairs=MAX_PAIRS)
     force = pairs.u - (pairs.v1 - a * pairs.v0) / b
     # noise from the spread of the friction force within each direction
     resid = np.concatenate(
@@ -87,7 +89,7 @@ def _friction_sampled(
     )
     sigma = noise_std_from_residual(resid * b, a)
     if sigma > 0:
-        pairs = select_pairs(vs, us, ints, threshold=NOISE_SIGMAS * sigma)
+        pairs = select_pairs(vs, us, ints, threshold=NOISE_SIGMAS * sigma, max_pairs=MAX_PAIRS)
         force = pairs.u - (pairs.v1 - a * pairs.v0) / b
     return (*_levels(force, pairs.pos, pairs.neg), sigma)
 

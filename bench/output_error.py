@@ -57,8 +57,9 @@ class Chunk:
         ``u`` is one period of a periodic command and ``v`` its steady state.
     skip : int
         Leading samples left out of the comparison (initial transient of unknown state).
-    weight : float
-        Number of raw samples each compared sample stands for (periods averaged).
+    weight : float or ndarray
+        Number of raw samples each compared sample stands for (periods averaged),
+        one value or one per compared sample.
     derive : DerivedMotion or None
         Set when ``v`` was derived from position: the simulated position then goes
         through the same filter and derivative, so both sides are filtered alike.
@@ -72,7 +73,7 @@ class Chunk:
     v0: float = 0.0
     periodic: bool = False
     skip: int = 0
-    weight: float = 1.0
+    weight: float | np.ndarray = 1.0
     derive: DerivedMotion | None = None
     x0: float = 0.0
 
@@ -164,7 +165,7 @@ def _refine_once(
 
     free_idx = [i for i in range(4) if free[i]]
     p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg])
-    weights = [math.sqrt(c.weight) for c in chunks]
+    weights = [np.sqrt(c.weight) for c in chunks]
 
     def full(q: np.ndarray) -> np.ndarray:
         p = p0.copy()
@@ -231,9 +232,7 @@ def sensitivity(model: ServoModel, chunks: Sequence[Chunk]) -> np.ndarray:
             q = p.copy()
             q[i] += sign * h
             m = ServoModel(q[0], q[1], max(q[2], 0.0), max(q[3], 0.0), model.resonance)
-            sims.append(
-                np.concatenate([math.sqrt(c.weight) * simulate_chunk(m, c) for c in chunks])
-            )
+            sims.append(np.concatenate([np.sqrt(c.weight) * simulate_chunk(m, c) for c in chunks]))
         cols.append((sims[0] - sims[1]) / (2 * h))
     return np.column_stack(cols)
 
