@@ -165,6 +165,10 @@ def prepare(
     """
     fs = float(log.fs_hz)
     notes: list[str] = []
+    if not log.complete:
+        notes.append(
+            "the log is incomplete (no 'status = complete' trailer): the run was cut short"
+        )
     segments: list[Segment] = []
     for r in log.runs:
         if len(r) < MIN_SAMPLES:

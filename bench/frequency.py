@@ -71,6 +71,21 @@ def line_spectrum(y_period: np.ndarray, lines: np.ndarray) -> np.ndarray:
     return np.fft.rfft(y_period)[lines] / len(y_period)
 
 
+def detrend_position(x: np.ndarray, samples_per_period: int) -> np.ndarray:
+    """Remove the steady drift of position so that it becomes periodic.
+
+    In periodic steady state ``x[k + N] = x[k] + D``; ``D`` is estimated from
+    the end of the first period on, and ``x[k] - D k / N`` is returned.
+    """
+    n = samples_per_period
+    x = np.asarray(x, dtype=float)
+    if len(x) < 2 * n:
+        raise IdentificationError("position detrending needs two whole periods")
+    k0 = n - 1
+    drift = float(np.mean(x[k0 + n :] - x[k0 : len(x) - n]))
+    return x - drift * np.arange(len(x)) / n
+
+
 def differential_frf(
     u1: np.ndarray,
     v1: np.ndarray,
@@ -79,7 +94,11 @@ def differential_frf(
     design: ExcitationDesign,
     first: int = 1,
 ) -> FrequencyResponse:
-    """The differential FRF of two runs of one design (steady-state periods ``first..``)."""
+    """The differential FRF of two runs of one design (steady-state periods ``first..``).
+
+    ``v1``, ``v2`` may also be detrended positions (:func:`detrend_position`):
+    the result is then position over command.
+    """
     n = design.samples_per_period
     lines = design.lines
     spectra = [line_spectrum(steady_average(y, n, first), lines) for y in (u1, v1, u2, v2)]
@@ -139,14 +158,28 @@ class LinearFit:
     std_M: float
     std_B: float
     misfit: float
+    resonance_at_bound: bool = False
 
 
-def fit_linear_block(frf: FrequencyResponse, resonance: bool = False) -> LinearFit:
+def position_over_velocity(M: float, B: float, z: np.ndarray, dt_s: float) -> np.ndarray:
+    """``X(z)/V(z)`` [s] of the ZOH-sampled first-order plant (position is the integral of velocity).
+
+    From ``X/U = (1/B) (dt/(z-1) - tau (1-a)/(z-a))`` and ``V/U = (1-a)/(B (z-a))``.
+    """
+    tau = M / B
+    a = math.exp(-dt_s / tau)
+    return dt_s * (z - a) / ((z - 1.0) * (1.0 - a)) - tau
+
+
+def fit_linear_block(
+    frf: FrequencyResponse, resonance: bool = False, of_position: bool = False
+) -> LinearFit:
     """Fit ``1/(M s + B)`` (and a resonance) to the FRF, as its exact ZOH-sampled response.
 
     A linear least-squares fit of ``G (z - a) = b`` starts a nonlinear fit of
     the relative error ``(G_model - G) / |G|`` over ``log M, log B`` (and
-    ``log wn, log zeta``).
+    ``log wn, log zeta``). With ``of_position`` the FRF is position over
+    command, and the model's ``X(z)/U(z)`` is fitted.
     """
     from scipy.optimize import least_squares
 
@@ -154,6 +187,9 @@ def fit_linear_block(frf: FrequencyResponse, resonance: bool = False) -> LinearF
     if G.size < (4 if resonance else 2):
         raise IdentificationError(f"{G.size} excited lines are too few for the fit")
     z = np.exp(2j * np.pi * frf.f_hz * dt)
+    G_meas = G
+    if of_position:
+        G = G * 2 * (z - 1) / (dt * (1 + z))  # trapezoidal velocity, for the start only
     # (z - a) - b / G = 0, relative to |z - a| ~ 1: linear in (a, b)
     A = np.column_stack((-np.ones_like(G), -1.0 / G))
     rhs = -z
@@ -174,29 +210,37 @@ def fit_linear_block(frf: FrequencyResponse, resonance: bool = False) -> LinearF
             g = _zoh_third_order(M, B, math.exp(p[2]), math.exp(p[3]), z, dt)
         else:
             g = zoh_first_order(M, B, z, dt)
-        e = (g - G) / np.abs(G)
+        if of_position:
+            g = g * position_over_velocity(M, B, z, dt)
+        e = (g - G_meas) / np.abs(G_meas)
         return np.concatenate((e.real, e.imag))
 
     p0 = [math.log(M0), math.log(B0)]
-    if resonance:
-        best = None
-        g1 = zoh_first_order(M0, B0, z, dt)
-        ratio = np.abs(G / g1)
-        guesses = [
-            frf.f_hz[int(np.argmax(ratio))],
-            frf.f_hz[-1] * 2.0,
-            frf.f_hz[len(frf.f_hz) // 2],
-        ]
-        for f_guess in guesses:
-            for zeta0 in (0.05, 0.3):
-                sol = least_squares(
-                    residual, p0 + [math.log(2 * math.pi * f_guess), math.log(zeta0)], method="lm"
-                )
-                if best is None or sol.cost < best.cost:
-                    best = sol
-        sol = best
-    else:
-        sol = least_squares(residual, p0, method="lm")
+    try:
+        if resonance:
+            # keep the mode between a tenth of the lowest line and 0.45 fs, damping in [1e-3, 10]
+            lo = [-np.inf, -np.inf, math.log(2 * math.pi * frf.f_hz[0] / 10), math.log(1e-3)]
+            hi = [np.inf, np.inf, math.log(2 * math.pi * 0.45 / dt), math.log(10.0)]
+            g1 = zoh_first_order(M0, B0, z, dt)
+            ratio = np.abs(G / g1)
+            guesses = [
+                frf.f_hz[int(np.argmax(ratio))],
+                frf.f_hz[-1] * 2.0,
+                frf.f_hz[len(frf.f_hz) // 2],
+            ]
+            best = None
+            for f_guess in guesses:
+                for zeta0 in (0.05, 0.3):
+                    x0 = np.clip(p0 + [math.log(2 * math.pi * f_guess), math.log(zeta0)], lo, hi)
+                    x0 = np.minimum(np.maximum(x0, np.array(lo) + 1e-9), np.array(hi) - 1e-9)
+                    cand = least_squares(residual, x0, bounds=(lo, hi), method="trf")
+                    if best is None or cand.cost < best.cost:
+                        best = cand
+            sol = best
+        else:
+            sol = least_squares(residual, p0, method="lm")
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
+        raise IdentificationError(f"the FRF fit failed: {err}") from None
     p = sol.x
     r = sol.fun
     dof = max(1, r.size - p.size)
@@ -209,6 +253,15 @@ def fit_linear_block(frf: FrequencyResponse, resonance: bool = False) -> LinearF
     misfit = math.sqrt(float(r @ r) / max(1, G.size))
     wn = math.exp(p[2]) if resonance else None
     zeta = math.exp(p[3]) if resonance else None
+    at_bound = bool(resonance and np.any(np.abs(p[2:] - np.array(lo[2:])) < 1e-6))
+    at_bound = at_bound or bool(resonance and np.any(np.abs(p[2:] - np.array(hi[2:])) < 1e-6))
     return LinearFit(
-        M, B, wn, zeta, M * math.sqrt(max(cov[0, 0], 0)), B * math.sqrt(max(cov[1, 1], 0)), misfit
+        M,
+        B,
+        wn,
+        zeta,
+        M * math.sqrt(max(cov[0, 0], 0)),
+        B * math.sqrt(max(cov[1, 1], 0)),
+        misfit,
+        at_bound,
     )

@@ -18,13 +18,19 @@ the estimate is biased; :mod:`bench.identify_joint` is not.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from bench.dataset import Dataset
 from bench.derivative import lowpass, settle_samples, zoh_centered
 from bench.estimate import MethodEstimate
-from bench.frequency import differential_frf, fit_linear_block
+from bench.frequency import (
+    detrend_position,
+    differential_frf,
+    fit_linear_block,
+    position_over_velocity,
+)
 from bench.model import Resonance, ServoModel
 from bench.regression import noise_std_from_residual, select_pairs
 from drivers.errors import IdentificationError
@@ -53,20 +59,35 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         raise IdentificationError(f"sidbe cannot run: {reason}")
     assert data.design is not None
     r1, r2 = data.run(1), data.run(2)
-    frf = differential_frf(r1.u, r1.v, r2.u, r2.v, data.design)
-    fit = fit_linear_block(frf, resonance=resonance)
+    if r1.motion is not None and r1.x is not None and r2.x is not None:
+        # position only: the FRF of (drift-free, periodic) position is exact, no filter
+        n = data.design.samples_per_period
+        x1, x2 = detrend_position(r1.x, n), detrend_position(r2.x, n)
+        frf = differential_frf(r1.u, x1, r2.u, x2, data.design)
+        of_position = True
+    else:
+        frf = differential_frf(r1.u, r1.v, r2.u, r2.v, data.design)
+        of_position = False
+    frf_for_fit = frf
+    fit = fit_linear_block(frf, resonance=resonance, of_position=of_position)
+    notes = list(data.notes)
+    if fit.resonance_at_bound:
+        notes.append("no resonance found within the excited band: fitted without one")
+        fit = fit_linear_block(frf_for_fit, resonance=False, of_position=of_position)
     res = (
         Resonance(fit.wn_rad_s, fit.zeta)
         if fit.wn_rad_s is not None and fit.zeta is not None
         else None
     )
-    notes = list(data.notes)
     if data.derived:
         fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B)
     else:
         fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B)
     if fp < 0 or fn < 0:
         notes.append("a negative Coulomb level was estimated and clipped to 0")
+    if of_position:  # keep the velocity FRF for the plot
+        z = np.exp(2j * np.pi * frf.f_hz * frf.dt_s)
+        frf = replace(frf, G=frf.G / position_over_velocity(fit.M, fit.B, z, frf.dt_s))
     model = ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res)
     std = {"M": fit.std_M, "B": fit.std_B, "coulomb_pos": sp, "coulomb_neg": sn}
     return MethodEstimate(model, "sidbe", std, "frf", sigma, tuple(notes), frf)

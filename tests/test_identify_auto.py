@@ -86,3 +86,20 @@ def test_fit_percent_definition():
     assert fit_percent(v, v) == 100.0
     assert fit_percent(v, np.full(4, v.mean())) == pytest.approx(0.0)
     assert fit_percent(np.ones(3), np.zeros(3)) == -math.inf
+
+
+def test_incomplete_log_is_identified_with_a_note(tmp_path):
+    from bench.logio import read_log
+
+    log = simulate_experiment(TRUE, make_design(2.0, periods=2, period_s=1.0))
+    path = tmp_path / "cut.csv"
+    rows = [
+        f"1,{t:.6f},{u:.10g},{v:.10g}"
+        for t, u, v in zip(log.runs[0].t, log.runs[0].u, log.runs[0].v, strict=True)
+    ]
+    path.write_text(
+        "# fs = 1000\n# status = incomplete\nrun,t,u,v\n" + "\n".join(rows[:1500]) + "\n"
+    )
+    r = identify(read_log(path), "auto")
+    assert any("incomplete" in n for n in r.notes)
+    assert r.model.pole == pytest.approx(-10.0, rel=1e-3)

@@ -77,3 +77,21 @@ def test_sidbe_needs_the_pair_and_the_design():
     bare = type(log)(log.runs, {"fs": "1000"}, log.fs_hz)
     with pytest.raises(IdentificationError, match="periodic excitation"):
         identify(bare, "sidbe")
+
+
+def test_position_only_sidbe_fits_the_position_frf_exactly():
+    linear = TRUE.with_changes(fc_pos=0.0, fc_neg=0.0)
+    log = simulate_experiment(
+        linear, make_design(5.0, period_s=2.0, periods=3), with_velocity=False
+    )
+    r = identify(log, "sidbe")
+    assert_allclose([r.model.M, r.model.B], [0.1, 1.0], rtol=1e-6)
+    expected = model_frf(r.model, r.frf.f_hz, r.frf.dt_s)
+    assert_allclose(r.frf.G, expected, rtol=1e-5)  # the plotted FRF is velocity over command
+
+
+def test_resonance_option_without_a_mode_falls_back_and_says_so():
+    log = simulate_experiment(TRUE, make_design(5.0))
+    r = identify(log, "sidbe", resonance=True)
+    assert r.model.resonance is None
+    assert any("no resonance" in n for n in r.notes)
