@@ -132,11 +132,12 @@ def _auto(data: Dataset, resonance: bool) -> tuple[MethodEstimate, str, dict[str
     ):
         try:
             est = run(fit_data)
+            score = verify(est.model, data, est.noise_std, window).fit_percent
         except IdentificationError as err:
             failures[name] = str(err)
             continue
         candidates[name] = est
-        validation[name] = verify(est.model, data, est.noise_std, window).fit_percent
+        validation[name] = score
     if not candidates:
         raise IdentificationError("; ".join(f"{k}: {v}" for k, v in failures.items()))
     winner = max(candidates, key=lambda k: validation[k] + (TIE_PERCENT if k == "joint" else 0.0))

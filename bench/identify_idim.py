@@ -26,6 +26,7 @@ from bench.derivative import differentiate_position, lowpass, settle_samples, zo
 from bench.estimate import MethodEstimate
 from bench.model import ServoModel
 from bench.output_error import MAX_RAW_SAMPLES, Chunk, refine
+from bench.verify import initial_velocity
 from drivers.errors import IdentificationError
 
 #: Samples with |v| below this fraction of max |v| count as standstill.
@@ -112,13 +113,13 @@ def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
                 "refinement): inverse-dynamic least squares (IDIM-LS) only"
             )
         return MethodEstimate(model, "joint", std, "idim-ls", 0.0, tuple(notes))
-    chunks = derived_chunks(data, rest, model.time_constant_s)
+    chunks = derived_chunks(data, model.time_constant_s)
     free = (True, True, bool(np.any(X[:, 2] > 0)), bool(np.any(X[:, 3] < 0)))
     oe = refine(model, chunks, free)
     return MethodEstimate(oe.model, "joint", oe.std, "idim-ls + output-error", 0.0, tuple(notes))
 
 
-def derived_chunks(data: Dataset, rest: float, tau_s: float) -> list[Chunk]:
+def derived_chunks(data: Dataset, tau_s: float) -> list[Chunk]:
     """Raw windows whose simulated position is filtered and differentiated like the measurement.
 
     The derived velocity at a run's first sample is spoiled by the filter edge,
@@ -132,7 +133,7 @@ def derived_chunks(data: Dataset, rest: float, tau_s: float) -> list[Chunk]:
             raise IdentificationError(f"run {s.run} has no position to derive velocity from")
         # derive again on the window, so both sides see the same filter edges
         motion = differentiate_position(seg.x, data.fs_hz, seg.motion.cutoff_hz, seg.motion.method)
-        v0 = 0.0 if abs(float(motion.v[0])) <= rest else float(motion.v[0])
+        v0 = initial_velocity(seg, 0.0)
         skip = max(
             settle_samples(data.fs_hz, motion.cutoff_hz),
             int(math.ceil(INITIAL_TIME_CONSTANTS * tau_s * data.fs_hz)),

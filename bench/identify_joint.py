@@ -47,9 +47,12 @@ NOISE_SIGMAS = 3.0
 IV_PASSES = 2
 #: Fewest samples (as a fraction) that must move clearly above the noise.
 MIN_MOVING_FRACTION = 0.01
+#: From this many steady-state periods on, the transient period is left out of the
+#: output-error refinement (it adds little information and costs a period of simulation).
+MANY_PERIODS = 8
 #: Most sample pairs in one regression of noisy data (evenly thinned beyond; the
 #: regressions only start the output-error refinement, which sees all the data).
-MAX_PAIRS = 250_000
+MAX_PAIRS = 100_000
 
 
 def identify_joint(
@@ -156,8 +159,9 @@ def _model(fit: ZohFit) -> ServoModel:
 def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
     """The data for the output-error refinement.
 
-    Periodic logs: each run's first period from rest (when it starts at rest)
-    and the average of its steady-state periods; otherwise a raw window.
+    Periodic logs: each run's first period from rest (when it starts at rest and
+    has fewer than ``MANY_PERIODS`` steady periods) and the average of its
+    steady-state periods; otherwise a raw window.
     """
     design = data.design
     if design is not None and not data.jittered and data.periodic_periods() >= 2:
@@ -166,7 +170,7 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
         for s in data.segments:
             periods = len(s) // n - 1
             v_bar = steady_average(s.v, n, 1)
-            if initial_velocity(s, sigma) == 0.0:
+            if periods < MANY_PERIODS and initial_velocity(s, sigma) == 0.0:
                 # from rest: the transient period as logged, then the averaged steady one
                 weight = np.concatenate((np.ones(n), np.full(n, float(periods))))
                 chunks.append(

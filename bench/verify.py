@@ -47,7 +47,17 @@ class Verification:
 
 
 def initial_velocity(segment: Segment, noise_std: float) -> float:
-    """The run's first velocity, or 0 when it is within noise of rest."""
+    """The run's first velocity [units/s], or 0 when it is within noise of rest.
+
+    For velocity derived from position the filtered value at the first sample
+    is spoiled by the filter's edge; the velocity is then extrapolated from the
+    first two position increments, ``(1.5 (x1 - x0) - 0.5 (x2 - x1)) / dt``.
+    """
+    if segment.derived and segment.x is not None and len(segment.x) >= 3:
+        x = segment.x
+        dt0 = float(segment.t[1] - segment.t[0])
+        dt1 = float(segment.t[2] - segment.t[1])
+        return float(1.5 * (x[1] - x[0]) / dt0 - 0.5 * (x[2] - x[1]) / dt1)
     v0 = float(segment.v[0])
     return 0.0 if abs(v0) <= REST_SIGMAS * noise_std else v0
 
