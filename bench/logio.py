@@ -13,8 +13,11 @@ Layout::
 u2 experiment); ``v`` or ``x`` may be missing, not both. ``t`` is in
 seconds, ``u`` in command units, ``v`` in velocity units/s, ``x`` in
 position units. Metadata lines may also follow the data (the writer appends
-a trailer with the status and timing statistics); a log without a
-``status = complete`` trailer that servobench wrote is incomplete.
+a trailer with the status and timing statistics; a later line wins). The
+writer opens every log with ``# status = running``, so a log whose writer
+died before the trailer (a killed host) reads as incomplete; a log without
+any ``status`` line (written by other tools) is taken as complete. Lines end
+in ``\n``, ``\r\n`` or ``\r``.
 
 MATLAB ``.mat`` files are read with a variable mapping such as
 ``t=t,u=vir*gtau,x=qm`` (a factor may be a number or a scalar variable).
@@ -36,7 +39,24 @@ from drivers.errors import LogFormatError
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")
+#: Largest run number accepted [-].
+MAX_RUN = 2**31 - 1
 _META = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*=\s*(.*?)\s*$")
+_KEY_BAD = re.compile(r"[^\w.\-]")
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
+#: Characters any reader may take as a line break (str.splitlines's set).
+_BREAKS = re.compile("[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]+")
+
+
+def _one_line(text: str) -> str:
+    """``text`` with every line break replaced by a space."""
+    return _BREAKS.sub(" ", text)
+
+
+def _show(text: str, limit: int = 60) -> str:
+    """A short, one-line rendering of untrusted text for an error message."""
+    shown = repr(text[:limit])
+    return shown + ("..." if len(text) > limit else "")
 
 
 @dataclass(frozen=True)
@@ -69,7 +89,9 @@ class RunData:
         for name in ("u", "v", "x"):
             arr = getattr(self, name)
             if arr is not None and arr.shape != (n,):
-                raise LogFormatError(f"run {self.run}: column {name} has {arr.shape} samples, t has {n}")
+                raise LogFormatError(
+                    f"run {self.run}: column {name} has {arr.shape} samples, t has {n}"
+                )
         if self.v is None and self.x is None:
             raise LogFormatError(f"run {self.run}: the log needs a v or an x column")
 
@@ -128,8 +150,10 @@ class LogWriter:
         self.rows = 0
         self.status: str | None = None
         self._fh = open(self.path, "w", encoding="utf-8", newline="\n")  # noqa: SIM115
-        for key, value in (metadata or {}).items():
-            self._fh.write(f"# {key} = {_meta_text(value)}\n")
+        meta = dict(metadata or {})
+        meta.setdefault("status", "running")  # until the trailer says otherwise
+        for key, value in meta.items():
+            self._fh.write(f"# {_meta_key(key)} = {_meta_text(value)}\n")
         self._fh.write(",".join(self.columns) + "\n")
         self._fh.flush()
 
@@ -154,7 +178,7 @@ class LogWriter:
     def note(self, **metadata: object) -> None:
         """Append ``# key = value`` lines (e.g. timing statistics) after the data."""
         for key, value in metadata.items():
-            self._fh.write(f"# {key} = {_meta_text(value)}\n")
+            self._fh.write(f"# {_meta_key(key)} = {_meta_text(value)}\n")
         self._fh.flush()
 
     def finish(self, status: str = "complete", reason: str = "", **metadata: object) -> None:
@@ -163,7 +187,7 @@ class LogWriter:
             return
         self.note(**metadata)
         if reason:
-            self.note(reason=reason.replace("\n", " "))
+            self.note(reason=reason)
         self.note(status=status)
         self.status = status
         self._fh.close()
@@ -188,11 +212,19 @@ def _meta_text(value: object) -> str:
         return ",".join(_meta_text(v) for v in value)
     if isinstance(value, float):
         return format(value, ".10g")
-    return str(value).replace("\n", " ")
+    return _one_line(str(value)).strip()
+
+
+def _meta_key(key: object) -> str:
+    """A key the reader parses back: ``[A-Za-z_][\\w.-]*``."""
+    text = _KEY_BAD.sub("_", str(key)) or "_"
+    return text if re.match(r"[A-Za-z_]", text) else "_" + text
 
 
 # --------------------------------------------------------------------- reading
-def read_log(path: str | os.PathLike[str], mat_map: str | Mapping[str, str] | None = None) -> ExperimentLog:
+def read_log(
+    path: str | os.PathLike[str], mat_map: str | Mapping[str, str] | None = None
+) -> ExperimentLog:
     """Read a servobench CSV log or a MATLAB ``.mat`` file.
 
     Parameters
@@ -209,24 +241,29 @@ def read_log(path: str | os.PathLike[str], mat_map: str | Mapping[str, str] | No
         Missing file, malformed content, missing columns.
     """
     path = Path(path)
-    if not path.is_file():
-        raise LogFormatError(f"no such log file: {path}")
-    if path.suffix.lower() == ".mat":
-        return _read_mat(path, mat_map)
+    where = _one_line(str(path))
     try:
+        if not path.is_file():
+            raise LogFormatError(f"no such log file: {where}")
+        if path.suffix.lower() == ".mat":
+            return _read_mat(path, mat_map)
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise LogFormatError(f"{path} is not a text log (not UTF-8)") from None
-    return parse_log_text(text, source=str(path))
+        raise LogFormatError(f"{where} is not a text log (not UTF-8)") from None
+    except OSError as err:
+        raise LogFormatError(f"cannot read {where}: {err.strerror or err}") from None
+    return parse_log_text(text, source=where)
 
 
 def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
     """Parse the text of a CSV log (see the module docstring for the format)."""
+    source = _one_line(source)
     metadata: dict[str, str] = {}
     header: list[str] | None = None
     rows: list[str] = []
-    truncated = bool(text) and not text.endswith("\n")
-    lines = text.split("\n")
+    text = text.removeprefix("\ufeff")  # a byte-order mark from a spreadsheet
+    truncated = bool(text) and not text.endswith(("\n", "\r"))
+    lines = _LINE_BREAK.split(text)
     if truncated:
         lines = lines[:-1]  # a crash mid-write: the last partial row is dropped
     for lineno, raw in enumerate(lines, start=1):
@@ -247,6 +284,8 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
             raise LogFormatError(
                 f"{source}:{lineno}: expected {len(header)} fields, got {line.count(',') + 1}"
             )
+        if _BREAKS.search(line):
+            raise LogFormatError(f"{source}:{lineno}: control character in row {_show(line)}")
     if header is None:
         raise LogFormatError(f"{source}: no CSV header (expected columns like run,t,u,v,x)")
     if not rows:
@@ -254,7 +293,9 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
     try:
         data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
     except ValueError as err:
-        raise LogFormatError(f"{source}: malformed number in data ({err})") from None
+        raise LogFormatError(
+            f"{source}: malformed number in data ({_one_line(str(err))})"
+        ) from None
     if not np.all(np.isfinite(data)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(data), axis=1))[0])
         raise LogFormatError(f"{source}: data row {bad + 1} holds a non-finite value")
@@ -264,15 +305,14 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
 
 
 def _check_header(header: list[str], source: str) -> None:
+    got = _show(",".join(header))
     if len(set(header)) != len(header):
-        raise LogFormatError(f"{source}: repeated column in header {','.join(header)}")
+        raise LogFormatError(f"{source}: repeated column in header {got}")
     missing = [c for c in REQUIRED if c not in header]
     if missing:
-        raise LogFormatError(
-            f"{source}: header lacks column(s) {', '.join(missing)} (got {','.join(header)})"
-        )
+        raise LogFormatError(f"{source}: header lacks column(s) {', '.join(missing)} (got {got})")
     if "v" not in header and "x" not in header:
-        raise LogFormatError(f"{source}: header needs a v or an x column (got {','.join(header)})")
+        raise LogFormatError(f"{source}: header needs a v or an x column (got {got})")
 
 
 def _assemble(
@@ -280,8 +320,8 @@ def _assemble(
 ) -> ExperimentLog:
     n = len(columns["t"])
     run_col = columns.get("run", np.ones(n))
-    if np.any(run_col != np.round(run_col)):
-        raise LogFormatError(f"{source}: column run must hold integers")
+    if np.any(run_col != np.round(run_col)) or np.any(np.abs(run_col) > MAX_RUN):
+        raise LogFormatError(f"{source}: column run must hold integers (|run| <= {MAX_RUN})")
     runs: list[RunData] = []
     for number in dict.fromkeys(run_col.astype(int).tolist()):
         idx = run_col == number
@@ -308,14 +348,24 @@ def _sample_rate(metadata: Mapping[str, str], runs: list[RunData], source: str) 
         try:
             fs = float(metadata["fs"])
         except ValueError:
-            raise LogFormatError(f"{source}: metadata fs = {metadata['fs']!r} is not a number") from None
+            raise LogFormatError(
+                f"{source}: metadata fs = {metadata['fs']!r} is not a number"
+            ) from None
         if not (math.isfinite(fs) and fs > 0):
             raise LogFormatError(f"{source}: metadata fs must be > 0 Hz")
         return fs
     longest = max(runs, key=len)
     if len(longest) < 2:
-        raise LogFormatError(f"{source}: cannot infer the sample rate from one sample; add '# fs = <Hz>'")
-    return float(1.0 / np.median(np.diff(longest.t)))
+        raise LogFormatError(
+            f"{source}: cannot infer the sample rate from one sample; add '# fs = <Hz>'"
+        )
+    with np.errstate(over="ignore", divide="ignore"):
+        fs = float(1.0 / np.median(np.diff(longest.t)))
+    if not math.isfinite(fs):
+        raise LogFormatError(
+            f"{source}: time steps too small to infer a sample rate; add '# fs = <Hz>'"
+        )
+    return fs
 
 
 def parse_mat_map(spec: str | Mapping[str, str] | None) -> dict[str, str]:
@@ -336,11 +386,15 @@ def parse_mat_map(spec: str | Mapping[str, str] | None) -> dict[str, str]:
 def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog:
     from scipy.io import loadmat
 
+    where = _one_line(str(path))
+    mapping_spec = parse_mat_map(spec)
     try:
         mat = loadmat(str(path), squeeze_me=True)
     except Exception as err:  # scipy raises several types for a bad file
-        raise LogFormatError(f"{path}: not a readable MATLAB file ({err})") from None
-    mapping = parse_mat_map(spec) or {k: k for k in SIGNALS if k in mat}
+        raise LogFormatError(
+            f"{where}: not a readable MATLAB file ({_one_line(str(err))[:200]})"
+        ) from None
+    mapping = mapping_spec or {k: k for k in SIGNALS if k in mat}
 
     def value(expr: str) -> np.ndarray | float:
         out: np.ndarray | float = 1.0
@@ -352,8 +406,13 @@ def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog
             except ValueError:
                 pass
             if factor not in mat:
-                raise LogFormatError(f"{path}: no variable {factor!r} (has {', '.join(_mat_vars(mat))})")
-            out = out * np.asarray(mat[factor], dtype=float)
+                raise LogFormatError(
+                    f"{where}: no variable {factor!r} (has {', '.join(_mat_vars(mat))})"
+                )
+            try:
+                out = out * np.asarray(mat[factor], dtype=float)
+            except (TypeError, ValueError):
+                raise LogFormatError(f"{where}: variable {factor!r} is not numeric") from None
         return out
 
     columns: dict[str, np.ndarray] = {}
@@ -362,14 +421,21 @@ def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog
     missing = [c for c in REQUIRED if c not in columns]
     if missing:
         raise LogFormatError(
-            f"{path}: mapping lacks {', '.join(missing)}; pass e.g. --mat-map t=t,u=vir*gtau,x=qm"
+            f"{where}: mapping lacks {', '.join(missing)}; pass e.g. --mat-map t=t,u=vir*gtau,x=qm"
         )
     n = len(columns["t"])
     for key, arr in columns.items():
         if len(arr) != n:
-            raise LogFormatError(f"{path}: variable for {key} has {len(arr)} samples, t has {n}")
-    metadata = {"source": f"{path.name} (MATLAB)", "mat_map": ",".join(f"{k}={v}" for k, v in mapping.items())}
-    return _assemble(columns, metadata, True, str(path))
+            raise LogFormatError(f"{where}: variable for {key} has {len(arr)} samples, t has {n}")
+        if not np.all(np.isfinite(arr)):
+            raise LogFormatError(f"{where}: variable for {key} holds a non-finite value")
+    if n == 0:
+        raise LogFormatError(f"{where}: the variables hold no samples")
+    metadata = {
+        "source": f"{_one_line(path.name)} (MATLAB)",
+        "mat_map": ",".join(f"{k}={v}" for k, v in mapping.items()),
+    }
+    return _assemble(columns, metadata, True, where)
 
 
 def _mat_vars(mat: Mapping[str, object]) -> list[str]:

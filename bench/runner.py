@@ -3,23 +3,37 @@
 The runner is transport-agnostic: it sets the drive's cycle, enables it,
 streams each run sample by sample (or in blocks for drives that simulate
 faster than real time), lets the axis come to rest between runs, and writes
-every sample to the log the moment it is taken. On Ctrl-C or any error it
-quick-stops and disables the axis, marks the log incomplete with the reason,
-and re-raises.
+every sample to the log the moment it is taken (flushed to the OS per
+sample, per block in block mode). On Ctrl-C, SIGTERM or any error it
+quick-stops and disables the axis, marks the log incomplete with the
+one-line reason, and re-raises; a host killed outright leaves a log whose
+header says ``status = running``, which readers take as incomplete.
 
 Pacing: with ``pace="real"`` the host holds a fixed-rate schedule
 (``t0 + k/fs`` deadlines on ``time.monotonic``) as a real bench must; with
 ``pace="fast"`` it streams as fast as the link answers (for lock-step
 simulated drives and batch work).
+
+Checks on every sample, before it is logged: feedback must be finite, a
+drive clock must advance, and the feedback must not be frozen -- position
+and velocity bit-identical for ``frozen_cycles`` cycles while the drive
+reports motion (``v != 0``: a moving axis changes position), or while the
+command stays at or above ``breakaway`` when the caller knows it. Any of
+them ends the run with :class:`~drivers.errors.DriveError`.
+
+Memory is O(1) in the run length: timing statistics are streamed
+(Welford), samples go straight to the file.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import signal
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +50,8 @@ BLOCK_CYCLES = 2000
 DEFAULT_SETTLE_S = 1.0
 #: Consecutive samples at rest that end the settle phase early.
 REST_SAMPLES = 20
+#: Consecutive bit-identical feedback samples (while moving) that mean "feedback frozen".
+FROZEN_CYCLES = 100
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -73,16 +89,183 @@ class RunResult:
     complete: bool
 
 
-def _stats(run: int, t_host: np.ndarray, t_drive: np.ndarray) -> TimingStats:
-    def moments(t: np.ndarray) -> tuple[float, float, float]:
-        if t.size < 2:
-            return math.nan, math.nan, math.nan
-        d = np.diff(t)
-        return float(d.mean()), float(d.std()), float(d.max())
+class PeriodStats:
+    """Mean, population std and maximum of the steps of a time series, streamed (Welford).
 
-    hm, hs, hx = moments(t_host)
-    dm, ds, _ = moments(t_drive)
-    return TimingStats(run, int(t_host.size), hm, hs, hx, dm, ds)
+    :meth:`add` takes time stamps [s] one at a time (or :meth:`add_block`
+    many); memory is O(1) in their number.
+    """
+
+    def __init__(self) -> None:
+        self.samples = 0
+        self._last: float | None = None
+        self._n = 0
+        self._mean = 0.0
+        self._m2 = 0.0
+        self._max = -math.inf
+
+    def add(self, t: float) -> None:
+        self.samples += 1
+        if self._last is not None:
+            d = t - self._last
+            self._n += 1
+            delta = d - self._mean
+            self._mean += delta / self._n
+            self._m2 += delta * (d - self._mean)
+            self._max = max(self._max, d)
+        self._last = t
+
+    def add_block(self, t: np.ndarray) -> None:
+        """Several time stamps at once (Chan's parallel update of the moments)."""
+        t = np.asarray(t, dtype=float)
+        if t.size == 0:
+            return
+        steps = np.diff(t) if self._last is None else np.diff(np.concatenate(([self._last], t)))
+        self.samples += t.size
+        self._last = float(t[-1])
+        if steps.size == 0:
+            return
+        n_b, mean_b = steps.size, float(steps.mean())
+        m2_b = float(((steps - mean_b) ** 2).sum())
+        n = self._n + n_b
+        delta = mean_b - self._mean
+        self._mean += delta * n_b / n
+        self._m2 += m2_b + delta * delta * self._n * n_b / n
+        self._n = n
+        self._max = max(self._max, float(steps.max()))
+
+    @property
+    def mean(self) -> float:
+        return self._mean if self._n else math.nan
+
+    @property
+    def std(self) -> float:
+        return math.sqrt(self._m2 / self._n) if self._n else math.nan
+
+    @property
+    def max(self) -> float:
+        return self._max if self._n else math.nan
+
+
+def _stats(run: int, host: PeriodStats, drive: PeriodStats) -> TimingStats:
+    return TimingStats(run, host.samples, host.mean, host.std, host.max, drive.mean, drive.std)
+
+
+class FeedbackCheck:
+    """Per-sample sanity of the feedback: finite, a drive clock that advances, not frozen.
+
+    Parameters
+    ----------
+    frozen_cycles : int
+        Consecutive bit-identical (velocity, position) samples, taken while the
+        axis must be moving, that end the run (0 disables the frozen check).
+    breakaway : float or None
+        Command magnitude [command units] that surely moves the axis; with it,
+        identical feedback while ``|u| >= breakaway`` counts too, even at ``v == 0``.
+    drive_clock : bool
+        The time stamps are the drive's own clock: they must increase.
+    """
+
+    def __init__(
+        self, frozen_cycles: int = FROZEN_CYCLES, breakaway: float | None = None,
+        drive_clock: bool = False,
+    ) -> None:  # fmt: skip
+        self.frozen_cycles = int(frozen_cycles)
+        self.breakaway = breakaway
+        self.drive_clock = drive_clock
+        self._prev: tuple[float, float] | None = None
+        self._prev_t: float | None = None
+        self._same = 0
+
+    def _moving(self, u: float, velocity: float) -> bool:
+        return velocity != 0.0 or (self.breakaway is not None and abs(u) >= self.breakaway)
+
+    def check(self, t_s: float, u: float, velocity: float, position: float) -> None:
+        """Check one sample; ``u`` is the command that acted over the cycle before it.
+
+        Raises
+        ------
+        DriveError
+            Non-finite feedback, a drive clock that stands still, frozen feedback.
+        """
+        if not (math.isfinite(velocity) and math.isfinite(position) and math.isfinite(t_s)):
+            raise DriveError(
+                f"drive returned non-finite feedback (v={velocity!r}, x={position!r}, t={t_s!r})"
+            )
+        if self.drive_clock and self._prev_t is not None and not t_s > self._prev_t:
+            raise DriveError(
+                f"feedback frozen: the drive clock stands at {t_s!r} s (last {self._prev_t!r} s)"
+            )
+        same = (velocity, position) == self._prev and self._moving(u, velocity)
+        self._same = self._same + 1 if same else 0
+        self._prev, self._prev_t = (velocity, position), t_s
+        if self.frozen_cycles and self._same >= self.frozen_cycles:
+            why = (
+                f"while the drive reports velocity {velocity:.6g}"
+                if velocity != 0.0
+                else f"while commanding |u| >= breakaway {self.breakaway:g}"
+            )
+            raise DriveError(
+                f"feedback frozen: position and velocity bit-identical for {self._same} cycles {why}"
+            )
+
+    def first_failure(self, t_s: np.ndarray, u: np.ndarray, v: np.ndarray, x: np.ndarray) -> int:
+        """Check a block at once; return the index of the first bad sample (``len(v)``: none).
+
+        The state advances over the good samples; :meth:`check` on the bad one
+        then raises with the message.
+        """
+        n = v.size
+        if n == 0:
+            return 0
+        bad = ~(np.isfinite(v) & np.isfinite(x) & np.isfinite(t_s))
+        if self.drive_clock and self._prev_t is not None:
+            bad |= np.diff(np.concatenate(([self._prev_t], t_s))) <= 0
+        elif self.drive_clock:
+            bad[1:] |= np.diff(t_s) <= 0
+        pv, px = self._prev if self._prev is not None else (math.nan, math.nan)
+        same = (v == np.concatenate(([pv], v[:-1]))) & (x == np.concatenate(([px], x[:-1])))
+        moving = v != 0.0
+        if self.breakaway is not None:
+            moving |= np.abs(u) >= self.breakaway
+        flag = same & moving
+        index = np.arange(n)
+        last_reset = np.maximum.accumulate(np.where(flag, -1, index))
+        run = np.where(last_reset >= 0, index - last_reset, index + 1 + self._same)
+        if self.frozen_cycles:
+            bad |= run >= self.frozen_cycles
+        hits = np.flatnonzero(bad)
+        stop = int(hits[0]) if hits.size else n
+        if stop:
+            k = stop - 1
+            self._prev, self._prev_t = (float(v[k]), float(x[k])), float(t_s[k])
+            self._same = int(run[k])
+        return stop
+
+
+class TerminatedError(KeyboardInterrupt):
+    """SIGTERM arrived while streaming: handled like Ctrl-C (axis stopped, log kept)."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """In the main thread, turn SIGTERM into :class:`TerminatedError` for the duration."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        raise TerminatedError("terminated (SIGTERM)")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not allowed here (e.g. embedded interpreters)
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _default_pace(drive: Drive) -> str:
@@ -110,6 +293,8 @@ def stream_runs(
     pace: str | None = None,
     settle_s: float = DEFAULT_SETTLE_S,
     progress: ProgressCallback | None = None,
+    frozen_cycles: int = FROZEN_CYCLES,
+    breakaway: float | None = None,
 ) -> RunResult:
     """Apply each ``(run_number, u)`` to an open drive and log ``run,t,u,v,x,t_host``.
 
@@ -136,6 +321,11 @@ def stream_runs(
         Longest rest with zero command between runs [s].
     progress : callable(done, total), optional
         Called after each block of samples.
+    frozen_cycles : int
+        Bit-identical feedback samples that mean "feedback frozen" (0: never).
+    breakaway : float, optional
+        Command magnitude [command units] that surely moves the axis, when known:
+        frozen feedback is then caught at rest too.
 
     Returns
     -------
@@ -143,108 +333,151 @@ def stream_runs(
     """
     if not (math.isfinite(fs_hz) and fs_hz > 0):
         raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
+    if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
+        raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
     pace = pace or drive.url.get_str("pace", "") or _default_pace(drive)
     if pace not in ("real", "fast"):
         raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
     dt = 1.0 / fs_hz
     total = int(sum(len(u) for _, u in runs))
     meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": pace, **(metadata or {})}
-    writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1 if pace == "real" else 256)
+    writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
     timing: list[TimingStats] = []
     done = 0
     try:
-        drive.set_cycle(dt)
-        drive.enable()
-        for index, (number, u) in enumerate(runs):
-            u = np.asarray(u, dtype=float)
-            if index:
-                _settle(drive, dt, settle_s, pace)
-            use_block = pace == "fast" and getattr(drive, "supports_block", False)
-            if use_block:
-                th, td = _stream_blocks(drive, number, u, writer, progress, done, total)
-            else:
-                th, td = _stream_samples(drive, number, u, dt, pace, writer, progress, done, total)
-            done += len(u)
-            timing.append(_stats(number, th, td))
-        drive.stop()
-        drive.disable()
-    except BaseException as err:
-        with contextlib.suppress(DriveError, OSError):
+        with _sigterm_as_interrupt():
+            drive.set_cycle(dt)
+            drive.enable()
+            for index, (number, u) in enumerate(runs):
+                u = np.asarray(u, dtype=float)
+                if index:
+                    _settle(drive, dt, settle_s, pace)
+                run = _Run(
+                    number, writer, FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock),
+                    progress, done, total,
+                )  # fmt: skip
+                try:
+                    if pace == "fast" and getattr(drive, "supports_block", False):
+                        _stream_blocks(drive, u, run)
+                    else:
+                        _stream_samples(drive, u, dt, pace, run)
+                finally:
+                    timing.append(_stats(number, run.host, run.clock))
+                done += len(u)
             drive.stop()
-        with contextlib.suppress(DriveError, OSError):
             drive.disable()
-        reason = "interrupted (Ctrl-C)" if isinstance(err, KeyboardInterrupt) else str(err)
-        extra = {k: v for s in timing for k, v in s.as_metadata().items()}
-        writer.finish("incomplete", reason=reason or type(err).__name__, samples=writer.rows, **extra)
+    except BaseException as err:
+        try:
+            _stop_quietly(drive)
+        finally:
+            reason = str(err)
+            if isinstance(err, KeyboardInterrupt) and not isinstance(err, TerminatedError):
+                reason = "interrupted (Ctrl-C)"
+            writer.finish(
+                "incomplete", reason=reason or type(err).__name__, samples=writer.rows,
+                **_trailer(drive, timing),
+            )  # fmt: skip
         raise
-    extra = {k: v for s in timing for k, v in s.as_metadata().items()}
-    writer.finish("complete", samples=writer.rows, **extra)
+    writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
 
 
-def _stream_samples(
-    drive: Drive,
-    number: int,
-    u: np.ndarray,
-    dt: float,
-    pace: str,
-    writer: LogWriter,
-    progress: ProgressCallback | None,
-    done: int,
-    total: int,
-) -> tuple[np.ndarray, np.ndarray]:
+def _stop_quietly(drive: Drive) -> None:
+    """Quick stop and disable after a failure; their own failures must not hide it."""
+    with contextlib.suppress(Exception):
+        drive.stop()
+    with contextlib.suppress(Exception):
+        drive.disable()
+
+
+def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
+    extra: dict[str, object] = {k: v for s in timing for k, v in s.as_metadata().items()}
+    for name in ("retries", "duplicates"):  # transport-level recoveries, when a driver counts them
+        count = getattr(drive, name, 0)
+        if isinstance(count, int) and count:
+            extra[f"link_{name}"] = count
+    return extra
+
+
+@dataclass
+class _Run:
+    """One run being streamed: where its samples go and what watches them."""
+
+    number: int
+    writer: LogWriter
+    check: FeedbackCheck
+    progress: ProgressCallback | None
+    done: int  # samples of earlier runs
+    total: int  # samples of all runs
+    host: PeriodStats = field(default_factory=PeriodStats)
+    clock: PeriodStats = field(default_factory=PeriodStats)
+
+    def report(self, done_here: int) -> None:
+        if self.progress is not None:
+            self.progress(self.done + done_here, self.total)
+
+
+def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run) -> None:
     n = len(u)
-    t_host = np.empty(n)
-    t_drive = np.empty(n)
     t0_host = time.monotonic()
     t0_drive = None
     # Without a drive clock, a lock-step drive streamed fast is clocked once per
     # exchange: its sample times are the nominal grid, not host reception times.
     nominal = dt if (pace == "fast" and not drive.drive_clock) else None
     every = max(1, n // 200)
+    acted = 0.0  # the command that acted over the cycle before this sample
     for k in range(n):
         if pace == "real":
             _sleep_until(t0_host + k * dt)
         fb, applied = drive.exchange(u[k])
         now = time.monotonic()
+        run.check.check(fb.t_s, acted, fb.velocity, fb.position)
+        acted = applied
         if t0_drive is None:
             t0_drive = fb.t_s
-        t_host[k] = now - t0_host
-        t_drive[k] = fb.t_s - t0_drive if nominal is None else k * nominal
-        writer.append(number, t_drive[k], applied, fb.velocity, fb.position, t_host[k])
-        if progress is not None and k % every == 0:
-            progress(done + k + 1, total)
-    if progress is not None:
-        progress(done + n, total)
-    return t_host, t_drive
+        t_host = now - t0_host
+        t_drive = fb.t_s - t0_drive if nominal is None else k * nominal
+        run.writer.append(run.number, t_drive, applied, fb.velocity, fb.position, t_host)
+        run.host.add(t_host)
+        run.clock.add(t_drive)
+        if k % every == 0:
+            run.report(k + 1)
+    run.report(n)
 
 
-def _stream_blocks(
-    drive: Drive,
-    number: int,
-    u: np.ndarray,
-    writer: LogWriter,
-    progress: ProgressCallback | None,
-    done: int,
-    total: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    hosts: list[np.ndarray] = []
-    drives: list[np.ndarray] = []
+def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:
     t0_host = time.monotonic()
     t0_drive = None
+    last_u = 0.0
     for start in range(0, len(u), BLOCK_CYCLES):
         block = drive.exchange_block(u[start : start + BLOCK_CYCLES])
         now = time.monotonic() - t0_host
         if t0_drive is None:
             t0_drive = float(block.t_s[0])
         td = block.t_s - t0_drive
-        th = np.full(td.shape, now)
-        writer.append_block(np.full(td.shape, number), td, block.applied, block.velocity, block.position, th)
-        hosts.append(th)
-        drives.append(td)
-        if progress is not None:
-            progress(done + start + len(td), total)
-    return np.concatenate(hosts), np.concatenate(drives)
+        prev_u = np.concatenate(([last_u], block.applied[:-1]))
+        good = run.check.first_failure(block.t_s, prev_u, block.velocity, block.position)
+        failure: DriveError | None = None
+        if good < len(td):  # log the good head, then fail with the check's message
+            try:
+                run.check.check(
+                    float(block.t_s[good]), float(prev_u[good]),
+                    float(block.velocity[good]), float(block.position[good]),
+                )  # fmt: skip
+                failure = DriveError(f"feedback check failed at sample {start + good}")
+            except DriveError as err:
+                failure = err
+        th = np.full(good, now)
+        run.writer.append_block(
+            np.full(good, run.number), td[:good], block.applied[:good], block.velocity[:good],
+            block.position[:good], th,
+        )  # fmt: skip
+        run.host.add_block(th)
+        run.clock.add_block(td[:good])
+        if failure is not None:
+            raise failure
+        last_u = float(block.applied[-1]) if len(block.applied) else last_u
+        run.report(start + len(td))
 
 
 def _settle(drive: Drive, dt: float, settle_s: float, pace: str) -> None:

@@ -217,8 +217,15 @@ class Drive(ABC):
     def __enter__(self) -> Drive:
         return self.open()
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
+        if exc is None:
+            self.close()
+            return
+        try:
+            self.close()
+        except DriveError as err:  # the error that ended the block matters more
+            if hasattr(exc, "add_note"):  # Python >= 3.11
+                exc.add_note(f"closing the drive also failed: {err}")
 
     def __del__(self) -> None:
         if getattr(self, "_is_open", False):

@@ -12,7 +12,15 @@ Query keys: ``interface`` (python-can interface, default ``socketcan``),
 the host's heartbeat, default 127), ``sdo_timeout`` and ``pdo_timeout`` [s],
 ``pos_scale`` (position units per 0x6064 increment, default 1),
 ``vel_scale`` (velocity units/s per 0x606C LSB, default 1), ``eds`` (the
-drive's own EDS file; default the shipped generic ``drivers/data/cia402.eds``).
+drive's own EDS file; default the shipped generic ``drivers/data/cia402.eds``),
+``sync_cob`` (the SYNC COB-ID written to the drive's 0x1005 and sent each
+cycle, default 0x80).
+
+Several hosts on one bus: each host's SYNC would clock every drive that
+listens to 0x80, so give each drive its own SYNC with ``sync_cob`` (a free
+11-bit id outside CiA 301's restricted ones, e.g. 0x90) and each host its own
+heartbeat node with ``host_node`` (otherwise a drive's watchdog is fed by
+the other host and would not notice its own host die).
 
 Units: the command ``u`` is in rated torques (0x6076): the target torque
 0x6071 and torque actual 0x6077 are per-mille of the rated torque, so
@@ -28,6 +36,12 @@ state machine is walked with :func:`drivers.cia402.plan`, each step under a
 deadline; failures raise, never log. :meth:`read` uses SDO and sends no
 SYNC, so it does not clock a lock-step simulated drive. Position (0x6064)
 and the time stamp (0x1013) are unwrapped across their 32-bit roll-over.
+A TPDO pair whose time stamp was already consumed (a duplicate, or a late
+answer to an earlier SYNC) is dropped, never taken for this SYNC's. An EMCY
+with a non-zero error code ends the next cycle with
+:class:`~drivers.errors.DriveFaultError` even if the drive stays enabled
+(a warning): identification data taken while the drive signals an error is
+not trusted.
 
 Watchdog: the host produces heartbeats every ``watchdog / 4`` (node
 ``host_node``); the drive consumes them (0x1016, time ``watchdog``) and
@@ -93,8 +107,13 @@ HOST_HEARTBEAT_FRACTION = 0.25
 STATE_POLL_S = 0.002
 #: Modes of operation by URL name: (0x6060 value, description).
 MODES = {"cst": (10, "cyclic synchronous torque"), "pt": (4, "profile torque")}
-#: COB-ID of the SYNC the host produces (0x1005).
+#: COB-ID of the SYNC the host produces (0x1005) unless the URL sets ``sync_cob``.
 SYNC_COB_ID = 0x80
+#: CiA 301 restricted 11-bit COB-IDs, which no SYNC may use (inclusive ranges).
+RESTRICTED_COB_IDS = (
+    (0x000, 0x07F), (0x101, 0x180), (0x581, 0x5FF), (0x601, 0x67F),
+    (0x6E0, 0x6FF), (0x701, 0x77F), (0x780, 0x7FF),
+)  # fmt: skip
 #: COB-ID bit 31: PDO not valid.
 COB_INVALID = 0x80000000
 #: SDO aborts meaning "this drive has no such object".
@@ -196,7 +215,7 @@ class CANopen402Drive(Drive):
 
     query_keys = frozenset(
         {"interface", "channel", "node", "bitrate", "host", "port", "mode", "host_node",
-         "sdo_timeout", "pdo_timeout", "pos_scale", "vel_scale", "eds"}
+         "sdo_timeout", "pdo_timeout", "pos_scale", "vel_scale", "eds", "sync_cob"}
     )  # fmt: skip
     units = {"u": "rated torque (0x6076)", "v": "velocity units/s", "x": "position units"}
     drive_clock = True  # Feedback.t_s is the drive's 0x1013 time stamp
@@ -237,6 +256,19 @@ class CANopen402Drive(Drive):
         if min(self.sdo_timeout_s, self.pdo_timeout_s, self.pos_scale, self.vel_scale) <= 0:
             raise DriveConfigError("sdo_timeout, pdo_timeout, pos_scale and vel_scale must be > 0")
         self.eds_path = q.get_str("eds")
+        self.sync_cob = q.get_int("sync_cob", SYNC_COB_ID)
+        if not 0 < self.sync_cob <= 0x7FF or any(
+            lo <= self.sync_cob <= hi for lo, hi in RESTRICTED_COB_IDS
+        ):
+            raise DriveConfigError(
+                f"sync_cob=0x{self.sync_cob:X} is not a usable 11-bit COB-ID "
+                "(CiA 301 restricts 0x000-0x07F, 0x101-0x180, 0x581-0x5FF, 0x601-0x67F, 0x6E0-0x7FF)"
+            )
+        if self.sync_cob in (0x80 + self.node_id, 0x180 + self.node_id, 0x280 + self.node_id,
+                             0x200 + self.node_id):  # fmt: skip
+            raise DriveConfigError(
+                f"sync_cob=0x{self.sync_cob:X} collides with node {self.node_id}'s own EMCY or PDOs"
+            )
         self.network: _Network | None = None
         self.node: canopen.RemoteNode | None = None
         self.torque_actual = 0.0  #: last 0x6077 [rated torques]
@@ -249,6 +281,8 @@ class CANopen402Drive(Drive):
         self._rx1: bytes | None = None
         self._rx2: bytes | None = None
         self._rx_event = threading.Event()
+        self._last_stamp: int | None = None  # 0x1013 of the last TPDO pair consumed
+        self._emcy: tuple[int, int] | None = None  # (error code, error register) pending
         self._nmt = threading.Condition()
         self._nmt_seen = (0, -1)  # (heartbeats received, last NMT state)
         self._position = _Unwrap(32)
@@ -314,6 +348,7 @@ class CANopen402Drive(Drive):
         node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self.network.subscribe(0x180 + self.node_id, self._on_tpdo1)
         self.network.subscribe(0x280 + self.node_id, self._on_tpdo2)
+        self.network.subscribe(0x80 + self.node_id, self._on_emcy)
         node.nmt.send_command(NMT_PRE_OPERATIONAL)
         profile = self._read(0x1000) & 0xFFFF
         if profile != 402:
@@ -328,7 +363,7 @@ class CANopen402Drive(Drive):
         self._write(0x6071, 0, 0)
         self._set_mode()
         self._map_pdos()
-        self._write(0x1005, 0, SYNC_COB_ID)
+        self._write(0x1005, 0, self.sync_cob)
         node.nmt.send_command(NMT_OPERATIONAL)
         self._await_nmt(NMT_OPERATIONAL)
         state = self._state()
@@ -472,6 +507,7 @@ class CANopen402Drive(Drive):
     def _enable(self) -> None:
         if self._state() in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             raise self._fault_error("cannot enable; reset the fault first")
+        self._emcy = None  # what the drive reported before this enable is not news
         self._torque = 0
         self._write(0x6071, 0, 0)
         self._goto(S.OPERATION_ENABLED)
@@ -503,6 +539,7 @@ class CANopen402Drive(Drive):
         self._controlword_write(CW_DISABLE_VOLTAGE)  # bit 7 low: the reset is a rising edge
         self._goto(S.SWITCH_ON_DISABLED)
         self._expected = None
+        self._emcy = None
 
     def _fault_code(self) -> int:
         return self._read(0x603F)
@@ -525,8 +562,22 @@ class CANopen402Drive(Drive):
         self._rx1 = bytes(data)
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        rx1 = self._rx1
+        if (
+            rx1 is not None
+            and len(rx1) >= 8
+            and struct.unpack_from("<I", rx1, 4)[0] == self._last_stamp
+        ):
+            self._rx1 = None  # a duplicate or a late pair of a SYNC already answered
+            return
         self._rx2 = bytes(data)
         self._rx_event.set()
+
+    def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) >= 3:
+            code, register = struct.unpack_from("<HB", data)
+            if code:  # 0x0000 is "error reset / no error"
+                self._emcy = (code, register)
 
     def _exchange(self, u: float) -> Feedback:
         if self._heartbeat is not None:
@@ -536,7 +587,7 @@ class CANopen402Drive(Drive):
         self._rx_event.clear()
         rpdo = struct.pack("<Hh", self._controlword, self._torque)
         with self._translated("RPDO1 + SYNC"):
-            self.network.send_messages([(0x200 + self.node_id, rpdo), (SYNC_COB_ID, b"")])
+            self.network.send_messages([(0x200 + self.node_id, rpdo), (self.sync_cob, b"")])
         if not self._rx_event.wait(self.pdo_timeout_s):
             raise DriveTimeoutError(
                 f"no TPDO from node {self.node_id} within {self.pdo_timeout_s * 1e3:.0f} ms of SYNC"
@@ -548,7 +599,15 @@ class CANopen402Drive(Drive):
             )
         statusword, torque, t_us = struct.unpack_from("<HhI", rx1)
         velocity, position = struct.unpack_from("<ii", rx2)
+        self._last_stamp = t_us
         self._check_state(statusword)
+        if self._emcy is not None:
+            code, register = self._emcy
+            self._expected = None
+            raise DriveFaultError(
+                f"node {self.node_id} sent EMCY 0x{code:04X} (error register 0x{register:02X})",
+                code,
+            )
         self.torque_actual = torque / 1000.0
         return self._feedback(t_us, velocity, position)
 

@@ -103,7 +103,10 @@ class Template:
                 value = int(digits, 16 if digits[:2].lower() == "0x" else 10)
                 out[name] = -value if text.startswith("-") else value
             elif kind is float:
-                out[name] = float(text)
+                value = float(text)
+                if not math.isfinite(value):  # "1e999": the fields are finite by contract
+                    return None
+                out[name] = value
             else:
                 out[name] = text
         return out

@@ -13,10 +13,14 @@ One cycle (:meth:`ModbusDrive.exchange`) is one FC23 transaction (write the
 command, read the feedback block) when the map says the drive has FC23, else
 a write followed by a read. Feedback registers the map scatters over further
 blocks are read first, so that against a lock-step drive they too belong to
-``t_k``. Nothing is ever retried: a repeated FC23 would
-apply a command twice, so a missing answer is a :class:`DriveTimeoutError`.
-Every pymodbus result is checked; exception responses become typed errors
-(see :func:`exception_error`). Feedback carries the drive's clock when the
+``t_k``. A missing answer is never retried (the request may have been
+executed: a repeated FC23 would apply a command twice, a repeated feedback
+read of a lock-step drive would skip a sample), so it is a
+:class:`DriveTimeoutError`. The one retry: exception 6 (server device busy)
+says the request was *not* executed, so it is sent once more after
+:data:`BUSY_RETRY_S` (counted in :attr:`ModbusDrive.retries`); a second
+"busy" raises. Every pymodbus result is checked; exception responses become
+typed errors (see :func:`exception_error`). Feedback carries the drive's clock when the
 map has a ``timestamp`` register (unwrapped), else the host's
 ``time.monotonic()`` at reception.
 
@@ -63,6 +67,10 @@ DEFAULT_TCP_PORT = 502
 #: Longest wait for the status register to report "enabled" [s].
 ENABLE_TIMEOUT_S = 1.0
 ENABLE_POLL_S = 0.005
+#: Pause before re-sending a request the drive answered "busy" (exception 6) [s].
+BUSY_RETRY_S = 0.001
+#: Modbus exception "server device busy": the request was not executed.
+EXCEPTION_BUSY = 6
 
 EXCEPTION_NAMES = {
     1: "illegal function",
@@ -175,6 +183,8 @@ class ModbusDrive(Drive):
         self._t_offset_s = 0.0
         self._t_last_s: float | None = None
         self._feed_count = 0
+        #: Requests re-sent after a "busy" answer since the drive was created.
+        self.retries = 0
 
     # ------------------------------------------------------------- transport
     def _open(self) -> None:
@@ -220,18 +230,11 @@ class ModbusDrive(Drive):
         On exception 4 (device failure) the fault register is read for the error's
         code, unless ``lookup_fault`` is false (the request was that read).
         """
-        if self._client is None:
-            raise DriveConnectionError(f"Modbus link to {self.where} is closed")
-        try:
-            response = method(device_id=self.unit, **kwargs)
-        except ConnectionException as err:
-            raise DriveConnectionError(f"{what}: link to {self.where} lost: {err}") from err
-        except ModbusIOException as err:
-            raise DriveTimeoutError(
-                f"{what}: no answer from unit {self.unit} at {self.where} within {self.timeout_s} s"
-            ) from err
-        except ModbusException as err:
-            raise DriveError(f"{what}: {err}") from err
+        response = self._request(method, what, **kwargs)
+        if response is not None and getattr(response, "exception_code", 0) == EXCEPTION_BUSY:
+            time.sleep(BUSY_RETRY_S)  # busy: not executed, so sending it again is safe
+            self.retries += 1
+            response = self._request(method, what, **kwargs)
         if response is None or response.isError():
             code = getattr(response, "exception_code", 0)
             fault = 0
@@ -242,6 +245,21 @@ class ModbusDrive(Drive):
                     fault = 0
             raise exception_error(code, f"{what} at {self.where}", fault)
         return response
+
+    def _request(self, method: Callable[..., ModbusPDU], what: str, **kwargs: Any) -> ModbusPDU:
+        """One request, link failures translated; the response is not checked here."""
+        if self._client is None:
+            raise DriveConnectionError(f"Modbus link to {self.where} is closed")
+        try:
+            return method(device_id=self.unit, **kwargs)
+        except ConnectionException as err:
+            raise DriveConnectionError(f"{what}: link to {self.where} lost: {err}") from err
+        except ModbusIOException as err:
+            raise DriveTimeoutError(
+                f"{what}: no answer from unit {self.unit} at {self.where} within {self.timeout_s} s"
+            ) from err
+        except ModbusException as err:
+            raise DriveError(f"{what}: {err}") from err
 
     def _write(self, reg: Register, words: Sequence[int]) -> None:
         c = self._client

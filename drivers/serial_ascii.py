@@ -28,6 +28,12 @@ raises :class:`~drivers.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
 protocol carries no drive clock).
 
+Before each request the driver looks for bytes nobody asked for: an exact
+repeat of the last reply line (a duplicated reply) is dropped and counted in
+:attr:`SerialAsciiDrive.duplicates`; anything else means the last reply may
+not have answered the last request, so :class:`MalformedReplyError` is
+raised and the line is resynchronised before the next request.
+
 Set-up on the drive: :meth:`open` resynchronises the line and reads the error
 register; the watchdog is armed as ``w axis0.config.watchdog_timeout <s>``,
 ``u 0``, ``w axis0.config.enable_watchdog 1`` and read back; :meth:`enable`
@@ -120,6 +126,9 @@ class SerialAsciiDrive(Drive):
         self._sent: deque[str] = deque(maxlen=8)  # requests not yet followed by a reply
         self._next_poll = 0.0
         self._out_of_step = False
+        self._last_line = b""  # the last reply line, terminator included
+        #: Repeated reply lines dropped (see the module docstring).
+        self.duplicates = 0
         #: Bytes written to / read from the port since it was opened (for rate figures).
         self.bytes_sent = 0
         self.bytes_received = 0
@@ -130,6 +139,8 @@ class SerialAsciiDrive(Drive):
         ser = self._port()
         if self._out_of_step:
             self._resync(end_drive_line=False)
+        else:
+            self._check_unsolicited(ser)
         raw = b"".join(encode_line(b, self.dialect.terminator, self.use_checksum) for b in bodies)
         self._sent.extend(bodies)
         try:
@@ -140,6 +151,28 @@ class SerialAsciiDrive(Drive):
         except (serial.SerialException, OSError) as err:
             raise DriveConnectionError(f"{self.port}: write failed: {err}") from err
 
+    def _check_unsolicited(self, ser: serial.Serial) -> None:
+        """Drop a repeated last reply; raise on any other bytes that came unasked."""
+        try:
+            waiting = ser.in_waiting
+            if waiting:
+                self._rx += ser.read(waiting)
+                self.bytes_received += waiting
+        except (serial.SerialException, OSError) as err:
+            raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
+        if not self._rx:
+            return
+        if self._last_line and bytes(self._rx) == self._last_line:
+            self._rx.clear()
+            self.duplicates += 1
+            return
+        junk = bytes(self._rx[:60])
+        self._out_of_step = True
+        raise MalformedReplyError(
+            f"{self.port}: the drive sent {junk!r} unasked; its last reply may not have "
+            "answered the last request"
+        )
+
     def _raw_line(self, deadline: float) -> bytes:
         """One reply line (terminator stripped) or :class:`DriveTimeoutError` at ``deadline``."""
         ser = self._port()
@@ -149,6 +182,7 @@ class SerialAsciiDrive(Drive):
             if i >= 0:
                 line = bytes(self._rx[: i + 1])
                 del self._rx[: i + 1]
+                self._last_line = line
                 return line.rstrip(b"\r\n")
             if len(self._rx) > MAX_LINE_BYTES:
                 junk = bytes(self._rx[:60])

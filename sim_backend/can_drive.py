@@ -35,17 +35,18 @@ from __future__ import annotations
 
 import struct
 import threading
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
 
 import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
 from drivers.cia402 import CiA402State, encode_statusword, next_state
-from drivers.errors import DriveConfigError
 from sim_backend import can_pdo
-from sim_backend.device import GENERIC_FAULT, DeviceSample, PowerState, SimulatedDevice
+from sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from sim_backend.faults.can import BUSOFF_FAULT, CanFaultHook
+from sim_backend.faults.injector import FaultInjector
+from sim_backend.faults.spec import FaultPlan
 
 S = CiA402State
 
@@ -56,8 +57,6 @@ VEL_SCALE = 1e-6
 SUPPORTED_MODES = {4: "profile torque", 10: "cyclic synchronous torque"}
 #: 0x6007 values the simulated drive implements: 0 no action, 1 fault.
 ABORT_OPTIONS = (0, 1)
-#: ``--fault KIND@N`` kinds, N counting SYNCs from 1.
-SYNC_FAULTS = frozenset({"fault", "silence"})
 #: SDO abort: attempt to write a read only object.
 ABORT_READ_ONLY = 0x06010002
 #: EMCY: PDO not processed due to length error.
@@ -68,44 +67,6 @@ NMT_STATE_CODES = {"INITIALISING": 0, "STOPPED": 4, "OPERATIONAL": 5, "PRE-OPERA
 
 _I16 = (-(2**15), 2**15 - 1)
 _I32 = (-(2**31), 2**31 - 1)
-
-
-@dataclass(frozen=True)
-class FaultInjection:
-    """Misbehaviour of the served drive, from ``serve-sim --fault`` specs.
-
-    ``fault@N``: the drive faults (code 0x1000) at SYNC ``N`` (counted from 1),
-    before sampling. ``silence@N``: the TPDOs of SYNC ``N`` are not sent.
-    ``reject_mode=M``: SDO abort when 0x6060 is set to ``M``.
-    ``ignore_mode=M``: 0x6060 = ``M`` is accepted but 0x6061 does not follow.
-    """
-
-    at_sync: Mapping[int, str] = field(default_factory=dict)
-    reject_modes: frozenset[int] = frozenset()
-    ignore_modes: frozenset[int] = frozenset()
-
-    @classmethod
-    def parse(cls, specs: str) -> FaultInjection:
-        """Parse ``"fault@50;silence@20;reject_mode=10"`` (``;``-separated, empty for none)."""
-        at_sync: dict[int, str] = {}
-        modes: dict[str, set[int]] = {"reject_mode": set(), "ignore_mode": set()}
-        for spec in filter(None, (s.strip() for s in specs.split(";"))):
-            kind, at, count = spec.partition("@")
-            name, eq, mode = spec.partition("=")
-            try:
-                if at and kind in SYNC_FAULTS and int(count) >= 1:
-                    at_sync[int(count)] = kind
-                    continue
-                if eq and name in modes:
-                    modes[name].add(int(mode, 0))
-                    continue
-            except ValueError:
-                pass  # reported below
-            raise DriveConfigError(
-                f"canopen serve-sim: bad --fault {spec!r} "
-                "(use fault@N, silence@N with N >= 1, reject_mode=M or ignore_mode=M)"
-            )
-        return cls(at_sync, frozenset(modes["reject_mode"]), frozenset(modes["ignore_mode"]))
 
 
 def _clamp(value: float, bounds: tuple[int, int]) -> int:
@@ -125,16 +86,22 @@ class ServedCiA402Drive:
         The simulated drive.
     node : canopen.LocalNode
         The node, with the shipped EDS; this class registers its callbacks.
-    faults : FaultInjection
-        Misbehaviour to inject.
+    injector : FaultInjector, optional
+        Faults to inject (:mod:`sim_backend.faults`); SYNCs are its cycles.
     """
 
     def __init__(
-        self, device: SimulatedDevice, node: canopen.LocalNode, faults: FaultInjection | None = None
+        self,
+        device: SimulatedDevice,
+        node: canopen.LocalNode,
+        injector: FaultInjector | None = None,
     ) -> None:
         self.device = device
         self.node = node
-        self.faults = faults or FaultInjection()
+        self.injector = injector or FaultInjector(device, FaultPlan("canopen"))
+        self.hook = CanFaultHook(self.injector)
+        self._reject_modes = self.injector.plan.setting("reject_mode")
+        self._ignore_modes = self.injector.plan.setting("ignore_mode")
         self.network: canopen.Network | None = None
         self._lock = threading.RLock()
         self._state = S.NOT_READY_TO_SWITCH_ON
@@ -177,8 +144,11 @@ class ServedCiA402Drive:
         """Periodic housekeeping: notice device faults (watchdog) and send their EMCY."""
         with self._lock:
             self._sync_device()
+            if self.hook.recovered() and self._state is S.FAULT:
+                self._send_emcy(self.device.fault_code, self._error_register())  # lost in bus-off
 
     def close(self) -> None:
+        self.hook.close()
         self.node.nmt.stop_heartbeat()
 
     # ------------------------------------------------------------- 402 states
@@ -251,7 +221,7 @@ class ServedCiA402Drive:
             if index not in (0x6064, 0x606C, 0x1013):
                 return None
             # at a SYNC the sample it took, otherwise the present one (no clocking)
-            sample = self._frozen or self.device.sample()
+            sample = self._frozen or self.injector.sample()
             if index == 0x6064:
                 return _wrap_i32(sample.position / POS_SCALE)
             if index == 0x606C:
@@ -288,9 +258,9 @@ class ServedCiA402Drive:
                 self._pdo_dirty = True
 
     def _set_mode(self, mode: int) -> None:
-        if mode in self.faults.reject_modes or (mode not in SUPPORTED_MODES and mode != 0):
+        if mode in self._reject_modes or (mode not in SUPPORTED_MODES and mode != 0):
             raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
-        if mode in self.faults.ignore_modes:
+        if mode in self._ignore_modes:
             return
         self._mode = mode
         if self._state is S.OPERATION_ENABLED:
@@ -402,11 +372,14 @@ class ServedCiA402Drive:
                 return
             self._rebuild_pdos()
             self._sync_count += 1
-            injected = self.faults.at_sync.get(self._sync_count)
-            if injected == "fault":
-                self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self._sync_count}")
+            wire = self.injector.next_cycle()  # drive faults (fault, freeze) applied here
+            for spec in wire:
+                if spec.kind == "busoff":
+                    self.hook.bus_off(spec)
+                    if self._abort_option == 1:  # abort connection: fault
+                        self.device.fault(BUSOFF_FAULT, f"CAN bus-off (--fault {spec})")
             self._sync_device()
-            self._frozen = self.device.step()
+            self._frozen = self.injector.step()
             try:
                 frames = [
                     (ch.cob_id, ch.pack(self.node.get_data))
@@ -415,11 +388,17 @@ class ServedCiA402Drive:
                 ]
             finally:
                 self._frozen = None
-            if injected == "silence":
-                return
+            transmissions = self.hook.transmissions(wire, frames, self.node.id)
+        for tx in transmissions:
+            if tx.delay_s > 0:
+                self.hook.send_later(tx.delay_s, lambda f=tx.frames: self._send_frames(f))
+            else:
+                self._send_frames(tx.frames)
+
+    def _send_frames(self, frames) -> None:
         send_batch = getattr(self.network, "send_messages", None)
         if send_batch is not None:  # the hub: all TPDOs of this SYNC in one TCP write
-            send_batch(frames)
+            send_batch(list(frames))
             return
         for cob_id, payload in frames:
             self.network.send_message(cob_id, payload)

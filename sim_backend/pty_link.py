@@ -19,6 +19,10 @@ same frame. Without ``baud`` and gap, bytes pass through at once.
 
 Both slave ends stay open inside the link, so a client may close and reopen
 its end (a killed host, a fresh client) without the link seeing a hang-up.
+
+Fault injection: :meth:`PtyLink.tamper_next` rewrites the next frame the B
+end sends (the served drive's next answer) on its way to A, e.g. to corrupt
+a Modbus RTU CRC.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import threading
 import time
 import tty
 from collections import deque
+from collections.abc import Callable
 
 #: Bits on the wire per byte for 8N1: start + 8 data + stop.
 BITS_8N1 = 10
@@ -58,28 +63,35 @@ def _write(fd: int, data: bytes) -> None:
         os.write(fd, data)
 
 
+Tamper = Callable[[bytes], bytes]
+
+
 class _Direction:
     """Frames in flight one way, each with the time the receiver sees it complete."""
 
     def __init__(self, src: int, dst: int) -> None:
         self.src, self.dst = src, dst
-        self.frames: deque[tuple[list[float], bytearray]] = deque()  # ([deliver at [s]], bytes)
+        # ([deliver at [s]], bytes, rewrite of the whole frame or None)
+        self.frames: deque[tuple[list[float], bytearray, Tamper | None]] = deque()
         self.last_due_s = -math.inf  # when the last byte accepted so far is off the wire
+        self.tamper: Tamper | None = None  # applied to the next new frame
 
     def accept(self, data: bytes, now: float, t_char_s: float, gap_s: float) -> None:
         if self.frames and now < self.last_due_s:  # the sender is still transmitting: same frame
             start = self.last_due_s
         else:  # a new frame: it starts after the silence that ended the previous one
             start = max(now, self.last_due_s + gap_s)
-            self.frames.append(([0.0], bytearray()))
+            tamper, self.tamper = self.tamper, None
+            self.frames.append(([0.0], bytearray(), tamper))
         self.last_due_s = start + len(data) * t_char_s
-        deliver_at, buf = self.frames[-1]
+        deliver_at, buf, _ = self.frames[-1]
         buf += data
         deliver_at[0] = self.last_due_s + gap_s
 
     def deliver(self, now: float) -> None:
         while self.frames and self.frames[0][0][0] <= now:
-            _write(self.dst, bytes(self.frames.popleft()[1]))
+            _, buf, tamper = self.frames.popleft()
+            _write(self.dst, bytes(buf) if tamper is None else tamper(bytes(buf)))
 
     def next_wake(self) -> float | None:
         return self.frames[0][0][0] if self.frames else None
@@ -111,6 +123,7 @@ class PtyLink:
         self._thread: threading.Thread | None = None
         self._wake_r = self._wake_w = -1
         self._stopping = False
+        self._dirs: list[_Direction] = []
 
     def _pair(self) -> tuple[int, str]:
         master, slave = os.openpty()
@@ -126,6 +139,7 @@ class PtyLink:
         self._wake_r, self._wake_w = os.pipe()
         self._fds += [self._wake_r, self._wake_w]
         dirs = [_Direction(master_a, master_b), _Direction(master_b, master_a)]
+        self._dirs = dirs
         self._thread = threading.Thread(
             target=self._run, args=(dirs,), name="pty-link", daemon=True
         )
@@ -152,6 +166,12 @@ class PtyLink:
                     if data:
                         d.accept(data, now, self.t_char_s, self.frame_gap_s)
                 d.deliver(now)
+
+    def tamper_next(self, rewrite: Tamper) -> None:
+        """Rewrite the next frame sent from B to A with ``rewrite(frame) -> frame`` (once)."""
+        if not self._dirs:
+            raise RuntimeError("the link is not started")
+        self._dirs[1].tamper = rewrite
 
     def close(self) -> None:
         """Stop the pump and close every descriptor. Safe to call twice."""

@@ -8,8 +8,9 @@ which starts its server around the :class:`~sim_backend.device.SimulatedDevice`,
 calls ``announce(drive_url)`` exactly once when a client can connect, blocks
 until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
-URL, the watchdog thread, SIGINT/SIGTERM handling and printing the URL as
-the first line on stdout.
+URL, the fault injector (:mod:`sim_backend.faults`, from ``options["fault"]``),
+the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
+handling and printing the URL as the first line on stdout.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from collections.abc import Callable, Mapping
 
 from drivers.errors import DriveConfigError
 from sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+from sim_backend.faults.injector import FaultInjector
+from sim_backend.faults.spec import parse_plan
+from sim_backend.faults.state import StateReporter
 
 #: ``--transport`` value -> module implementing ``serve``.
 TRANSPORTS: dict[str, str] = {
@@ -31,9 +35,8 @@ TRANSPORTS: dict[str, str] = {
     "serial": "sim_backend.serve_serial",
 }
 
-ServeFunction = Callable[
-    [SimulatedDevice, threading.Event, Callable[[str], None], Mapping[str, str]], None
-]
+#: ``serve(device, stop, announce, options, injector=None)``.
+ServeFunction = Callable[..., None]
 
 
 def load_transport(name: str) -> ServeFunction:
@@ -52,12 +55,18 @@ def run_server(
     *,
     stop: threading.Event | None = None,
     announce: Callable[[str], None] | None = None,
+    state_file: str | None = None,
 ) -> SimulatedDevice:
-    """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device."""
+    """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device.
+
+    ``state_file``: write the drive's state report there (:mod:`sim_backend.faults.state`).
+    """
     serve = load_transport(transport)
     device = device_from_url(sim_url)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {})}
+    injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))
+    reporter = StateReporter(device, injector, state_file) if state_file else None
 
     def _announce(url: str) -> None:
         print(url, flush=True)
@@ -68,10 +77,14 @@ def run_server(
             previous[sig] = signal.signal(sig, lambda *_: stop.set())
     watchdog = WatchdogThread(device)
     watchdog.start()
+    if reporter is not None:
+        reporter.start()
     try:
-        serve(device, stop, announce or _announce, opts)
+        serve(device, stop, announce or _announce, opts, injector=injector)
     finally:
         watchdog.stop()
+        if reporter is not None:
+            reporter.finish()  # before the clean-up below: what the host and the faults left
         device.disable()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -33,9 +33,11 @@ import canopen
 
 from drivers.canopen402 import load_eds
 from drivers.errors import DriveConfigError, DriveConnectionError
-from sim_backend.can_drive import POS_SCALE, VEL_SCALE, FaultInjection, ServedCiA402Drive
+from sim_backend.can_drive import POS_SCALE, VEL_SCALE, ServedCiA402Drive
 from sim_backend.can_wire import CanFrame
 from sim_backend.device import SimulatedDevice
+from sim_backend.faults.injector import FaultInjector
+from sim_backend.faults.spec import parse_plan
 from sim_backend.socketcand_server import DEFAULT_CHANNEL, SocketcandHub
 
 #: Housekeeping period of the served drive (fault -> EMCY latency) [s].
@@ -71,15 +73,41 @@ class _PeriodicSend:
         self._stop.set()
 
 
-class HubNetwork(canopen.Network):
+def _never_muted() -> bool:
+    return False
+
+
+class GatedNetwork(canopen.Network):
+    """A canopen network whose controller can go bus-off: while ``gate()`` is true,
+    frames are neither received nor sent (see :mod:`sim_backend.faults.can`)."""
+
+    def __init__(self, gate: Callable[[], bool] = _never_muted) -> None:
+        super().__init__()
+        self.gate = gate
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if not self.gate():
+            super().notify(can_id, data, timestamp)
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        if not self.gate():
+            super().send_message(can_id, data, remote)
+
+    def send_periodic(
+        self, can_id: int, data: bytes, period: float, remote: bool = False
+    ) -> _PeriodicSend:
+        return _PeriodicSend(self, can_id, data, period)  # through send_message: gated
+
+
+class HubNetwork(GatedNetwork):
     """A canopen network whose station is an in-process port of a :class:`SocketcandHub`.
 
     canopen's documented way to plug in a custom backend: frames from the
     hub go to :meth:`notify`, :meth:`send_message` puts frames on the hub.
     """
 
-    def __init__(self, hub: SocketcandHub) -> None:
-        super().__init__()
+    def __init__(self, hub: SocketcandHub, gate: Callable[[], bool] = _never_muted) -> None:
+        super().__init__(gate)
         self._port = hub.attach(self._receive)
 
     def _receive(self, frame: CanFrame) -> None:
@@ -88,18 +116,15 @@ class HubNetwork(canopen.Network):
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         if remote:
             raise DriveConfigError("the socketcand hub carries no remote frames")
-        self._port.send(CanFrame(can_id, bytes(data), can_id > 0x7FF))
+        if not self.gate():
+            self._port.send(CanFrame(can_id, bytes(data), can_id > 0x7FF))
 
     def send_messages(self, messages: list[tuple[int, bytes]]) -> None:
         """Send several frames back to back, in one TCP write per client."""
-        self._port.send(
-            *(CanFrame(can_id, bytes(data), can_id > 0x7FF) for can_id, data in messages)
-        )
-
-    def send_periodic(
-        self, can_id: int, data: bytes, period: float, remote: bool = False
-    ) -> _PeriodicSend:
-        return _PeriodicSend(self, can_id, data, period)
+        if not self.gate():
+            self._port.send(
+                *(CanFrame(can_id, bytes(data), can_id > 0x7FF) for can_id, data in messages)
+            )
 
     def disconnect(self) -> None:
         self._port.close()
@@ -140,17 +165,23 @@ def drive_url(
     return f"{url}&node={node_id}&{SCALE_QUERY}"
 
 
-def _connect(link: str, options: Mapping[str, str], node_id: int, stack: contextlib.ExitStack):
+def _connect(
+    link: str,
+    options: Mapping[str, str],
+    node_id: int,
+    stack: contextlib.ExitStack,
+    gate: Callable[[], bool] = _never_muted,
+):
     """``(network, announced URL, hub or None)`` for ``options["can"]``."""
     kwargs = link_bus_kwargs(link)
     if kwargs is None:
         host = options.get("host") or "127.0.0.1"
         hub = stack.enter_context(SocketcandHub(host, _int(options, "port", 0)))
-        network = HubNetwork(hub)
+        network = HubNetwork(hub, gate)
         stack.callback(network.disconnect)
         h, p = hub.address
         return network, drive_url("socketcand", hub.channel, node_id, h, p), hub
-    network = canopen.Network()
+    network = GatedNetwork(gate)
     network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
     try:
         network.connect(**kwargs)
@@ -180,15 +211,23 @@ def serve(
     stop: threading.Event,
     announce: Callable[[str], None],
     options: Mapping[str, str],
+    injector: FaultInjector | None = None,
 ) -> None:
-    """Serve ``device`` as CiA 402 node ``options["node"]`` until ``stop`` is set."""
+    """Serve ``device`` as CiA 402 node ``options["node"]`` until ``stop`` is set.
+
+    Faults come from ``injector``, else from ``options["fault"]``
+    (:mod:`sim_backend.faults.spec`; SYNCs are the cycles).
+    """
     node_id = _int(options, "node", 2)
     if not 1 <= node_id <= 127:
         raise DriveConfigError(f"CANopen node id must be 1..127, got {node_id}")
-    faults = FaultInjection.parse(options.get("fault", ""))
+    if injector is None:
+        injector = FaultInjector(device, parse_plan(options.get("fault") or "", "canopen"))
     with contextlib.ExitStack() as stack:
-        network, url, hub = _connect(options.get("can") or "socketcand", options, node_id, stack)
-        drive = ServedCiA402Drive(device, canopen.LocalNode(node_id, load_eds(node_id)), faults)
+        drive = ServedCiA402Drive(device, canopen.LocalNode(node_id, load_eds(node_id)), injector)
+        network, url, hub = _connect(
+            options.get("can") or "socketcand", options, node_id, stack, drive.hook.muted
+        )
         drive.attach(network)
         stack.callback(drive.close)
         drive.boot()

@@ -18,11 +18,12 @@ FC23 writes before it reads, so one FC23 is one lock-step cycle. A refused
 enable (drive in fault) answers exception 4 (server device failure); an
 unknown control value or a partial write of a 32-bit value answers exception 3.
 
-Fault injection (``--fault KIND@N``, repeatable; ``N`` counts clocking reads
-from 1): ``fault@N`` faults the drive (code 0x1000) just before cycle ``N`` is
-sampled, ``busy@N`` answers that read with exception 6 (server device busy)
-and ``silence@N`` does not answer it at all (the host times out); neither
-clocks the drive.
+Fault injection (``--fault``, the grammar of :mod:`sim_backend.faults.spec`;
+``N`` counts clocking reads from 1): ``fault@N[:C]``, ``freeze@N``,
+``exception@N[:C]`` (``busy@N`` = ``exception@N:6``), ``timeout@N``
+(``silence@N``), ``delay@N:MS`` and, on RTU, ``crc@N``; see
+:mod:`sim_backend.faults.modbus`. A refused or unanswered request does not
+clock the drive.
 
 RTU runs on a :class:`~sim_backend.pty_link.PtyLink` that emulates the byte
 time of the configured baud rate, so RTU timing measured against the served
@@ -37,7 +38,6 @@ from collections.abc import Callable, Mapping
 from urllib.parse import quote
 
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -52,7 +52,10 @@ from drivers.regmap import (
     encode_string,
     load_map,
 )
-from sim_backend.device import GENERIC_FAULT, DeviceSample, PowerState, SimulatedDevice
+from sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from sim_backend.faults.injector import FaultInjector
+from sim_backend.faults.modbus import ModbusFaultHook
+from sim_backend.faults.spec import FaultPlan, parse_plan
 from sim_backend.pty_link import PtyLink
 
 DEFAULT_MAP = "servobench-sim"
@@ -60,7 +63,6 @@ DEFAULT_MAP = "servobench-sim"
 DEFAULT_BAUD = 115200
 #: How often the serving loop looks at the stop event [s].
 STOP_POLL_S = 0.05
-FAULT_KINDS = frozenset({"fault", "busy", "silence"})
 #: Modbus RTU inter-frame silence above 19200 baud, fixed by the serial-line spec [s].
 T35_FAST_S = 1.75e-3
 
@@ -74,36 +76,29 @@ def rtu_frame_gap_s(baud: int) -> float:
 IDENTITY = {"vendor": "servobench", "product": "simulated DC servo", "firmware": "sim-1"}
 
 
-def parse_faults(spec: str) -> dict[int, str]:
-    """``"fault@50;busy@80"`` -> ``{50: "fault", 80: "busy"}``."""
-    out: dict[int, str] = {}
-    for item in filter(None, (s.strip() for s in spec.split(";"))):
-        kind, _, at = item.partition("@")
-        if kind not in FAULT_KINDS or not at.isdigit() or int(at) < 1:
-            raise DriveConfigError(
-                f"modbus serve-sim: bad --fault {item!r} (use KIND@N, N >= 1, "
-                f"KIND one of {', '.join(sorted(FAULT_KINDS))})"
-            )
-        out[int(at)] = kind
-    return out
+def parse_faults(spec: str, transport: str = "modbus-tcp") -> FaultPlan:
+    """``"fault@50;busy@80"`` as a :class:`~sim_backend.faults.spec.FaultPlan`."""
+    return parse_plan(spec, transport)
 
 
 class RegisterBridge:
     """Register access of one map, applied to a :class:`SimulatedDevice`.
 
-    ``faults`` maps clocking-read numbers (from 1) to an injected fault kind.
+    ``injector`` counts the clocking reads (from 1) and applies the faults;
+    ``hook`` carries out the wire faults.
     """
 
     def __init__(
         self,
         device: SimulatedDevice,
         regmap: RegisterMap,
-        faults: Mapping[int, str] | None = None,
+        injector: FaultInjector | None = None,
+        hook: ModbusFaultHook | None = None,
     ) -> None:
         self.device = device
         self.map = regmap
-        self.faults = dict(faults or {})
-        self.cycles = 0
+        self.injector = injector or FaultInjector(device, FaultPlan("modbus-tcp"))
+        self.hook = hook or ModbusFaultHook()
         self.regs = sorted(regmap.registers.values(), key=lambda r: r.address)
         for a, b in zip(self.regs, self.regs[1:], strict=False):
             if b.address < a.end:  # holding and input share one store here
@@ -161,7 +156,13 @@ class RegisterBridge:
         try:
             if set_values is not None:
                 return self._write(address, [int(v) for v in set_values])
-            return self._read(start_address, address, count, registers)
+            touched = [r for r in self._overlapping(address, count) if r.name in FEEDBACK]
+            clocked = any(r.name == "velocity" for r in touched)
+            if clocked:
+                refusal = await self.hook.before_clock(self.injector.next_cycle())
+                if refusal is not None:
+                    return refusal
+            return self._read(start_address, touched, clocked, registers)
         except DriveError:
             return ExcCodes.DEVICE_FAILURE
         except (UsageError, ValueError):
@@ -191,23 +192,17 @@ class RegisterBridge:
                 self.device.set_cycle(decode(reg, words))
         return None
 
+    @property
+    def cycles(self) -> int:
+        """Clocking reads so far (answered or not)."""
+        return self.injector.cycle
+
     def _read(
-        self, start_address: int, address: int, count: int, registers: list[int]
+        self, start_address: int, touched: list[Register], clocked: bool, registers: list[int]
     ) -> ExcCodes | None:
-        touched = [r for r in self._overlapping(address, count) if r.name in FEEDBACK]
         if not touched:
             return None
-        clocked = any(r.name == "velocity" for r in touched)
-        if clocked:
-            self.cycles += 1
-            injected = self.faults.get(self.cycles)
-            if injected == "busy":
-                return ExcCodes.DEVICE_BUSY
-            if injected == "silence":  # pymodbus drops the answer (ignore_missing_devices)
-                raise NoSuchIdException(f"--fault silence@{self.cycles}")
-            if injected == "fault":
-                self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self.cycles}")
-        sample = self.device.step() if clocked else self.device.sample()
+        sample = self.injector.step() if clocked else self.injector.sample()
         for reg in touched:
             offset = reg.address - start_address
             registers[offset : offset + reg.count] = self._feedback_words(reg, sample)
@@ -244,12 +239,18 @@ async def _serve(
     stop: threading.Event,
     announce: Callable[[str], None],
     options: Mapping[str, str],
+    injector: FaultInjector | None,
 ) -> None:
     map_name = options.get("map") or DEFAULT_MAP
     unit = int(options.get("unit") or 1)
-    bridge = RegisterBridge(device, load_map(map_name), parse_faults(options.get("fault") or ""))
-    simdevice = SimDevice(id=unit, simdata=bridge.simdata(), action=bridge.action)
     transport = options.get("transport", "modbus-tcp")
+    if transport not in ("modbus-tcp", "modbus-rtu"):
+        raise DriveConfigError(f"serve_modbus cannot serve transport {transport!r}")
+    if injector is None:
+        injector = FaultInjector(device, parse_plan(options.get("fault") or "", transport))
+    hook = ModbusFaultHook()
+    bridge = RegisterBridge(device, load_map(map_name), injector, hook)
+    simdevice = SimDevice(id=unit, simdata=bridge.simdata(), action=bridge.action)
     link: PtyLink | None = None
     if transport == "modbus-tcp":
         host = options.get("host") or "127.0.0.1"
@@ -262,13 +263,12 @@ async def _serve(
     elif transport == "modbus-rtu":
         baud = int(options.get("baud") or DEFAULT_BAUD)
         link = PtyLink(baud=baud, frame_gap_s=rtu_frame_gap_s(baud)).start()
+        hook.link = link
         server = ModbusSerialServer(
             simdevice, port=link.b_path, baudrate=baud, ignore_missing_devices=True
         )
         await server.serve_forever(background=True)
         url = f"modbus+rtu://{link.a_path}?baud={baud}&{_url_tail(unit, map_name)}"
-    else:
-        raise DriveConfigError(f"serve_modbus cannot serve transport {transport!r}")
     try:
         announce(url)
         while not stop.is_set():
@@ -284,6 +284,10 @@ def serve(
     stop: threading.Event,
     announce: Callable[[str], None],
     options: Mapping[str, str],
+    injector: FaultInjector | None = None,
 ) -> None:
-    """Serve ``device`` (``options["transport"]``: modbus-tcp or modbus-rtu) until ``stop`` is set."""
-    asyncio.run(_serve(device, stop, announce, options))
+    """Serve ``device`` (``options["transport"]``: modbus-tcp or modbus-rtu) until ``stop`` is set.
+
+    Faults come from ``injector``, else from ``options["fault"]``.
+    """
+    asyncio.run(_serve(device, stop, announce, options, injector))

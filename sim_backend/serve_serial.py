@@ -30,11 +30,13 @@ bytes is written only when its last byte would have left
 costs at least ``(request + reply bytes) * t_char``, as on a real 115200 baud
 link. Waits sleep to within :data:`SPIN_S` of the deadline, then spin.
 
-Fault injection (``--fault KIND@N``, repeatable; ``N`` counts feedback replies from 1):
-``garble@N`` corrupts one byte of the N-th feedback reply on the wire,
-``truncate@N`` sends only its first half (plus the line end),
-``silence@N`` drops it, ``fault@N`` faults the drive (dialect flag ``other``)
-before answering it.
+Fault injection (``--fault``, the grammar of :mod:`sim_backend.faults.spec`;
+``N`` counts feedback queries from 1): ``fault@N[:C]`` faults the drive
+(dialect flag ``other``) before answering, ``freeze@N`` stops position and
+velocity, and the wire faults of :mod:`sim_backend.faults.serial` --
+``garble@N``, ``truncate@N``, ``interleave@N``, ``drop@N`` (``silence@N``),
+``dup@N``, ``delay@N:MS`` -- mangle the N-th feedback reply (the drive is
+clocked in every case).
 """
 
 from __future__ import annotations
@@ -52,7 +54,10 @@ from urllib.parse import quote
 from drivers.ascii_line import decode_request, encode_line
 from drivers.dialect import DEFAULT_DIALECT, Dialect, load_dialect
 from drivers.errors import DriveConfigError, DriveFaultError
-from sim_backend.device import GENERIC_FAULT, WATCHDOG_FAULT, PowerState, SimulatedDevice
+from sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from sim_backend.faults.injector import FaultInjector
+from sim_backend.faults.serial import SerialFaultHook
+from sim_backend.faults.spec import FaultPlan, parse_plan
 
 #: Baud rate announced and emulated when the options name none [bit/s].
 DEFAULT_BAUD = 115200
@@ -66,21 +71,11 @@ SPIN_S = 2e-4
 MAX_LINE_BYTES = 255
 #: DC bus voltage the simulated drive reports [V].
 SIM_VBUS_V = 24.0
-FAULT_KINDS = frozenset({"garble", "truncate", "silence", "fault"})
 
 
-def parse_faults(spec: str) -> dict[int, str]:
-    """``"garble@50;silence@80"`` -> ``{50: "garble", 80: "silence"}``."""
-    out: dict[int, str] = {}
-    for item in filter(None, (s.strip() for s in spec.split(";"))):
-        kind, _, at = item.partition("@")
-        if kind not in FAULT_KINDS or not at.isdigit() or int(at) < 1:
-            raise DriveConfigError(
-                f"serial serve-sim: bad --fault {item!r} (use KIND@N, N >= 1, "
-                f"KIND one of {', '.join(sorted(FAULT_KINDS))})"
-            )
-        out[int(at)] = kind
-    return out
+def parse_faults(spec: str) -> FaultPlan:
+    """``"garble@50;silence@80"`` as a :class:`~sim_backend.faults.spec.FaultPlan`."""
+    return parse_plan(spec, "serial")
 
 
 class AsciiDriveServer:
@@ -92,17 +87,22 @@ class AsciiDriveServer:
         The simulated drive.
     dialect : Dialect
         What to understand and how to answer.
-    faults : Mapping[int, str]
-        Injected faults by feedback-reply number (see module doc).
+    faults : FaultPlan or FaultInjector, optional
+        Faults to inject, by feedback-query number (see module doc).
     """
 
     def __init__(
-        self, device: SimulatedDevice, dialect: Dialect, faults: Mapping[int, str] | None = None
+        self,
+        device: SimulatedDevice,
+        dialect: Dialect,
+        faults: FaultPlan | FaultInjector | None = None,
     ) -> None:
         self.device = device
         self.dialect = dialect
-        self.faults = dict(faults or {})
-        self.feedback_count = 0
+        if not isinstance(faults, FaultInjector):
+            faults = FaultInjector(device, faults or FaultPlan("serial"))
+        self.injector = faults
+        self.hook = SerialFaultHook()
         self._watchdog_timeout_s = device.watchdog_s or 0.0
         self._watchdog_enabled = device.watchdog_s is not None
         self._handlers: dict[str, Callable[..., list[str]]] = {
@@ -116,8 +116,8 @@ class AsciiDriveServer:
             "watchdog_enable": self._watchdog_enable,
             "watchdog_feed": lambda: [],
             "watchdog_readback": self._watchdog_readback,
-            "position": lambda: [self.dialect.reply("position", x=self.device.sample().position)],
-            "velocity": lambda: [self.dialect.reply("velocity", v=self.device.sample().velocity)],
+            "position": lambda: [self.dialect.reply("position", x=self.injector.sample().position)],
+            "velocity": lambda: [self.dialect.reply("velocity", v=self.injector.sample().velocity)],
             "vbus": lambda: [self.dialect.reply("vbus", value=SIM_VBUS_V)],
             "info": self._info,
             "quick_stop": self._quick_stop,
@@ -152,23 +152,19 @@ class AsciiDriveServer:
         self.device.set_command(u)
         return []
 
+    @property
+    def feedback_count(self) -> int:
+        """Feedback queries answered (or not) so far."""
+        return self.injector.cycle
+
     def _feedback_bytes(self, checksum: bool) -> bytes:
-        self.feedback_count += 1
-        fault = self.faults.get(self.feedback_count)
-        if fault == "fault":
-            self.device.fault(GENERIC_FAULT, f"injected by --fault fault@{self.feedback_count}")
-        s = self.device.step()
+        wire = self.injector.next_cycle()
+        s = self.injector.step()
         raw = self._encode([self.dialect.reply("feedback", x=s.position, v=s.velocity)], checksum)
-        term = self.dialect.reply_terminator
-        if fault == "silence":
-            return b""
-        if fault == "garble":
-            body = bytearray(raw[: -len(term)])
-            body[len(body) // 2] ^= 0x5A  # a digit becomes a letter (or worse)
-            return bytes(body) + term
-        if fault == "truncate":
-            return raw[: (len(raw) - len(term)) // 2] + term
-        return raw
+        reply = self.hook.reply(wire, raw, self.dialect.reply_terminator)
+        if reply.delay_s > 0:
+            time.sleep(reply.delay_s)  # the drive is late; requests queue up meanwhile
+        return reply.data
 
     def _enable(self) -> list[str]:
         with contextlib.suppress(DriveFaultError):  # refused: stays idle, the error stays set
@@ -341,6 +337,7 @@ def serve(
     stop: threading.Event,
     announce: Callable[[str], None],
     options: Mapping[str, str],
+    injector: FaultInjector | None = None,
 ) -> None:
     """Serve ``device`` on a pty until ``stop`` is set (see :mod:`sim_backend.serve`).
 
@@ -352,7 +349,9 @@ def serve(
     dialect = load_dialect(dialect_ref)
     baud = int(options.get("baud") or DEFAULT_BAUD)
     clock = UartClock(baud)
-    server = AsciiDriveServer(device, dialect, parse_faults(options.get("fault") or ""))
+    if injector is None:
+        injector = FaultInjector(device, parse_faults(options.get("fault") or ""))
+    server = AsciiDriveServer(device, dialect, injector)
     with PtyPort() as port:
         announce(f"serial://{port.path}?baud={baud}&dialect={quote(dialect_ref, safe='/')}")
         pump(port.master, server, clock, stop)

@@ -209,17 +209,21 @@ def test_refused_enable_is_a_device_failure_with_the_fault_code():
 
 
 def test_injected_faults():
-    with served(fault="busy@3;fault@5") as (device, url), open_drive(url) as drive:
+    with served(fault="busy@3;fault@6;busy@7;busy@8") as (device, url), open_drive(url) as drive:
         drive.enable()
         drive.exchange(1.0)
         drive.exchange(1.0)
-        with pytest.raises(DriveTimeoutError, match=r"exception 6 \(server device busy\)"):
-            drive.exchange(1.0)  # cycle 3 is answered busy, not clocked
+        t3 = drive.exchange(1.0)[0].t_s  # request 3 is answered busy, not clocked: retried once
+        assert drive.retries == 1 and t3 == pytest.approx(2e-3)
         drive.exchange(1.0)
         with pytest.raises(DriveFaultError) as err:
             drive.exchange(1.0)
         assert err.value.code == GENERIC_FAULT
-        assert device.plant.state.x > 0  # cycles 1, 2, 4 ran
+        assert device.plant.state.x > 0  # cycles 1, 2, 4, 5 ran
+        drive.reset_fault()
+        drive.enable()
+        with pytest.raises(DriveTimeoutError, match=r"exception 6 \(server device busy\)"):
+            drive.exchange(1.0)  # busy twice: one retry only
 
 
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])

@@ -8,6 +8,10 @@ from sim_backend.serve import TRANSPORTS, run_server
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from sim_backend.faults.spec import grammar_help
+
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = grammar_help()
     p.add_argument("--transport", required=True, choices=sorted(TRANSPORTS))
     p.add_argument("--sim", default="sim://", metavar="SIMURL", help="plant, as a sim:// URL")
     p.add_argument("--host", default="127.0.0.1", help="listen address for TCP transports")
@@ -21,7 +25,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE"
     )
     p.add_argument(
-        "--fault", action="append", default=[], metavar="SPEC", help="inject a fault (repeatable)"
+        "--fault",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="inject a fault, e.g. drop@120 or delay@50:30 (repeatable; see below)",
+    )
+    p.add_argument(
+        "--state-file",
+        default=None,
+        metavar="PATH",
+        help="write the drive's state as JSON on every power-state change and at exit",
     )
 
 
@@ -37,5 +51,5 @@ def run(args: argparse.Namespace) -> int:
         "can": args.can,
         "fault": ";".join(args.fault),
     }
-    run_server(args.transport, args.sim, options)
+    run_server(args.transport, args.sim, options, state_file=args.state_file)
     return 0

@@ -1,0 +1,115 @@
+"""The served drive's state report: ``serve-sim --state-file PATH``.
+
+A JSON object, rewritten atomically (write, then rename) whenever the power
+state, the fault code or the watchdog trip count changes, and once more when
+the server stops (``"final": true``, written *before* serve-sim's own
+clean-up disables the drive, so it shows what the host and the faults left)::
+
+    {"state": "disabled", "torque_off": true, "command": 0.0,
+     "velocity": 0.12, "position": 3.4, "t_s": 0.6, "cycles": 600,
+     "fault_code": 0, "fault_reason": "", "watchdog_trips": 0,
+     "faults_injected": [{"kind": "drop", "cycle": 120, "arg": null}],
+     "history": [{"state": "enabled", "cycle": 0, "fault_code": 0}, ...],
+     "final": false, "pid": 1234}
+
+``torque_off`` is true unless the power stage is enabled, ``command`` what it applies (0 unless enabled), ``velocity``
+and ``position`` the plant's true state at the last cycle (read without
+drawing sensor noise, so reporting never perturbs the lock-step run),
+``cycles`` the clocking requests the injector counted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+
+from sim_backend.device import PowerState, SimulatedDevice
+from sim_backend.faults.injector import FaultInjector
+
+#: How often the reporter looks at the drive [s].
+POLL_S = 0.005
+
+
+def snapshot(device: SimulatedDevice, injector: FaultInjector | None) -> dict[str, object]:
+    """The report's fields, now (no sensor noise drawn, no clocking)."""
+    state = device.state
+    return {
+        "state": state.value,
+        "torque_off": state is not PowerState.ENABLED,
+        "command": device.command,
+        "velocity": float(device.plant.state.v),
+        "position": float(device.plant.state.x),
+        "t_s": float(getattr(device, "_t_s", 0.0)),
+        "cycles": injector.cycle if injector is not None else None,
+        "fault_code": device.fault_code,
+        "fault_reason": device.fault_reason,
+        "watchdog_trips": device.watchdog_trips,
+        "faults_injected": injector.record() if injector is not None else [],
+    }
+
+
+def write_json_atomic(path: Path, data: object) -> None:
+    """Write ``data`` as JSON to ``path`` so that readers never see half a file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+class StateReporter(threading.Thread):
+    """Writes the state report on every change until :meth:`finish`.
+
+    Parameters
+    ----------
+    device : SimulatedDevice
+        The served drive.
+    injector : FaultInjector or None
+        Its injector (for the cycle count and the faults applied).
+    path : path-like
+        The JSON file.
+    """
+
+    def __init__(
+        self, device: SimulatedDevice, injector: FaultInjector | None, path: str | os.PathLike[str]
+    ) -> None:
+        super().__init__(name="sim-state-report", daemon=True)
+        self.device = device
+        self.injector = injector
+        self.path = Path(path)
+        self.history: list[dict[str, object]] = []
+        self._key: tuple[object, ...] | None = None
+        self._stop_event = threading.Event()
+        self._write_lock = threading.Lock()
+        self.failure: BaseException | None = None
+        self._poll(final=False)  # the file exists before the URL is announced
+
+    def _poll(self, final: bool) -> None:
+        with self._write_lock:
+            dev = self.device
+            key = (dev.state, dev.fault_code, dev.watchdog_trips)
+            if key == self._key and not final:
+                return
+            data = snapshot(dev, self.injector)
+            if key != self._key:
+                self.history.append(
+                    {"state": data["state"], "cycle": data["cycles"], "fault_code": data["fault_code"]}
+                )
+                self._key = key
+            write_json_atomic(
+                self.path, {**data, "history": self.history, "final": final, "pid": os.getpid()}
+            )
+
+    def run(self) -> None:
+        try:
+            while not self._stop_event.wait(POLL_S):
+                self._poll(final=False)
+        except BaseException as err:  # surfaced by finish()
+            self.failure = err
+
+    def finish(self) -> None:
+        """Stop polling and write the final report."""
+        self._stop_event.set()
+        if self.is_alive():
+            self.join(timeout=1.0)
+        self._poll(final=True)

@@ -1,0 +1,98 @@
+"""Fuzz the log reader: any text or bytes give a log or one typed, one-line error."""
+
+from __future__ import annotations
+
+import string
+
+import numpy as np
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from bench.logio import LogWriter, parse_log_text, read_log
+from drivers.errors import LogFormatError, ServobenchError
+
+FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+_NUMBER = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**30), 10**30).map(str),
+    st.sampled_from(["", " ", "1e999", "-0", "0x10", "nan", "inf", "1,5", "+.5", "1_000", "٣"]),
+    st.text(max_size=6),
+)
+_COLUMN = st.sampled_from(["run", "t", "u", "v", "x", "t_host", "", " t", "T", "v,v", "#"])
+_LINE_END = st.sampled_from(["\n", "\r\n", "\r", "\x0b", "\x85", "\u2028", ""])
+
+
+@st.composite
+def log_like(draw: st.DrawFn) -> str:
+    """Text shaped like a log (metadata, header, rows, trailer), with damage."""
+    parts: list[str] = []
+    for _ in range(draw(st.integers(0, 3))):
+        key = draw(st.sampled_from(["fs", "status", "reason", "drive", "x y", ""]))
+        parts.append(f"# {key} = {draw(_NUMBER)}")
+    columns = draw(st.lists(_COLUMN, min_size=0, max_size=7))
+    if draw(st.booleans()):
+        columns = ["run", "t", "u", "v", "x"]
+    parts.append(",".join(columns))
+    for _ in range(draw(st.integers(0, 6))):
+        width = draw(st.integers(0, len(columns) + 1))
+        parts.append(",".join(draw(_NUMBER) for _ in range(width)))
+    end = draw(_LINE_END)
+    return end.join(parts) + draw(st.sampled_from(["", "\n", end, "\n# status = complete\n"]))
+
+
+def check_error(err: ServobenchError) -> None:
+    message = str(err)
+    assert message, "an error needs a message"
+    assert len(message.splitlines()) == 1, f"multi-line message: {message!r}"
+
+
+@FUZZ
+@given(st.one_of(log_like(), st.text(max_size=300)))
+@example("t,u,v\n0,1,2\n1e400,1,2\n")
+@example("run,t,u,v\n1e300,0,1,2\n1e300,1,1,2\n")
+@example("t,u,v\n0,1,2\r0.1,1,2\n")
+@example("\ufefft,u,v\n0,1,2\n0.1,1,3\n")
+def test_parse_log_text_raises_only_log_format_errors(text: str) -> None:
+    try:
+        log = parse_log_text(text, source="fuzz")
+    except LogFormatError as err:
+        check_error(err)
+        return
+    for run in log.runs:  # what it returns is a valid log
+        assert len(run) >= 1 and np.all(np.isfinite(run.t)) and np.all(np.isfinite(run.u))
+        assert np.all(np.diff(run.t) > 0)
+    assert np.isfinite(log.fs_hz) and log.fs_hz > 0
+
+
+@FUZZ
+@given(st.binary(max_size=300), st.sampled_from([".csv", ".mat", ".log", ""]))
+@example(b"MATLAB 5.0 MAT-file" + b"\x00" * 120, ".mat")
+@example(b"t,u,v\n0,1,\xff\n", ".csv")
+def test_read_log_of_any_bytes(tmp_path_factory, data: bytes, suffix: str) -> None:
+    path = tmp_path_factory.mktemp("fuzz") / f"log{suffix}"
+    path.write_bytes(data)
+    try:
+        read_log(path)
+    except LogFormatError as err:
+        check_error(err)
+
+
+@FUZZ
+@given(
+    st.dictionaries(
+        st.text(string.ascii_letters + "_", min_size=1, max_size=8),
+        st.one_of(st.text(max_size=20), st.floats(), st.lists(st.floats(), max_size=3)),
+        max_size=4,
+    ),
+    st.lists(st.tuples(st.floats(-1e9, 1e9), st.floats(-1e9, 1e9)), min_size=1, max_size=20),
+)
+def test_whatever_the_writer_writes_reads_back(tmp_path_factory, meta, rows) -> None:
+    """Metadata of any text (newlines included) never breaks the log it heads."""
+    path = tmp_path_factory.mktemp("fuzz") / "log.csv"
+    with LogWriter(path, {**meta, "fs": 1000}, ("t", "u", "v")) as w:
+        for k, (u, v) in enumerate(rows):
+            w.append(k * 1e-3, u, v)
+    log = read_log(path)
+    assert log.complete and len(log.runs[0]) == len(rows)
+    np.testing.assert_allclose(log.runs[0].u, [u for u, _ in rows], rtol=1e-9)
