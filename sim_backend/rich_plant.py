@@ -33,7 +33,7 @@ from sim_backend.effects.spec import Terms
 from sim_backend.plant import PlantParams, PlantState
 
 #: Sub-steps per interval for terms that are not exact under constant force.
-DEFAULT_SUBSTEPS = 4
+DEFAULT_SUBSTEPS = 2
 #: Upper bound on sub-steps per interval (keeps a stiff resonance affordable).
 MAX_SUBSTEPS = 64
 
@@ -47,15 +47,11 @@ def _consts(h: float, M: float, Bp: float, Bn: float) -> tuple[float, ...]:
     return (h, Bp, Bn, tp, tn, ap, an, tp * (1.0 - ap), tn * (1.0 - an))
 
 
-def slide(v: float, x: float, f: float, k: tuple[float, ...], fr: tuple) -> tuple[float, float]:
-    """Advance one body by one segment under a constant applied force ``f``.
+def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], tuple[float, float]]:
+    """``step(v, x, f)``: advance one body by one segment under a constant applied force ``f``.
 
     Parameters
     ----------
-    v, x : float
-        Velocity [units/s] and position [units] at the segment start.
-    f : float
-        Applied force except friction and the body's own viscous term [command units].
     k : tuple
         :func:`_consts` of the segment.
     fr : tuple
@@ -64,47 +60,53 @@ def slide(v: float, x: float, f: float, k: tuple[float, ...], fr: tuple) -> tupl
 
     Returns
     -------
-    v, x : float
-        State at the segment end.
+    step : callable
+        ``(v [units/s], x [units], f [command units]) -> (v, x)`` at the segment end; ``f`` is
+        the applied force except friction and the body's own viscous term.
     """
     h, Bp, Bn, tp, tn, ap, an, gp, gn = k
     fcp, fcn, bkp, bkn, exc = fr
-    if v > 0.0:
-        F = fcp if exc is None else fcp + exc(v, 1)
-        B, tau, a, g = Bp, tp, ap, gp
-    elif v < 0.0:
-        F = -fcn if exc is None else -fcn - exc(-v, -1)
-        B, tau, a, g = Bn, tn, an, gn
-    else:
+    log, exp = math.log, math.exp
+
+    def step(v: float, x: float, f: float) -> tuple[float, float]:
+        if v > 0.0:
+            F = fcp if exc is None else fcp + exc(v, 1)
+            B, tau, a, g = Bp, tp, ap, gp
+        elif v < 0.0:
+            F = -fcn if exc is None else -fcn - exc(-v, -1)
+            B, tau, a, g = Bn, tn, an, gn
+        else:
+            if -bkn <= f <= bkp:
+                return 0.0, x
+            if f > 0.0:
+                F = fcp if exc is None else fcp + exc(0.0, 1)
+                B, a, g = Bp, ap, gp
+            else:
+                F = -fcn if exc is None else -fcn - exc(0.0, -1)
+                B, a, g = Bn, an, gn
+            vinf = (f - F) / B
+            return vinf * (1.0 - a), x + vinf * h - vinf * g
+        vinf = (f - F) / B
+        vn = vinf + (v - vinf) * a
+        if vn != 0.0 and (vn > 0.0) == (v > 0.0):
+            return vn, x + vinf * h + (v - vinf) * g
+        # The velocity reaches zero at tc inside the segment.
+        tc = tau * log((v - vinf) / -vinf)
+        x += vinf * tc + (v - vinf) * tau * (1.0 - exp(-tc / tau))
         if -bkn <= f <= bkp:
             return 0.0, x
+        rest = h - tc
         if f > 0.0:
-            F = fcp if exc is None else fcp + exc(0.0, 1)
-            B, a, g = Bp, ap, gp
+            F2 = fcp if exc is None else fcp + exc(0.0, 1)
+            B2, tau2 = Bp, tp
         else:
-            F = -fcn if exc is None else -fcn - exc(0.0, -1)
-            B, a, g = Bn, an, gn
-        vinf = (f - F) / B
-        return vinf * (1.0 - a), x + vinf * h - vinf * g
-    vinf = (f - F) / B
-    vn = vinf + (v - vinf) * a
-    if vn != 0.0 and (vn > 0.0) == (v > 0.0):
-        return vn, x + vinf * h + (v - vinf) * g
-    # The velocity reaches zero at tc inside the segment.
-    tc = tau * math.log((v - vinf) / -vinf)
-    x += vinf * tc + (v - vinf) * tau * (1.0 - math.exp(-tc / tau))
-    if -bkn <= f <= bkp:
-        return 0.0, x
-    rest = h - tc
-    if f > 0.0:
-        F2 = fcp if exc is None else fcp + exc(0.0, 1)
-        B2, tau2 = Bp, tp
-    else:
-        F2 = -fcn if exc is None else -fcn - exc(0.0, -1)
-        B2, tau2 = Bn, tn
-    vinf2 = (f - F2) / B2
-    e2 = math.exp(-rest / tau2)
-    return vinf2 * (1.0 - e2), x + vinf2 * rest - vinf2 * tau2 * (1.0 - e2)
+            F2 = -fcn if exc is None else -fcn - exc(0.0, -1)
+            B2, tau2 = Bn, tn
+        vinf2 = (f - F2) / B2
+        e2 = exp(-rest / tau2)
+        return vinf2 * (1.0 - e2), x + vinf2 * rest - vinf2 * tau2 * (1.0 - e2)
+
+    return step
 
 
 def _pattern(substeps: int, frac: float) -> list[tuple[float, bool]]:
@@ -190,15 +192,18 @@ class RichModel:
         pattern = _pattern(self.substeps(dt_s), frac if frac > 1e-9 else 0.0)
         r = c.load_ratio if c is not None else 0.0
         segs = []
+        fr = self.friction
         for share, prev in pattern:
             h = share * dt_s
-            rigid = _consts(h, p.M, self.B_pos, self.B_neg)
-            motor = _consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
-            if c is not None and c.kind == "spring":
-                load = _consts(h, r * p.M, c.damping + r * self.B_pos, c.damping + r * self.B_neg)
-            else:
-                load = _consts(h, r * p.M, r * self.B_pos, r * self.B_neg) if c else rigid
-            segs.append((prev, rigid, motor, load))
+            rigid = slider(_consts(h, p.M, self.B_pos, self.B_neg), fr)
+            if c is None:
+                segs.append((prev, h, rigid, rigid, ()))
+                continue
+            motor = slider(
+                _consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg), fr
+            )
+            load = _consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
+            segs.append((prev, h, rigid, motor, load))
         self._segs = segs
         self._dt = dt_s
 
@@ -247,17 +252,25 @@ class RichModel:
 
     def _run_rigid(self, cur: list[float], prev: list[float]) -> tuple[list, list]:
         v, x = self._hidden[0], self._hidden[1]
-        fr, segs, pf = self.friction, self._segs, self._pos_force
+        segs, pf = self._segs, self._pos_force
         vs: list[float] = []
         xs: list[float] = []
+        if pf is None and len(segs) == 1:  # one exact segment per interval: the fast path
+            step = segs[0][2]
+            for uc in cur:
+                vs.append(v)
+                xs.append(x)
+                v, x = step(v, x, uc)
+            self._hidden = (v, x, v, x, 0)
+            return vs, xs
         for uc, up in zip(cur, prev, strict=True):
             vs.append(v)
             xs.append(x)
-            for use_prev, k, _, _ in segs:
+            for use_prev, _, step, _, _ in segs:
                 f = up if use_prev else uc
                 if pf is not None:
                     f -= pf(x)
-                v, x = slide(v, x, f, k, fr)
+                v, x = step(v, x, f)
         self._hidden = (v, x, v, x, 0)
         return vs, xs
 
@@ -353,8 +366,7 @@ class RichModel:
         for uc, up in zip(cur, prev, strict=True):
             vs.append(vl)
             xs.append(xl)
-            for use_prev, kr, _, _ in segs:
-                h = kr[0]
+            for use_prev, h, _, _, _ in segs:
                 f = up if use_prev else uc
                 if pf is not None:
                     f -= pf(xm)
@@ -417,7 +429,7 @@ class RichModel:
         for uc, up in zip(cur, prev, strict=True):
             vs.append(vm)
             xs.append(xm)
-            for use_prev, kr, km, kl in segs:
+            for use_prev, h, rigid, motor, kl in segs:
                 f = up if use_prev else uc
                 if pf is not None:
                     f -= pf(xm)
@@ -434,12 +446,12 @@ class RichModel:
                     if side * (f - F) < 0.0:
                         side = 0
                 if side:
-                    vm, xm = slide(vm, xm, f, kr, fr)
+                    vm, xm = rigid(vm, xm, f)
                     vl, xl = vm, xm - side * half
                     continue
                 v0, x0, w0, y0 = vm, xm, vl, xl
-                vm, xm = slide(vm, xm, f, km, fr)
-                h, Bp, Bn, tp, tn, ap, an, gp, gn = kl
+                vm, xm = motor(vm, xm, f)
+                _, _, _, _, _, ap, an, gp, gn = kl
                 a, g = (ap, gp) if vl >= 0.0 else (an, gn)
                 xl += vl * g
                 vl *= a
@@ -457,9 +469,8 @@ class RichModel:
                     xi = x0 + th * (xm - x0)
                     rest = (1.0 - th) * h
                     if rest > 1e-12 * h:
-                        vm, xm = slide(
-                            vi, xi, f, _consts(rest, self.params.M, self.B_pos, self.B_neg), fr
-                        )
+                        k_rest = _consts(rest, self.params.M, self.B_pos, self.B_neg)
+                        vm, xm = slider(k_rest, fr)(vi, xi, f)
                     else:
                         vm, xm = vi, xi
                     vl, xl = vm, xm - side * half

@@ -77,7 +77,7 @@ def screen(ctx: ScreenInput) -> Screening:
     m = ctx.moving
     y = target(ctx)
     cols = base_columns(ctx)
-    _, sse0 = base_fit(ctx)
+    coef0, sse0 = base_fit(ctx)
     a = ctx.cat("a_f")[m]
     x_all = [r.x for r in ctx.runs]
     step = float(np.median(np.abs(np.concatenate([np.diff(x) for x in x_all]))))
@@ -90,7 +90,7 @@ def screen(ctx: ScreenInput) -> Screening:
             best = (sse, gap, coef)
     bounds = {"gap": (0.0, 0.5 * span), "ratio": (0.05, 0.9)}
     if best is None:
-        return Screening(0.0, {"gap": step, "ratio": 0.5}, bounds, "the inertia does not switch")
+        best = (sse0, step, np.array([*coef0, 0.0]))
     sse, gap, coef = best
     ratio = float(np.clip(coef[4] / (coef[0] + coef[4]), 0.1, 0.8))
     evidence = (
@@ -100,4 +100,13 @@ def screen(ctx: ScreenInput) -> Screening:
     base = {"M": coef[0] + coef[4], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
     guess = {"gap": gap, "ratio": ratio}
     score = explained(sse0, sse, 2, y.size)
-    return Screening(score, guess, bounds, evidence, base=base, scan=("gap",))
+    # The load coasts while the play is open, which the play operator ignores: let a quick
+    # simulation judge a spread of gaps too.
+    others = tuple(
+        {"gap": float(g), "ratio": r}
+        for g in np.geomspace(2 * step, 0.1 * span, 8)
+        for r in (0.3, 0.5)
+    )
+    return Screening(
+        score, guess, bounds, evidence, base=base, scan=("gap", "ratio"), alternatives=others
+    )

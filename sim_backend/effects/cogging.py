@@ -44,6 +44,11 @@ EFFECT = EffectSpec(
 )
 
 
+#: Spatial frequencies and samples of the screening periodogram (at most).
+MAX_FREQUENCIES = 2000
+PERIODOGRAM_SAMPLES = 6000
+
+
 def contribute(p, plant, terms: Terms) -> None:
     amp, phase = float(p["amp"]), float(p["phase"])
     k = 2.0 * math.pi / float(p["period"])
@@ -69,15 +74,17 @@ def screen(ctx: ScreenInput) -> Screening:
         return Screening(
             0.0, {"amp": 0.0, "period": span, "phase": 0.0}, bounds0, "travel too short"
         )
-    nk = int(min(4000, max(50, 4 * (k_hi - k_lo) * span / (2 * math.pi))))
+    nk = int(min(MAX_FREQUENCIES, max(50, 4 * (k_hi - k_lo) * span / (2 * math.pi))))
     ks = np.linspace(k_lo, k_hi, nk)
+    # The periodogram needs no more than a few thousand samples; the regression below uses all.
+    pick = slice(None, None, max(1, x.size // PERIODOGRAM_SAMPLES))
+    x_p, e_p = x[pick], e[pick]
     power = np.empty(nk)
     for i in range(0, nk, 200):
-        kk = ks[i : i + 200, None] * x[None, :]
+        kk = ks[i : i + 200, None] * x_p[None, :]
         s, c = np.sin(kk), np.cos(kk)
-        power[i : i + 200] = (s @ e) ** 2 / np.einsum("ij,ij->i", s, s) + (c @ e) ** 2 / np.einsum(
-            "ij,ij->i", c, c
-        )
+        ss, cc = np.einsum("ij,ij->i", s, s), np.einsum("ij,ij->i", c, c)
+        power[i : i + 200] = (s @ e_p) ** 2 / ss + (c @ e_p) ** 2 / cc
     k = float(ks[int(np.argmax(power))])
     coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
     amp, phase = float(math.hypot(coef[4], coef[5])), float(math.atan2(coef[5], coef[4]))

@@ -53,12 +53,15 @@ def contribute(p, plant, terms: Terms) -> None:
 def screen(ctx: ScreenInput) -> Screening:
     _, sse0 = base_fit(ctx)
     top = float(np.max(np.abs(ctx.cat("u")))) or 1.0
-    best = None
-    for q in top * np.geomspace(0.01, 0.6, 400):
-        coef, sse = input_fit(ctx, lambda u, q=q: quantize(u, q))
-        if best is None or sse < best[0]:
-            best = (sse, q, coef)
-    sse, q, coef = best
+
+    def best_of(steps):
+        fits = [(*input_fit(ctx, lambda u, q=q: quantize(u, q))[::-1], q) for q in steps]
+        return sorted(fits, key=lambda f: f[0])
+
+    # Coarse, then fine around the three best: the error is jagged in the step.
+    coarse = best_of(top * np.geomspace(0.01, 0.6, 100))
+    fine = [f for c in coarse[:3] for f in best_of(c[2] * np.linspace(0.985, 1.015, 15))]
+    sse, coef, q = min(coarse[:1] + fine, key=lambda f: f[0])
     evidence = (
         f"the force residual follows the rounding error of the command for a step of {q:.3g} "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"

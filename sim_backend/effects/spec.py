@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -187,6 +188,11 @@ class ScreenInput:
         """Signal ``name`` of all runs, concatenated."""
         return np.concatenate([getattr(r, name) for r in self.runs])
 
+    @cached_property
+    def base_qr(self) -> tuple[np.ndarray, np.ndarray]:
+        """QR factors of the base regressors on the moving samples (reused for every target)."""
+        return np.linalg.qr(np.column_stack(base_columns(self)))
+
 
 @dataclass(frozen=True)
 class Screening:
@@ -209,6 +215,8 @@ class Screening:
     scan : tuple of str
         Parameters on which the error is rugged (a play that closes or not before a
         reversal, a period): scanned coarsely before the gradient refit.
+    alternatives : tuple of mappings
+        Further starting guesses, judged by a quick simulation like ``guess``.
     """
 
     score: float
@@ -218,6 +226,7 @@ class Screening:
     fixed: tuple[str, ...] = ()
     base: Mapping[str, float] | None = None
     scan: tuple[str, ...] = ()
+    alternatives: tuple[Mapping[str, float], ...] = ()
 
 
 def regress(columns: list[np.ndarray], target: np.ndarray) -> tuple[np.ndarray, float]:
@@ -256,8 +265,11 @@ def input_fit(
     ctx: ScreenInput, transform: Callable[[np.ndarray], np.ndarray]
 ) -> tuple[np.ndarray, float]:
     """Equation-error fit of the base model to a transformed command ``transform(u)``."""
-    y = np.concatenate([ctx.lowpass(zoh_center(transform(r.u))) for r in ctx.runs])
-    return regress(base_columns(ctx), y[ctx.moving])
+    y = np.concatenate([ctx.lowpass(zoh_center(transform(r.u))) for r in ctx.runs])[ctx.moving]
+    q, r = ctx.base_qr
+    qty = q.T @ y
+    coef = np.linalg.solve(r, qty)
+    return coef, max(float(y @ y - qty @ qty), 0.0)
 
 
 def zoh_center(u: np.ndarray) -> np.ndarray:

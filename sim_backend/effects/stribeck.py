@@ -43,6 +43,10 @@ EFFECT = EffectSpec(
 )
 
 
+#: Largest static excess over Coulomb the screening accepts, in Coulomb levels.
+MAX_EXCESS = 5.0
+
+
 def check(p, plant) -> None:
     from drivers.errors import UsageError
 
@@ -78,11 +82,17 @@ def screen(ctx: ScreenInput) -> Screening:
     coef0, sse0 = base_fit(ctx)
     speed = np.abs(v)
     scale = float(np.sqrt(np.mean(v * v))) or 1.0
+    # Friction levels beyond a few times the Coulomb level are not a Stribeck curve but a
+    # regressor that vanishes on the moving samples.
+    ceiling = MAX_EXCESS * max(abs(coef0[2]), abs(coef0[3]), 1e-12)
+    slowest = float(np.min(speed)) if speed.size else 0.0
     best = None
     for vs in scale * np.geomspace(0.01, 1.0, 40):
+        if vs < 0.5 * slowest:
+            continue
         col = np.sign(v) * np.exp(-((speed / vs) ** 2))
         coef, sse = regress([*cols, col], y)
-        if coef[4] > 0 and (best is None or sse < best[0]):
+        if 0 < coef[4] < ceiling and (best is None or sse < best[0]):
             best = (sse, vs, coef)
     bounds = {
         "fs": (0.0, 10.0 * max(abs(coef0[2]), abs(coef0[3]), 1e-9)),

@@ -1,0 +1,193 @@
+"""The log as the diagnosis sees it: per-run signals, comparison windows, held-out samples.
+
+Velocity comes from the log's ``v`` column, or from its position with a
+zero-phase filter when the log has none (:func:`velocity_from_position`).
+
+How the model is compared with the data:
+
+* open loop (default): the model runs over each whole run on the logged
+  command from the run's initial state -- a pure simulation;
+* closed loop (the log's ``loop`` metadata starts with ``closed``, or a
+  ``horizon_s`` is given): a position loop keeps the real axis on its
+  reference while an open-loop model on the logged force drifts away, so the
+  model is restarted from the measured state every ``horizon_s`` and
+  compared over that horizon (a multi-step-ahead prediction).
+
+Held-out samples: every third of ten blocks per run (blocks 2, 5, 8) is kept
+out of every fit and decides whether a term pays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.logio import ExperimentLog
+from drivers.errors import IdentificationError, UsageError
+
+#: Prediction horizon of closed-loop logs [s].
+DEFAULT_HORIZON_S = 0.5
+#: Cut-off of the zero-phase filter, as a fraction of the sample rate.
+LOWPASS_FRACTION = 0.04
+#: Blocks per run and which of them are held out.
+BLOCKS = 10
+HELD_OUT_BLOCKS = (2, 5, 8)
+#: Most training samples a refit simulates (windowed comparisons subsample windows).
+REFIT_MAX_SAMPLES = 8000
+#: Fewest samples per run.
+MIN_RUN_SAMPLES = 50
+
+
+def lowpass(signal: np.ndarray, fs_hz: float, cutoff_hz: float | None = None) -> np.ndarray:
+    """Zero-phase 2nd-order Butterworth low-pass (``filtfilt``) at ``cutoff_hz``."""
+    from scipy.signal import butter, filtfilt
+
+    cutoff = LOWPASS_FRACTION * fs_hz if cutoff_hz is None else cutoff_hz
+    b, a = butter(2, min(cutoff / (0.5 * fs_hz), 0.99))
+    if signal.size <= 3 * max(len(a), len(b)):
+        return np.asarray(signal, dtype=float).copy()
+    return filtfilt(b, a, signal)
+
+
+def velocity_from_position(
+    x: np.ndarray, fs_hz: float, cutoff_hz: float | None = None
+) -> np.ndarray:
+    """Velocity [units/s] from position [units]: central difference, then zero-phase low-pass."""
+    return lowpass(np.gradient(np.asarray(x, dtype=float), 1.0 / fs_hz), fs_hz, cutoff_hz)
+
+
+@dataclass(frozen=True)
+class RunSeries:
+    """One run, ready for comparison; arrays of shape ``(n,)``.
+
+    Attributes
+    ----------
+    run : int
+    t, u : ndarray
+        Time [s] and applied command [command units].
+    v : ndarray
+        Measured (or position-derived) velocity [units/s]: what the model is compared with.
+    x : ndarray
+        Position [units] (integrated from ``v`` when the log has none).
+    v_f : ndarray
+        Low-passed velocity, used for initial states and screening.
+    held_out : ndarray of bool
+        Samples kept out of every fit.
+    starts : ndarray of int
+        Sample indices where the model restarts from the measured state.
+    """
+
+    run: int
+    t: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    x: np.ndarray
+    v_f: np.ndarray
+    held_out: np.ndarray
+    starts: np.ndarray
+
+
+@dataclass(frozen=True)
+class DiagnosisData:
+    """All runs of a log plus how they are compared."""
+
+    runs: tuple[RunSeries, ...]
+    fs_hz: float
+    velocity_derived: bool
+    horizon_s: float | None
+    source: str = ""
+
+    @property
+    def dt_s(self) -> float:
+        return 1.0 / self.fs_hz
+
+    @property
+    def comparison(self) -> str:
+        if self.horizon_s is None:
+            return "open-loop simulation of each run from its initial state"
+        return f"multi-step prediction restarted from the measured state every {self.horizon_s:g} s"
+
+    def cat(self, name: str) -> np.ndarray:
+        return np.concatenate([getattr(r, name) for r in self.runs])
+
+
+def is_closed_loop(log: ExperimentLog) -> bool:
+    return str(log.metadata.get("loop", "")).strip().lower().startswith("closed")
+
+
+def prepare(log: ExperimentLog, horizon_s: float | None = None) -> DiagnosisData:
+    """Turn a log into :class:`DiagnosisData`.
+
+    Parameters
+    ----------
+    log : ExperimentLog
+    horizon_s : float, optional
+        Restart horizon [s]; by default :data:`DEFAULT_HORIZON_S` for closed-loop
+        logs and none (whole-run simulation) otherwise.
+
+    Raises
+    ------
+    IdentificationError
+        Runs too short or without motion.
+    UsageError
+        Non-positive horizon.
+    """
+    fs = float(log.fs_hz)
+    if horizon_s is None and is_closed_loop(log):
+        horizon_s = DEFAULT_HORIZON_S
+    if horizon_s is not None and not (math.isfinite(horizon_s) and horizon_s > 0):
+        raise UsageError(f"horizon must be > 0 s, got {horizon_s}")
+    runs = []
+    derived = False
+    for r in log.runs:
+        n = len(r)
+        if n < MIN_RUN_SAMPLES:
+            raise IdentificationError(
+                f"run {r.run} has {n} samples; diagnose needs {MIN_RUN_SAMPLES}"
+            )
+        if r.v is not None:
+            v = np.asarray(r.v, dtype=float)
+            v_f = lowpass(v, fs)
+        else:
+            v = velocity_from_position(r.x, fs)
+            v_f = v
+            derived = True
+        if r.x is not None:
+            x = np.asarray(r.x, dtype=float)
+        else:
+            x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1])) / fs])
+        if not np.std(v) > 0:
+            raise IdentificationError(f"run {r.run}: the axis does not move")
+        block = np.minimum((np.arange(n) * BLOCKS) // n, BLOCKS - 1)
+        held = np.isin(block, HELD_OUT_BLOCKS)
+        if horizon_s is None:
+            starts = np.array([0])
+        else:
+            step = max(2, int(round(horizon_s * fs)))
+            starts = np.arange(0, n, step)
+            # A window that straddles blocks counts where it starts: hold out whole windows.
+            held = np.repeat(held[starts], np.diff(np.append(starts, n)))
+        runs.append(
+            RunSeries(
+                r.run, np.asarray(r.t, float), np.asarray(r.u, float), v, x, v_f, held, starts
+            )
+        )
+    return DiagnosisData(tuple(runs), fs, derived, horizon_s, log.source)
+
+
+def initial_velocity(run: RunSeries, k: int) -> float:
+    """Velocity to start a simulation from at sample ``k``: zero when the axis rests there."""
+    v0 = float(run.v_f[k])
+    scale = float(np.std(run.v_f))
+    return 0.0 if abs(v0) < 0.02 * scale else v0
+
+
+def noise_floor_percent(data: DiagnosisData) -> float:
+    """Gap [%] that white velocity-sensor noise alone leaves (robust, from second differences)."""
+    if data.velocity_derived:
+        return 0.0
+    d2 = np.concatenate([np.diff(r.v, 2) for r in data.runs])
+    sigma = float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
+    return 100.0 * sigma / float(np.std(data.cat("v")))

@@ -1,0 +1,268 @@
+"""Refit every parameter of a candidate on simulation error (``scipy.optimize.least_squares``).
+
+The parameters are scaled to order one (``M`` and ``B`` on a log scale) so a
+single relative finite-difference step suits them all; the step is large
+enough (1e-3) to see through the kinks stick-slip puts into the error
+surface. Parameters a screening marks *fixed* (a quantization step, on which
+the error is piecewise constant) are searched on a small grid afterwards.
+Stick-slip and impacts make the surface rugged, where a trust region
+shrinks early; the gradient fit restarts while it keeps gaining, and
+candidates with rugged parameters get a coordinate search of those and of
+the base before, and a Nelder-Mead polish after it.
+Parameters marked *scan* (rugged error surface) are scanned coarsely first.
+Only training samples enter the cost; held-out samples judge the result.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
+from bench.diagnose.simulate import Candidate, Window, gap_percent, simulate, windows
+from drivers.errors import UsageError
+from sim_backend import effects as library
+
+#: Relative finite-difference step of the Jacobian.
+DIFF_STEP = 1e-3
+#: Cost evaluations (not counting Jacobian columns) per refit.
+MAX_NFEV = 12
+#: Key of the base parameters in coordinate searches, and which of them are searched.
+BASE = "base"
+BASE_SCAN = ("fc_pos", "fc_neg", "M")
+#: Gradient fits restarted (fresh trust region) while each gains this share of the cost.
+RESTARTS = 3
+RESTART_GAIN = 0.02
+#: Nelder-Mead polish of rugged candidates: initial simplex edge (scaled units) and budget.
+SIMPLEX_STEP = 0.05
+SIMPLEX_MAXFEV = 200
+#: ... unless the gradient fit already reached this multiple of the noise floor.
+POLISH_ABOVE = 1.5
+#: Residual returned for parameters the simulator rejects.
+PENALTY = 10.0
+#: Multipliers tried for fixed (grid-searched) parameters after the gradient fit.
+GRID = (0.94, 0.97, 0.985, 1.015, 1.03, 1.06)
+#: Multipliers tried for rugged (scanned) parameters before it.
+COARSE = (0.6, 0.75, 0.9, 1.1, 1.25, 1.5)
+
+Bounds = Mapping[str, Mapping[str, tuple[float, float]]]
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A fitted candidate, its simulated velocity per run and its gaps [%]."""
+
+    candidate: Candidate
+    v_sim: tuple[np.ndarray, ...]
+    gap: float
+    gap_train: float
+    gap_held_out: float
+    evaluations: int
+
+
+def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitResult:
+    """Simulate a candidate on all windows and measure its gaps."""
+    v = tuple(simulate(data, cand))
+    return FitResult(
+        cand,
+        v,
+        gap_percent(data, v, "all"),
+        gap_percent(data, v, "train"),
+        gap_percent(data, v, "held_out"),
+        evaluations,
+    )
+
+
+def training_windows(data: DiagnosisData) -> list[Window]:
+    """Windows that carry training samples, thinned to about :data:`REFIT_MAX_SAMPLES`."""
+    chosen = [w for w in windows(data) if not data.runs[w[0]].held_out[w[1] : w[2]].all()]
+    total = sum(e - s for _, s, e in chosen)
+    if total > REFIT_MAX_SAMPLES and len(chosen) > 1:
+        keep = max(1, int(len(chosen) * REFIT_MAX_SAMPLES / total))
+        idx = np.unique(np.linspace(0, len(chosen) - 1, keep).round().astype(int))
+        chosen = [chosen[i] for i in idx]
+    return chosen
+
+
+class _Layout:
+    """Mapping between a candidate and the scaled parameter vector ``z``."""
+
+    def __init__(
+        self, cand: Candidate, bounds: Bounds, fixed: Mapping[str, tuple[str, ...]]
+    ) -> None:
+        self.cand = cand
+        self.slots: list[
+            tuple[str, str, float, float, float]
+        ] = []  # (effect, param, scale, lo, hi)
+        b = cand.base
+        fscale = max(abs(b["fc_pos"]), abs(b["fc_neg"]), 1e-3 * b["B"], 1e-12)
+        self.fscale = fscale
+        for name, values in cand.effects.items():
+            for pname, value in values.items():
+                if pname in fixed.get(name, ()) or pname not in bounds.get(name, {}):
+                    continue
+                lo, hi = bounds[name][pname]
+                scale = max(abs(value), (hi - lo) / 20.0, 1e-12)
+                self.slots.append((name, pname, scale, lo, hi))
+
+    def start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = self.cand.base
+        z = [0.0, 0.0, b["fc_pos"] / self.fscale, b["fc_neg"] / self.fscale]
+        lo = [-math.log(100.0), -math.log(100.0), 0.0, 0.0]
+        hi = [math.log(100.0), math.log(100.0), np.inf, np.inf]
+        for name, pname, scale, plo, phi in self.slots:
+            value = self.cand.effects[name][pname]
+            z.append(min(max(value, plo), phi) / scale)
+            lo.append(plo / scale)
+            hi.append(phi / scale)
+        z0 = np.clip(np.array(z), np.array(lo), np.array(hi))
+        return z0, np.array(lo), np.array(hi)
+
+    def candidate(self, z: np.ndarray) -> Candidate:
+        b = self.cand.base
+        base = {
+            "M": b["M"] * math.exp(z[0]),
+            "B": b["B"] * math.exp(z[1]),
+            "fc_pos": z[2] * self.fscale,
+            "fc_neg": z[3] * self.fscale,
+        }
+        effects = {name: dict(values) for name, values in self.cand.effects.items()}
+        for (name, pname, scale, _, _), value in zip(self.slots, z[4:], strict=True):
+            effects[name][pname] = float(value * scale)
+        for name in effects:
+            project = getattr(library.module(name), "project", None)
+            if project is not None:
+                effects[name] = project(effects[name], base)
+        return Candidate(base, effects)
+
+
+def _simplex(cand: Candidate, bounds: Bounds, fixed, cost) -> tuple[Candidate, float]:
+    """Nelder-Mead polish in the scaled parameters, for surfaces too rugged for gradients."""
+    from scipy.optimize import minimize
+
+    layout = _Layout(cand, bounds, fixed)
+    z0, lo, hi = layout.start()
+    steps = SIMPLEX_STEP * np.maximum(1.0, np.abs(z0))
+    simplex = np.vstack([z0, z0 + np.diag(steps)])
+    sol = minimize(
+        lambda z: cost(layout.candidate(np.clip(z, lo, hi))),
+        z0,
+        method="Nelder-Mead",
+        options={"initial_simplex": simplex, "maxfev": SIMPLEX_MAXFEV},
+    )
+    best = layout.candidate(np.clip(sol.x, lo, hi))
+    return best, cost(best)
+
+
+def refit(
+    data: DiagnosisData,
+    cand: Candidate,
+    bounds: Bounds,
+    fixed: Mapping[str, tuple[str, ...]] | None = None,
+    scan: Mapping[str, tuple[str, ...]] | None = None,
+    max_nfev: int = MAX_NFEV,
+    floor: float = 0.0,
+) -> FitResult:
+    """Least-squares refit of the base and every effect parameter on training simulation error.
+
+    Parameters
+    ----------
+    data : DiagnosisData
+    cand : Candidate
+        Starting point.
+    bounds : mapping
+        ``{effect: {parameter: (low, high)}}``; parameters without bounds stay fixed.
+    fixed : mapping, optional
+        ``{effect: (parameter, ...)}`` searched on :data:`GRID` after the gradient fit.
+    scan : mapping, optional
+        ``{effect: (parameter, ...)}`` scanned on :data:`COARSE` before the gradient fit
+        and on :data:`GRID` after it.
+    max_nfev : int
+        Cost evaluations of the gradient fit.
+    floor : float
+        Sensor-noise floor of the gap [%]: a rugged candidate that reaches it is not polished.
+    """
+    from scipy.optimize import least_squares
+
+    fixed = dict(fixed or {})
+    which = training_windows(data)
+    scale = float(np.std(data.cat("v")))
+    masks = [~data.runs[i].held_out[s:e] for i, s, e in which]
+    meas = np.concatenate(
+        [data.runs[i].v[s:e][m] for (i, s, e), m in zip(which, masks, strict=True)]
+    )
+    count = [0]
+
+    def residual(c: Candidate) -> np.ndarray:
+        count[0] += 1
+        try:
+            v = simulate(data, c, which)
+        except UsageError:
+            return np.full(meas.size, PENALTY)
+        sim = np.concatenate([v[i][s:e][m] for (i, s, e), m in zip(which, masks, strict=True)])
+        out = (sim - meas) / scale
+        return np.where(np.isfinite(out), out, PENALTY)
+
+    def cost(c: Candidate) -> float:
+        return float(np.sum(residual(c) ** 2))
+
+    def line_search(c: Candidate, c_cost: float, params, factors) -> tuple[Candidate, float]:
+        """Coordinate search: each parameter times each factor, keeping what lowers the cost."""
+        for name, pnames in params.items():
+            for pname in pnames:
+                if name != BASE and name not in c.effects:
+                    continue
+                centre = c.base[pname] if name == BASE else c.effects[name][pname]
+                lo, hi = bounds.get(name, {}).get(pname, (-np.inf, np.inf))
+                for factor in factors:
+                    value = min(max(centre * factor, lo), hi)
+                    base, effects = dict(c.base), {k: dict(v) for k, v in c.effects.items()}
+                    if name == BASE:
+                        base[pname] = value
+                    else:
+                        effects[name][pname] = value
+                    trial = Candidate(base, effects)
+                    t_cost = cost(trial)
+                    if t_cost < c_cost:
+                        c, c_cost = trial, t_cost
+        return c, c_cost
+
+    scan = dict(scan or {})
+    grid = {k: tuple(fixed.get(k, ())) + tuple(scan.get(k, ())) for k in set(fixed) | set(scan)}
+    best, best_cost = cand, cost(cand)
+    if any(scan.values()):
+        # Rugged surfaces: search the base friction and inertia with the rugged parameters.
+        best, best_cost = line_search(best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE)
+
+    def gradient_fit(start: Candidate, start_cost: float) -> tuple[Candidate, float]:
+        best, best_cost = start, start_cost
+        for _ in range(RESTARTS):
+            layout = _Layout(best, bounds, fixed)
+            z0, lo, hi = layout.start()
+            sol = least_squares(
+                lambda z, layout=layout: residual(layout.candidate(z)),
+                z0,
+                bounds=(lo, hi),
+                diff_step=DIFF_STEP,
+                max_nfev=max_nfev,
+                x_scale=1.0,
+            )
+            trial = layout.candidate(sol.x)
+            trial, trial_cost = line_search(trial, cost(trial), grid, GRID)
+            gain = 1.0 - trial_cost / best_cost if best_cost > 0 else 0.0
+            if trial_cost < best_cost:
+                best, best_cost = trial, trial_cost
+            if gain < RESTART_GAIN:
+                break
+        return best, best_cost
+
+    best, best_cost = gradient_fit(best, best_cost)
+    gap_train = 100.0 * math.sqrt(best_cost / max(meas.size, 1))
+    if any(scan.values()) and gap_train > POLISH_ABOVE * floor:
+        polished, p_cost = _simplex(best, bounds, fixed, cost)
+        if p_cost < (1.0 - RESTART_GAIN) * best_cost:
+            best, best_cost = gradient_fit(polished, p_cost)
+    return evaluate(data, best, count[0])

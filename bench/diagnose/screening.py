@@ -1,0 +1,104 @@
+"""Look for each library effect's signature in what the current model leaves unexplained.
+
+Builds the :class:`~sim_backend.effects.spec.ScreenInput` (low-passed
+velocity, acceleration and command, the residual of the current model) and
+asks every effect module's ``screen`` for a score, a parameter guess and an
+evidence sentence. A quick simulation of each guess then ranks the candidates
+on held-out data before any costly refit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.diagnose.data import DiagnosisData, lowpass
+from bench.diagnose.simulate import Candidate, gap_percent, held_out_windows, simulate
+from drivers.errors import UsageError
+from sim_backend import effects as library
+from sim_backend.effects.spec import RunSignals, Screening, ScreenInput, zoh_center
+
+#: Samples whose low-passed speed is below this fraction of its rms are left out of the
+#: inverse-dynamics equation (friction is undetermined at rest).
+MOVING_FRACTION = 0.05
+#: Couplings that exclude each other.
+EXCLUSIVE = ({"resonance", "backlash"},)
+
+
+def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarray]) -> ScreenInput:
+    """Screening signals of every run given the current model's simulated velocity."""
+    fs = data.fs_hz
+    runs = []
+    for r, vs in zip(data.runs, v_sim, strict=True):
+        v_f = r.v_f
+        a_f = np.gradient(v_f, data.dt_s)
+        u_f = lowpass(zoh_center(r.u), fs)
+        vs = np.where(np.isfinite(vs), vs, r.v)
+        runs.append(RunSignals(r.u, r.v, r.x, v_f, a_f, u_f, r.v - vs, vs))
+    v_all = np.concatenate([s.v_f for s in runs])
+    rms = float(np.sqrt(np.mean(v_all**2)))
+    moving = np.abs(v_all) > MOVING_FRACTION * rms
+    return ScreenInput(
+        tuple(runs),
+        data.dt_s,
+        dict(cand.base),
+        dict(cand.effects),
+        moving,
+        lambda u: lowpass(u, fs),
+    )
+
+
+def compatible(name: str, present: Iterable[str]) -> bool:
+    present = set(present)
+    if name in present:
+        return False
+    return not any(name in group and present & (group - {name}) for group in EXCLUSIVE)
+
+
+def screen_all(ctx: ScreenInput, present: Iterable[str]) -> dict[str, Screening]:
+    """Screening of every library effect not yet in the model (and compatible with it)."""
+    present = tuple(present)
+    return {
+        name: library.module(name).screen(ctx)
+        for name in library.names()
+        if compatible(name, present)
+    }
+
+
+@dataclass(frozen=True)
+class QuickScore:
+    """Held-out gap [%] of a screening guess, and the candidate that achieved it."""
+
+    name: str
+    held_out_gap: float
+    candidate: Candidate
+
+
+def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening) -> QuickScore:
+    """Simulate the guesses with the current base, and the main guess with the jointly fitted
+    base; keep the best."""
+    best = None
+    trials = [(dict(current.base), dict(g)) for g in (s.guess, *s.alternatives)]
+    if s.base is not None and all(np.isfinite(list(s.base.values()))):
+        b = dict(s.base)
+        if b["M"] > 0 and b["B"] > 0:
+            b = {**b, "fc_pos": max(b["fc_pos"], 0.0), "fc_neg": max(b["fc_neg"], 0.0)}
+            trials.append((b, dict(s.guess)))
+    mod = library.module(name)
+    which = held_out_windows(data)
+    for base, guess in trials:
+        project = getattr(mod, "project", None)
+        if project is not None:
+            guess = project(guess, base)
+        cand = Candidate(base, {**current.effects, name: guess})
+        try:
+            gap = gap_percent(data, simulate(data, cand, which), "held_out")
+        except UsageError:
+            continue
+        if np.isfinite(gap) and (best is None or gap < best.held_out_gap):
+            best = QuickScore(name, gap, cand)
+    if best is None:
+        return QuickScore(name, float("inf"), Candidate(dict(current.base), dict(current.effects)))
+    return best

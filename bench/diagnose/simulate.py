@@ -1,0 +1,113 @@
+"""Simulate a candidate model on the log and measure the gap.
+
+A :class:`Candidate` is the base model (``M, B, fc_pos, fc_neg``) plus an
+ordered set of effects; it runs on the same simulator the ``sim://`` drive
+uses (:mod:`sim_backend.plant` for the base, :mod:`sim_backend.rich_plant`
+with effects), so what diagnose names can be simulated back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bench.diagnose.data import DiagnosisData, initial_velocity
+from sim_backend.effects import build_model
+from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
+
+BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
+#: Smallest Coulomb level simulated: the exact integrator tells the direction of motion by
+#: the sign of the friction force, which a level of exactly zero does not have.
+FC_FLOOR = 1e-12
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """Base parameters and effects ``{name: {parameter: value}}`` in the order they were added."""
+
+    base: Mapping[str, float]
+    effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+
+    def plant(self) -> PlantParams:
+        b = self.base
+        return PlantParams(
+            M=float(b["M"]),
+            B=float(b["B"]),
+            fc_pos=max(float(b["fc_pos"]), FC_FLOOR),
+            fc_neg=max(float(b["fc_neg"]), FC_FLOOR),
+            effects={k: dict(v) for k, v in self.effects.items()},
+        )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.effects)
+
+
+Window = tuple[int, int, int]  # run index, first sample, end sample (exclusive)
+
+
+def windows(data: DiagnosisData) -> list[Window]:
+    """Every comparison window of the data, in order."""
+    out = []
+    for i, r in enumerate(data.runs):
+        ends = np.append(r.starts[1:], len(r.u))
+        out.extend((i, int(s), int(e)) for s, e in zip(r.starts, ends, strict=True))
+    return out
+
+
+def held_out_windows(data: DiagnosisData) -> list[Window]:
+    """Windows that hold held-out samples (all of them for whole-run simulation)."""
+    return [w for w in windows(data) if data.runs[w[0]].held_out[w[1] : w[2]].any()]
+
+
+def simulate(
+    data: DiagnosisData, cand: Candidate, which: Sequence[Window] | None = None
+) -> list[np.ndarray]:
+    """Simulated velocity per run (NaN outside the windows simulated).
+
+    Raises
+    ------
+    UsageError
+        Parameters the simulator rejects (e.g. a Stribeck level below Coulomb).
+    """
+    params = cand.plant()
+    model = build_model(params) if params.effects else None
+    dt = data.dt_s
+    out = [np.full(len(r.u), np.nan) for r in data.runs]
+    for i, s, e in windows(data) if which is None else which:
+        r = data.runs[i]
+        state = PlantState(initial_velocity(r, s), float(r.x[s]))
+        if model is None:
+            v, _, _ = simulate_coulomb(r.u[s:e], dt, params, state)
+        else:
+            model.reset()
+            model.prime(r.u[:s], dt)
+            v, _, _ = model.simulate(r.u[s:e], dt, state)
+        out[i][s:e] = v
+    return out
+
+
+def gap_percent(data: DiagnosisData, v_sim: Sequence[np.ndarray], part: str = "all") -> float:
+    """NRMSE [%] of simulated against measured velocity: ``100 rms(error) / std(measured)``.
+
+    ``part`` is ``"all"``, ``"held_out"`` or ``"train"``; samples not simulated are skipped.
+    """
+    err, meas = [], []
+    for r, vs in zip(data.runs, v_sim, strict=True):
+        mask = np.isfinite(vs)
+        if part == "held_out":
+            mask &= r.held_out
+        elif part == "train":
+            mask &= ~r.held_out
+        err.append(vs[mask] - r.v[mask])
+        meas.append(r.v[mask])
+    e, m = np.concatenate(err), np.concatenate(meas)
+    if e.size == 0 or not np.std(m) > 0:
+        return float("nan")
+    return float(100.0 * np.sqrt(np.mean(e * e)) / np.std(m))
+
+
+def base_as_dict(values: Mapping[str, float]) -> dict[str, float]:
+    return {k: float(values[k]) for k in BASE_KEYS}

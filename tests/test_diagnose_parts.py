@@ -1,0 +1,149 @@
+"""The diagnosis' parts: data preparation, gap, noise floor, signatures, refit."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bench.diagnose.data import (
+    DEFAULT_HORIZON_S,
+    noise_floor_percent,
+    prepare,
+    velocity_from_position,
+)
+from bench.diagnose.refit import refit
+from bench.diagnose.signatures import compute_signatures
+from bench.diagnose.simulate import Candidate, gap_percent, simulate
+from bench.logio import ExperimentLog, RunData
+from drivers.errors import IdentificationError
+from sim_backend.plant import PlantParams
+from sim_backend.plant import simulate as plant_simulate
+
+FS = 500.0
+
+
+def make_log(runs, metadata=None) -> ExperimentLog:
+    return ExperimentLog(tuple(runs), dict(metadata or {}), FS, True, "test")
+
+
+def binary(n: int, seed: int, amp: float = 2.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.repeat(rng.choice([-amp, amp], n // 40 + 1), 40)[:n] * rng.uniform(0.5, 1.0, n)
+
+
+def plant_log(params: PlantParams, n: int = 1000, seed: int = 1) -> ExperimentLog:
+    runs = []
+    for number in (1, 2):
+        u = binary(n, seed + number, 2.0 * number)
+        v, x = plant_simulate(u, FS, params, np.random.default_rng(seed))
+        runs.append(RunData(number, np.arange(n) / FS, u, v, x))
+    return make_log(runs)
+
+
+def test_velocity_from_position_is_zero_phase():
+    t = np.arange(2000) / 1000.0
+    x = np.sin(2 * math.pi * 2.0 * t)
+    v = velocity_from_position(x, 1000.0)
+    inner = slice(100, -100)
+    assert (
+        np.max(np.abs(v[inner] - 2 * math.pi * 2.0 * np.cos(2 * math.pi * 2.0 * t[inner]))) < 0.02
+    )
+
+
+def test_prepare_holds_out_three_blocks_per_run_and_derives_missing_velocity():
+    n = 1000
+    x = np.cumsum(binary(n, 3)) / FS
+    data = prepare(make_log([RunData(1, np.arange(n) / FS, binary(n, 3), None, x)]))
+    r = data.runs[0]
+    assert data.velocity_derived and data.horizon_s is None
+    assert r.held_out.mean() == pytest.approx(0.3) and not r.held_out[:200].any()
+    assert list(r.starts) == [0]
+
+
+def test_closed_loop_logs_are_compared_over_restart_windows():
+    n = 1000
+    u = binary(n, 4)
+    log = make_log(
+        [RunData(1, np.arange(n) / FS, u, u.copy(), np.cumsum(u) / FS)], {"loop": "closed, PD"}
+    )
+    data = prepare(log)
+    step = int(DEFAULT_HORIZON_S * FS)
+    assert data.horizon_s == DEFAULT_HORIZON_S and list(data.runs[0].starts) == list(
+        range(0, n, step)
+    )
+    assert "restarted" in data.comparison
+
+
+def test_short_runs_and_no_motion_are_identification_errors():
+    with pytest.raises(IdentificationError, match="samples"):
+        prepare(make_log([RunData(1, np.arange(10) / FS, np.zeros(10), np.zeros(10))]))
+    with pytest.raises(IdentificationError, match="does not move"):
+        prepare(make_log([RunData(1, np.arange(100) / FS, np.ones(100), np.zeros(100))]))
+
+
+def test_gap_is_rms_error_over_std_of_measured_velocity():
+    params = PlantParams()
+    data = prepare(plant_log(params))
+    e = [np.full(len(r.v), 0.01) for r in data.runs]
+    v_sim = [r.v + d for r, d in zip(data.runs, e, strict=True)]
+    expected = 100 * 0.01 / np.std(data.cat("v"))
+    assert gap_percent(data, v_sim) == pytest.approx(expected)
+
+
+def test_noise_floor_estimates_white_sensor_noise():
+    params = PlantParams(noise=0.02)
+    data = prepare(plant_log(params))
+    expected = 100 * 0.02 / np.std(data.cat("v"))
+    assert noise_floor_percent(data) == pytest.approx(expected, rel=0.15)
+
+
+def test_the_true_base_model_leaves_only_the_noise():
+    params = PlantParams(noise=0.01)
+    data = prepare(plant_log(params))
+    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    gap = gap_percent(data, simulate(data, truth))
+    assert gap == pytest.approx(noise_floor_percent(data), rel=0.15)
+
+
+def test_refit_recovers_the_base_model_from_a_poor_start():
+    data = prepare(plant_log(PlantParams(noise=0.005)))
+    start = Candidate({"M": 0.07, "B": 1.4, "fc_pos": 0.3, "fc_neg": 0.6})
+    fit = refit(data, start, bounds={})
+    b = fit.candidate.base
+    assert b["M"] == pytest.approx(0.1, rel=0.02) and b["B"] == pytest.approx(1.0, rel=0.02)
+    assert b["fc_pos"] == pytest.approx(0.5, rel=0.05) and b["fc_neg"] == pytest.approx(
+        0.4, rel=0.05
+    )
+
+
+def test_signatures_locate_a_position_periodic_residual():
+    data = prepare(plant_log(PlantParams()))
+    v_sim = [r.v - 0.2 * np.sin(2 * math.pi * r.x / 0.1) for r in data.runs]
+    sig = compute_signatures(data, v_sim)
+    assert sig.vs_position.eta2 > 0.5 > sig.vs_velocity.eta2
+    assert sig.acf_max > sig.band95  # a structured residual is not white
+    text = sig.findings()
+    where = {
+        k: next(i for i, f in enumerate(text) if f.startswith(k)) for k in ("position", "velocity")
+    }
+    assert where["position"] < where["velocity"]
+
+
+def test_signatures_of_a_perfect_model_with_white_noise_are_white():
+    data = prepare(plant_log(PlantParams(noise=0.02)))
+    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    sig = compute_signatures(data, simulate(data, truth))
+    assert sig.acf_max < 2 * sig.band95
+    assert abs(sig.xcorr_peak) < 3 * sig.band95
+    assert sig.vs_velocity.eta2 < 0.05 and sig.vs_position.eta2 < 0.05
+
+
+def test_linear_approximation_pole_moves_with_amplitude_for_friction():
+    data = prepare(plant_log(PlantParams()))
+    sig = compute_signatures(data, [r.v for r in data.runs])
+    a, b = sig.linear
+    # Coulomb friction weighs less at run 2's larger amplitude: the DC gain rises.
+    assert b.gain_measured > a.gain_measured
+    assert a.gain_measured == pytest.approx(a.gain_simulated)
