@@ -20,6 +20,7 @@ Logs with position only go to the inverse-dynamic estimator
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -100,6 +101,12 @@ def identify_joint(
         )
     fit = _solve(select_pairs(vs, us, ints, threshold=threshold, max_pairs=MAX_PAIRS), data, fit)
     model = _model(fit)
+    # the instruments need simulations; on long non-periodic logs use the refinement window
+    iv = _iv_data(data)
+    iv_vs = [s.v for s in iv.segments]
+    iv_us = [s.u for s in iv.segments]
+    iv_ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in iv.segments]
+    iv_v = np.concatenate(iv_vs)
     for _ in range(IV_PASSES):
         sims = [
             simulate_run(
@@ -107,15 +114,17 @@ def identify_joint(
                 s.u,
                 dt if s.dt_s is None else s.dt_s,
                 initial_velocity(s, sigma),
-                _period(data),
+                _period(iv),
             )
-            for s in data.segments
+            for s in iv.segments
         ]
-        mismatch2 = float(np.mean((v_all - np.concatenate(sims)) ** 2)) - sigma**2
+        mismatch2 = float(np.mean((iv_v - np.concatenate(sims)) ** 2)) - sigma**2
         margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
-        pairs = select_pairs(vs, us, ints, references=sims, threshold=margin, max_pairs=MAX_PAIRS)
+        pairs = select_pairs(
+            iv_vs, iv_us, iv_ints, references=sims, threshold=margin, max_pairs=MAX_PAIRS
+        )
         try:
-            fit = _solve(pairs, data, fit, instrumental=True)
+            fit = _solve(pairs, iv, fit, instrumental=True)
             model = _model(fit)
         except IdentificationError:
             break
@@ -138,6 +147,15 @@ def _refine(
     free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
     oe = refine(model, chunks, free)
     return MethodEstimate(oe.model, "joint", oe.std, "output-error", oe.sigma, tuple(notes))
+
+
+def _iv_data(data: Dataset) -> Dataset:
+    """``data``, or for long non-periodic logs the window the output-error refinement uses."""
+    periodic = data.design is not None and not data.jittered and data.periodic_periods() >= 2
+    per_run = max(1, MAX_RAW_SAMPLES // len(data.segments))
+    if periodic or all(len(s) <= per_run for s in data.segments):
+        return data
+    return replace(data, segments=tuple(s.head(per_run) for s in data.segments))
 
 
 def _period(data: Dataset) -> int:
