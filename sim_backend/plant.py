@@ -158,19 +158,15 @@ def simulate_coulomb(
     for uk in np.asarray(u, dtype=float).tolist():
         push_v(v)
         push_x(x)
-        if v > 0.0:
-            f = fcp
-        elif v < 0.0:
-            f = -fcn
-        elif uk > bkp:
-            f = fcp
-        elif uk < -bkn:
-            f = -fcn
+        if v > 0.0 or (v == 0.0 and uk > bkp):
+            f, forward = fcp, True
+        elif v < 0.0 or uk < -bkn:
+            f, forward = -fcn, False
         else:
             continue  # stuck for the whole interval
         vinf = (uk - f) / B
         vn = vinf + (v - vinf) * a
-        if (vn > 0.0) == (f > 0.0) and vn != 0.0:
+        if (vn > 0.0) == forward and vn != 0.0:
             x += vinf * dt_s + (v - vinf) * g
             v = vn
             continue

@@ -123,3 +123,14 @@ def test_plant_reset_and_state():
 def test_bad_parameters_are_refused(changes):
     with pytest.raises(UsageError):
         PlantParams(**changes)
+
+
+def test_frictionless_plant_is_the_linear_block():
+    p = PlantParams(M=0.1, B=1.0, fc_pos=0.0, fc_neg=0.0)
+    u = np.concatenate([np.full(300, 2.0), np.full(300, -1.0), np.full(300, 0.5)])
+    v, _, _ = simulate_coulomb(u, DT, p)
+    a = math.exp(-DT * p.B / p.M)
+    expected = np.zeros_like(u)
+    for k in range(1, len(u)):
+        expected[k] = a * expected[k - 1] + (1 - a) * u[k - 1] / p.B
+    assert_allclose(v, expected, rtol=1e-10, atol=1e-13)
