@@ -284,7 +284,9 @@ def parse_plan(text: str | Iterable[str], transport: str) -> FaultPlan:
             if not parsed.device:
                 if parsed.cycle in wire_at:
                     raise _error(
-                        item, f"cycle {parsed.cycle} already has {wire_at[parsed.cycle]!r}", transport
+                        item,
+                        f"cycle {parsed.cycle} already has {wire_at[parsed.cycle]!r}",
+                        transport,
                     )
                 wire_at[parsed.cycle] = item
             specs.append(parsed)

@@ -28,8 +28,9 @@ from pathlib import Path
 from sim_backend.device import PowerState, SimulatedDevice
 from sim_backend.faults.injector import FaultInjector
 
-#: How often the reporter looks at the drive [s].
-POLL_S = 0.005
+#: How often the reporter looks at the drive [s] (a state held shorter may be missed
+#: in the history; the report written at exit is always current).
+POLL_S = 0.02
 
 
 def snapshot(device: SimulatedDevice, injector: FaultInjector | None) -> dict[str, object]:
@@ -93,7 +94,11 @@ class StateReporter(threading.Thread):
             data = snapshot(dev, self.injector)
             if key != self._key:
                 self.history.append(
-                    {"state": data["state"], "cycle": data["cycles"], "fault_code": data["fault_code"]}
+                    {
+                        "state": data["state"],
+                        "cycle": data["cycles"],
+                        "fault_code": data["fault_code"],
+                    }
                 )
                 self._key = key
             write_json_atomic(
