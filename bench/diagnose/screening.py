@@ -69,27 +69,32 @@ def screen_all(ctx: ScreenInput, present: Iterable[str]) -> dict[str, Screening]
 
 @dataclass(frozen=True)
 class QuickScore:
-    """Held-out gap [%] of a screening guess, and the candidate that achieved it."""
+    """Held-out gap [%] of the best screening guess, and where refits should start.
+
+    ``starts`` holds the best candidate built on the screening's main guess and, when the
+    screening offered alternatives, the best of those (rugged surfaces: both are refitted).
+    """
 
     name: str
     held_out_gap: float
-    candidate: Candidate
+    starts: tuple[Candidate, ...]
 
 
 def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening) -> QuickScore:
     """Simulate the guesses with the current base, and the main guess with the jointly fitted
-    base; keep the best."""
-    best = None
-    trials = [(dict(current.base), dict(g)) for g in (s.guess, *s.alternatives)]
+    base too; keep the best main-guess and the best alternative candidate."""
+    trials = [(dict(current.base), dict(s.guess), True)]
     if s.base is not None and all(np.isfinite(list(s.base.values()))):
         b = dict(s.base)
         if b["M"] > 0 and b["B"] > 0:
             b = {**b, "fc_pos": max(b["fc_pos"], 0.0), "fc_neg": max(b["fc_neg"], 0.0)}
-            trials.append((b, dict(s.guess)))
+            trials.append((b, dict(s.guess), True))
+    trials += [(dict(current.base), dict(g), False) for g in s.alternatives]
     mod = library.module(name)
+    project = getattr(mod, "project", None)
     which = held_out_windows(data)
-    for base, guess in trials:
-        project = getattr(mod, "project", None)
+    best: dict[bool, tuple[float, Candidate]] = {}
+    for base, guess, main in trials:
         if project is not None:
             guess = project(guess, base)
         cand = Candidate(base, {**current.effects, name: guess})
@@ -97,8 +102,10 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
             gap = gap_percent(data, simulate(data, cand, which), "held_out")
         except UsageError:
             continue
-        if np.isfinite(gap) and (best is None or gap < best.held_out_gap):
-            best = QuickScore(name, gap, cand)
-    if best is None:
-        return QuickScore(name, float("inf"), Candidate(dict(current.base), dict(current.effects)))
-    return best
+        if np.isfinite(gap) and (main not in best or gap < best[main][0]):
+            best[main] = (gap, cand)
+    if not best:
+        fallback = Candidate(dict(current.base), {**current.effects, name: dict(s.guess)})
+        return QuickScore(name, float("inf"), (fallback,))
+    ranked = sorted(best.values(), key=lambda item: item[0])
+    return QuickScore(name, ranked[0][0], tuple(c for _, c in ranked))

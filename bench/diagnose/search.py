@@ -98,15 +98,18 @@ def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrac
         pool += [n for n in by_score if screens[n].score >= MIN_SCORE and n not in pool]
         singles: dict[str, FitResult] = {}
         for n in pool:
-            start = quick[n].candidate
-            singles[n] = refit(
-                data,
-                start,
-                {**bounds_all, **_bounds(screens, [n])},
-                {**fixed_all, **_fixed(screens, [n])},
-                _scan(screens, [n]),
-                floor=floor,
-            )
+            fits = [
+                refit(
+                    data,
+                    start,
+                    {**bounds_all, **_bounds(screens, [n])},
+                    {**fixed_all, **_fixed(screens, [n])},
+                    _scan(screens, [n]),
+                    floor=floor,
+                )
+                for start in quick[n].starts
+            ]
+            singles[n] = min(fits, key=lambda f: f.gap_train)
         tried = [((n,), f.gap_held_out) for n, f in singles.items()]
         order = sorted(singles, key=lambda n: singles[n].gap_held_out)
         best_single = order[0] if order else None

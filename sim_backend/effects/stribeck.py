@@ -96,7 +96,7 @@ def screen(ctx: ScreenInput) -> Screening:
             best = (sse, vs, coef)
     bounds = {
         "fs": (0.0, 10.0 * max(abs(coef0[2]), abs(coef0[3]), 1e-9)),
-        "vs": (1e-3 * scale, 3 * scale),
+        "vs": (0.02 * scale, 3 * scale),
     }
     if best is None:
         fc = max(coef0[2], coef0[3], 0.0)
