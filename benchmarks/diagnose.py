@@ -40,6 +40,7 @@ def run_case(effect: str | None, seed: int, folder: str) -> dict:
     d = diagnose(log)
     return {
         "true": effect or NONE,
+        "seed": seed,
         "named": [e.name for e in d.effects],
         "before": d.gap_before,
         "after": d.gap_after,

@@ -20,7 +20,7 @@ out of every fit and decides whether a term pays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -98,6 +98,8 @@ class DiagnosisData:
     velocity_derived: bool
     horizon_s: float | None
     source: str = ""
+    #: White velocity-sensor noise [units/s] (see :func:`noise_std`).
+    sigma_v: float = 0.0
 
     @property
     def dt_s(self) -> float:
@@ -174,20 +176,29 @@ def prepare(log: ExperimentLog, horizon_s: float | None = None) -> DiagnosisData
                 r.run, np.asarray(r.t, float), np.asarray(r.u, float), v, x, v_f, held, starts
             )
         )
-    return DiagnosisData(tuple(runs), fs, derived, horizon_s, log.source)
+    data = DiagnosisData(tuple(runs), fs, derived, horizon_s, log.source)
+    return replace(data, sigma_v=noise_std(data))
 
 
-def initial_velocity(run: RunSeries, k: int) -> float:
-    """Velocity to start a simulation from at sample ``k``: zero when the axis rests there."""
-    v0 = float(run.v_f[k])
-    scale = float(np.std(run.v_f))
-    return 0.0 if abs(v0) < 0.02 * scale else v0
-
-
-def noise_floor_percent(data: DiagnosisData) -> float:
-    """Gap [%] that white velocity-sensor noise alone leaves (robust, from second differences)."""
+def noise_std(data: DiagnosisData) -> float:
+    """Standard deviation of white velocity-sensor noise [units/s], robustly from second
+    differences (0 for velocity derived from position, already smooth)."""
     if data.velocity_derived:
         return 0.0
     d2 = np.concatenate([np.diff(r.v, 2) for r in data.runs])
-    sigma = float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
-    return 100.0 * sigma / float(np.std(data.cat("v")))
+    return float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
+
+
+def initial_velocity(run: RunSeries, k: int, sigma: float = 0.0) -> float:
+    """Velocity to start a simulation from at sample ``k``: zero when the axis rests there.
+
+    At rest means within three noise deviations ``sigma`` (or 2% of the velocity's spread).
+    """
+    v0 = float(run.v_f[k])
+    tol = max(3.0 * sigma, 0.02 * float(np.std(run.v_f)))
+    return 0.0 if abs(v0) < tol else v0
+
+
+def noise_floor_percent(data: DiagnosisData) -> float:
+    """Gap [%] that white velocity-sensor noise alone leaves."""
+    return 100.0 * data.sigma_v / float(np.std(data.cat("v")))

@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 
 from bench.diagnose.data import DiagnosisData, noise_floor_percent
-from bench.diagnose.refit import FitResult, refit
+from bench.diagnose.refit import FitResult, evaluate, refit
 from bench.diagnose.screening import compatible, quick_score, screen_all, screen_input
 from bench.diagnose.simulate import Candidate
 from sim_backend.effects.spec import Screening
@@ -63,6 +63,21 @@ def _explained(before: FitResult, after: FitResult, floor: float) -> float:
     if room <= 0:
         return 1.0
     return (before.gap_held_out**2 - after.gap_held_out**2) / room
+
+
+def _ablate(
+    data: DiagnosisData, chosen: tuple[str, ...], fit: FitResult
+) -> tuple[tuple[str, ...], FitResult]:
+    """Drop new terms the fitted model does not need (it does as well on held-out data without)."""
+    kept = chosen
+    for name in chosen:
+        cand = fit.candidate
+        without = Candidate(dict(cand.base), {k: v for k, v in cand.effects.items() if k != name})
+        trial = evaluate(data, without)
+        if trial.gap_held_out * (1 - MIN_GAIN) <= fit.gap_held_out:
+            kept = tuple(n for n in kept if n != name)
+            fit = trial
+    return kept, fit
 
 
 def _bounds(screens: dict[str, Screening], names) -> dict:
@@ -145,6 +160,14 @@ def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrac
         trace.append(tuple(tried))
         if not chosen:
             break
+        chosen, best_fit = _ablate(data, chosen, best_fit)
+        if not chosen:
+            # The refit only found a better optimum of the terms already there: keep it, name nothing.
+            if best_fit.gap_held_out > (1 - MIN_GAIN) * current.gap_held_out:
+                break
+            steps[-1] = Step(steps[-1].added, best_fit, steps[-1].evidence)
+            current = best_fit
+            continue
         evidence = {
             n: f"{screens[n].evidence}; held-out gap {current.gap_held_out:.3g}% -> "
             f"{best_fit.gap_held_out:.3g}%"

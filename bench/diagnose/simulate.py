@@ -75,10 +75,11 @@ def simulate(
     params = cand.plant()
     model = build_model(params) if params.effects else None
     dt = data.dt_s
+    sigma = data.sigma_v
     out = [np.full(len(r.u), np.nan) for r in data.runs]
     for i, s, e in windows(data) if which is None else which:
         r = data.runs[i]
-        state = PlantState(initial_velocity(r, s), float(r.x[s]))
+        state = PlantState(initial_velocity(r, s, sigma), float(r.x[s]))
         if model is None:
             v, _, _ = simulate_coulomb(r.u[s:e], dt, params, state)
         else:

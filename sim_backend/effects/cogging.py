@@ -47,6 +47,8 @@ EFFECT = EffectSpec(
 #: Spatial frequencies and samples of the screening periodogram (at most).
 MAX_FREQUENCIES = 2000
 PERIODOGRAM_SAMPLES = 6000
+#: Frequencies of the refinement between two grid lines.
+REFINE = 41
 
 
 def contribute(p, plant, terms: Terms) -> None:
@@ -54,6 +56,17 @@ def contribute(p, plant, terms: Terms) -> None:
     k = 2.0 * math.pi / float(p["period"])
     sin = math.sin
     terms.position_forces.append(lambda x: amp * sin(k * x + phase))
+
+
+def _peak(ks: np.ndarray, x: np.ndarray, e: np.ndarray) -> float:
+    """Spatial frequency [rad/unit] among ``ks`` where ``e`` has the most sin/cos power over ``x``."""
+    power = np.empty(ks.size)
+    for i in range(0, ks.size, 200):
+        kk = ks[i : i + 200, None] * x[None, :]
+        s, c = np.sin(kk), np.cos(kk)
+        ss, cc = np.einsum("ij,ij->i", s, s), np.einsum("ij,ij->i", c, c)
+        power[i : i + 200] = (s @ e) ** 2 / ss + (c @ e) ** 2 / cc
+    return float(ks[int(np.argmax(power))])
 
 
 def screen(ctx: ScreenInput) -> Screening:
@@ -79,13 +92,11 @@ def screen(ctx: ScreenInput) -> Screening:
     # The periodogram needs no more than a few thousand samples; the regression below uses all.
     pick = slice(None, None, max(1, x.size // PERIODOGRAM_SAMPLES))
     x_p, e_p = x[pick], e[pick]
-    power = np.empty(nk)
-    for i in range(0, nk, 200):
-        kk = ks[i : i + 200, None] * x_p[None, :]
-        s, c = np.sin(kk), np.cos(kk)
-        ss, cc = np.einsum("ij,ij->i", s, s), np.einsum("ij,ij->i", c, c)
-        power[i : i + 200] = (s @ e_p) ** 2 / ss + (c @ e_p) ** 2 / cc
-    k = float(ks[int(np.argmax(power))])
+    k = _peak(ks, x_p, e_p)
+    # Refine on all samples between the neighbouring grid lines: a period off by a fraction of
+    # a percent already drifts by a good part of a period over a long travel.
+    step_k = ks[1] - ks[0]
+    k = _peak(np.linspace(k - step_k, k + step_k, REFINE), x, e)
     coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
     amp, phase = float(math.hypot(coef[4], coef[5])), float(math.atan2(coef[5], coef[4]))
     period = 2 * math.pi / k

@@ -58,6 +58,8 @@ EFFECT = EffectSpec(
 
 #: Smallest peak of |V_measured / V_simulated| taken for a mode.
 MIN_PEAK_RATIO = 1.3
+#: Smallest coherence of measured and simulated velocity where a peak is looked for.
+MIN_COHERENCE = 0.5
 
 
 def contribute(p, plant, terms: Terms) -> None:
@@ -77,22 +79,28 @@ def screen(ctx: ScreenInput) -> Screening:
     from scipy.signal import csd, welch
 
     fs = 1.0 / ctx.dt_s
-    num = den = res = 0.0
+    num = den = out = res = 0.0
     freqs = None
     for r in ctx.runs:
         nper = int(min(r.v.size, 2 ** int(np.log2(max(r.v.size // 4, 16)))))
         freqs, pxy = csd(r.v_sim, r.v, fs=fs, nperseg=nper)
         _, pxx = welch(r.v_sim, fs=fs, nperseg=nper)
+        _, pyy = welch(r.v, fs=fs, nperseg=nper)
         _, prr = welch(r.residual, fs=fs, nperseg=nper)
-        num, den, res = num + pxy, den + pxx, res + prr
+        num, den, out, res = num + pxy, den + pxx, out + pyy, res + prr
     base = ctx.base
     f_rigid = base["B"] / base["M"] / (2 * math.pi)
     ratio = np.abs(num) / np.maximum(den, 1e-300)
-    band = (freqs > max(2 * f_rigid, 3 * freqs[1])) & (freqs < 0.45 * fs)
-    default = {"wn": 2 * math.pi * 0.2 * fs, "zeta": 0.1}
-    bounds = {"wn": (2 * math.pi * freqs[1], math.pi * fs), "zeta": (0.005, 1.0)}
+    # Where the simulated velocity has little power, sensor noise alone makes the ratio
+    # large: only coherent frequencies count.
+    coherence = np.abs(num) ** 2 / np.maximum(den * out, 1e-300)
+    band = (
+        (freqs > max(2 * f_rigid, 3 * freqs[1])) & (freqs < 0.45 * fs) & (coherence > MIN_COHERENCE)
+    )
     if not np.any(band):
-        return Screening(0.0, default, bounds, "no band above the rigid-body bandwidth")
+        guess = {"wn": 2 * math.pi * 0.2 * fs, "zeta": 0.1}
+        bounds = {"wn": (2 * math.pi * freqs[1], math.pi * fs), "zeta": (0.005, 1.0)}
+        return Screening(0.0, guess, bounds, "no coherent band above the rigid-body bandwidth")
     idx = np.flatnonzero(band)
     i = int(idx[np.argmax(ratio[idx])])
     peak, f0 = float(ratio[i]), float(freqs[i])

@@ -74,6 +74,17 @@ def contribute(p, plant, terms: Terms) -> None:
     terms.substep_s = min(terms.substep_s, 0.25 * plant.M * vs / drop)
 
 
+def _spread(coef0: np.ndarray, scale: float) -> tuple[dict[str, float], ...]:
+    """Static levels and Stribeck velocities for a quick simulation to judge: most of the
+    Stribeck curve lives at speeds the inverse-dynamics equation leaves out."""
+    fc = max(coef0[2], coef0[3], 1e-12)
+    return tuple(
+        {"fs": float(fc * level), "vs": float(scale * speed)}
+        for level in (1.4, 1.8, 2.4)
+        for speed in (0.04, 0.08, 0.16)
+    )
+
+
 def screen(ctx: ScreenInput) -> Screening:
     m = ctx.moving
     v = ctx.cat("v_f")[m]
@@ -100,8 +111,13 @@ def screen(ctx: ScreenInput) -> Screening:
     }
     if best is None:
         fc = max(coef0[2], coef0[3], 0.0)
+        guess = {"fs": 1.5 * fc, "vs": 0.1 * scale}
         return Screening(
-            0.0, {"fs": 1.5 * fc, "vs": 0.1 * scale}, bounds, "no friction excess at low speed"
+            0.0,
+            guess,
+            bounds,
+            "no friction excess at low speed",
+            alternatives=_spread(coef0, scale),
         )
     sse, vs, coef = best
     fcp, fcn = max(coef[2], 0.0), max(coef[3], 0.0)
@@ -114,8 +130,9 @@ def screen(ctx: ScreenInput) -> Screening:
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "fc_pos": fcp, "fc_neg": fcn}
+    score = explained(sse0, sse, 2, y.size)
     return Screening(
-        explained(sse0, sse, 2, y.size), {"fs": fs, "vs": vs}, bounds, evidence, base=base
+        score, {"fs": fs, "vs": vs}, bounds, evidence, base=base, alternatives=_spread(coef0, scale)
     )
 
 
