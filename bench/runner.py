@@ -40,7 +40,7 @@ import numpy as np
 
 from bench.logio import LogWriter
 from drivers.base import Drive
-from drivers.errors import DriveError, UsageError
+from drivers.errors import DriveError, LimitExceededError, UsageError
 
 #: Columns of a runner log.
 LOG_COLUMNS = ("run", "t", "u", "v", "x", "t_host")
@@ -268,12 +268,12 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _default_pace(drive: Drive) -> str:
+def default_pace(drive: Drive) -> str:
     """``"fast"`` for drives that say they are not real-time (``realtime = False``), else ``"real"``."""
     return "fast" if getattr(drive, "realtime", True) is False else "real"
 
 
-def _sleep_until(deadline: float) -> None:
+def sleep_until(deadline: float) -> None:
     """Sleep coarsely, then spin for the last half millisecond (jitter << 1 ms)."""
     while True:
         left = deadline - time.monotonic()
@@ -335,7 +335,7 @@ def stream_runs(
         raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
     if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
         raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
-    pace = pace or drive.url.get_str("pace", "") or _default_pace(drive)
+    pace = pace or drive.url.get_str("pace", "") or default_pace(drive)
     if pace not in ("real", "fast"):
         raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
     dt = 1.0 / fs_hz
@@ -428,7 +428,7 @@ def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run
     acted = 0.0  # the command that acted over the cycle before this sample
     for k in range(n):
         if pace == "real":
-            _sleep_until(t0_host + k * dt)
+            sleep_until(t0_host + k * dt)
         fb, applied = drive.exchange(u[k])
         now = time.monotonic()
         run.check.check(fb.t_s, acted, fb.velocity, fb.position)
@@ -450,15 +450,20 @@ def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:
     t0_drive = None
     last_u = 0.0
     for start in range(0, len(u), BLOCK_CYCLES):
-        block = drive.exchange_block(u[start : start + BLOCK_CYCLES])
+        failure: DriveError | None = None
+        try:
+            block = drive.exchange_block(u[start : start + BLOCK_CYCLES])
+        except LimitExceededError as err:
+            if err.partial is None:
+                raise
+            block, failure = err.partial, err  # log the cycles taken, then fail
         now = time.monotonic() - t0_host
         if t0_drive is None:
             t0_drive = float(block.t_s[0])
         td = block.t_s - t0_drive
         prev_u = np.concatenate(([last_u], block.applied[:-1]))
         good = run.check.first_failure(block.t_s, prev_u, block.velocity, block.position)
-        failure: DriveError | None = None
-        if good < len(td):  # log the good head, then fail with the check's message
+        if good < len(td):  # an earlier failed feedback check wins over a later limit breach  # log the good head, then fail with the check's message
             try:
                 run.check.check(
                     float(block.t_s[good]), float(prev_u[good]),
@@ -488,7 +493,7 @@ def _settle(drive: Drive, dt: float, settle_s: float, pace: str) -> None:
     quiet = 0
     for k in range(cycles):
         if pace == "real":
-            _sleep_until(t0 + k * dt)
+            sleep_until(t0 + k * dt)
         fb, _ = drive.exchange(0.0)
         speed = abs(fb.velocity)
         peak = max(peak, speed)

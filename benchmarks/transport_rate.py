@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from bench.runner import _sleep_until
+from bench.runner import sleep_until
 from drivers.link_budget import (
     canopen_cycle_s,
     modbus_rtu_cycle_s,
@@ -50,7 +50,7 @@ def measure(url: str, n: int, rate_hz: float | None) -> tuple[np.ndarray, object
         t[0] = time.monotonic()
         for k in range(n):
             if rate_hz:
-                _sleep_until(t[0] + (k + 1) / rate_hz)
+                sleep_until(t[0] + (k + 1) / rate_hz)
             drive.exchange(u[k])
             t[k + 1] = time.monotonic()
         moved = getattr(drive, "bytes_sent", 0) + getattr(drive, "bytes_received", 0) - sum(counters)

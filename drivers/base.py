@@ -301,7 +301,14 @@ class Drive(ABC):
         )
         if bad.size:
             i = int(bad[0])
-            self._checked(Feedback(block.t_s[i], block.velocity[i], block.position[i]))
+            try:
+                self._checked(Feedback(block.t_s[i], block.velocity[i], block.position[i]))
+            except LimitExceededError as err:
+                head = slice(0, i + 1)
+                err.partial = BlockFeedback(
+                    block.t_s[head], block.velocity[head], block.position[head], block.applied[head]
+                )
+                raise
         return block
 
     def _checked(self, fb: Feedback) -> Feedback:

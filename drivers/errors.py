@@ -69,7 +69,15 @@ class StateTransitionError(DriveError):
 
 
 class LimitExceededError(DriveError):
-    """Feedback left the configured envelope (velocity or travel); the axis was stopped."""
+    """Feedback left the configured envelope (velocity or travel); the axis was stopped.
+
+    ``partial`` holds, for a block exchange, the cycles taken up to and
+    including the one that breached, so that no sample taken is lost.
+    """
+
+    def __init__(self, message: str, partial: object | None = None) -> None:
+        super().__init__(message)
+        self.partial = partial
 
 
 class IdentificationError(ServobenchError, ValueError):

@@ -158,3 +158,20 @@ def test_ctrl_c_stops_the_axis_and_keeps_the_log(tmp_path):
     assert not log.complete and log.metadata["reason"].startswith("interrupted")
     assert len(log.runs[0]) >= 200
     assert list(LOG_COLUMNS[:5]) == ["run", "t", "u", "v", "x"]
+
+
+def test_limit_breach_in_block_mode_keeps_the_samples_before_it(tmp_path):
+    path = tmp_path / "log.csv"
+    u = np.full(5000, 3.0)
+    with open_drive("sim://?max_v=1.5") as drive:
+        from drivers.errors import LimitExceededError
+
+        with pytest.raises(LimitExceededError, match="velocity"):
+            stream_runs(drive, [(1, u)], 1000.0, path, pace="fast")
+        assert drive.device.state is PowerState.DISABLED
+    log = read_log(path)
+    assert not log.complete
+    v_expected, _ = simulate(u, 1000.0, PlantParams())
+    breach = int(np.flatnonzero(v_expected > 1.5)[0])
+    assert len(log.runs[0]) == breach + 1
+    assert_allclose(log.runs[0].v, v_expected[: breach + 1], atol=1e-9)

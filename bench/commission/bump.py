@@ -29,7 +29,7 @@ from bench.commission.config import BumpSettings
 from bench.commission.errors import CommissionRefused
 from bench.commission.limits import ConfirmedLimits
 from bench.logio import LogWriter
-from bench.runner import LOG_COLUMNS, _sleep_until
+from bench.runner import LOG_COLUMNS, sleep_until
 from drivers.base import Drive
 from drivers.errors import DriveError
 
@@ -197,7 +197,7 @@ class _Streamer:
 
     def cycle(self, run: int, u: float) -> tuple[float, float, float, float]:
         if self.pace == "real":
-            _sleep_until(self.t0 + self.k * self.dt)
+            sleep_until(self.t0 + self.k * self.dt)
         fb, applied = self.drive.exchange(u)
         self.k += 1
         if self.first_t is None:
