@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import LogFormatError
+from drivers.messages import LINE_BREAKS, one_line
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")
@@ -44,13 +45,6 @@ MAX_RUN = 2**31 - 1
 _META = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*=\s*(.*?)\s*$")
 _KEY_BAD = re.compile(r"[^\w.\-]")
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
-#: Characters any reader may take as a line break (str.splitlines's set).
-_BREAKS = re.compile("[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]+")
-
-
-def _one_line(text: str) -> str:
-    """``text`` with every line break replaced by a space."""
-    return _BREAKS.sub(" ", text)
 
 
 def _show(text: str, limit: int = 60) -> str:
@@ -212,7 +206,7 @@ def _meta_text(value: object) -> str:
         return ",".join(_meta_text(v) for v in value)
     if isinstance(value, float):
         return format(value, ".10g")
-    return _one_line(str(value)).strip()
+    return one_line(str(value)).strip()
 
 
 def _meta_key(key: object) -> str:
@@ -241,7 +235,7 @@ def read_log(
         Missing file, malformed content, missing columns.
     """
     path = Path(path)
-    where = _one_line(str(path))
+    where = one_line(str(path))
     try:
         if not path.is_file():
             raise LogFormatError(f"no such log file: {where}")
@@ -257,7 +251,7 @@ def read_log(
 
 def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
     """Parse the text of a CSV log (see the module docstring for the format)."""
-    source = _one_line(source)
+    source = one_line(source)
     metadata: dict[str, str] = {}
     header: list[str] | None = None
     rows: list[str] = []
@@ -284,7 +278,7 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
             raise LogFormatError(
                 f"{source}:{lineno}: expected {len(header)} fields, got {line.count(',') + 1}"
             )
-        if _BREAKS.search(line):
+        if LINE_BREAKS.search(line):
             raise LogFormatError(f"{source}:{lineno}: control character in row {_show(line)}")
     if header is None:
         raise LogFormatError(f"{source}: no CSV header (expected columns like run,t,u,v,x)")
@@ -293,9 +287,7 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
     try:
         data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
     except ValueError as err:
-        raise LogFormatError(
-            f"{source}: malformed number in data ({_one_line(str(err))})"
-        ) from None
+        raise LogFormatError(f"{source}: malformed number in data ({one_line(str(err))})") from None
     if not np.all(np.isfinite(data)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(data), axis=1))[0])
         raise LogFormatError(f"{source}: data row {bad + 1} holds a non-finite value")
@@ -386,13 +378,13 @@ def parse_mat_map(spec: str | Mapping[str, str] | None) -> dict[str, str]:
 def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog:
     from scipy.io import loadmat
 
-    where = _one_line(str(path))
+    where = one_line(str(path))
     mapping_spec = parse_mat_map(spec)
     try:
         mat = loadmat(str(path), squeeze_me=True)
     except Exception as err:  # scipy raises several types for a bad file
         raise LogFormatError(
-            f"{where}: not a readable MATLAB file ({_one_line(str(err))[:200]})"
+            f"{where}: not a readable MATLAB file ({one_line(str(err))[:200]})"
         ) from None
     mapping = mapping_spec or {k: k for k in SIGNALS if k in mat}
 
@@ -432,7 +424,7 @@ def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog
     if n == 0:
         raise LogFormatError(f"{where}: the variables hold no samples")
     metadata = {
-        "source": f"{_one_line(path.name)} (MATLAB)",
+        "source": f"{one_line(path.name)} (MATLAB)",
         "mat_map": ",".join(f"{k}={v}" for k, v in mapping.items()),
     }
     return _assemble(columns, metadata, True, where)

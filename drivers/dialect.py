@@ -25,6 +25,7 @@ from pathlib import Path
 from drivers.ascii_line import MalformedReplyError
 from drivers.errors import DriveConfigError, DriveError
 from drivers.line_template import Template
+from drivers.messages import one_line_errors
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -230,13 +231,18 @@ def dialect_path(name_or_path: str) -> Path:
     return path
 
 
+@one_line_errors
 def load_dialect(name_or_path: str = DEFAULT_DIALECT) -> Dialect:
     """Read, validate and compile a dialect (shipped name or TOML file path)."""
     path = dialect_path(name_or_path)
+    if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
+        raise DriveConfigError(f"dialect file {str(path)!r} does not exist or is no file")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise DriveConfigError(f"cannot read dialect file {path}: {err.strerror}") from None
+    except UnicodeDecodeError:
+        raise DriveConfigError(f"dialect file {path} is not UTF-8 text") from None
     except tomllib.TOMLDecodeError as err:
         raise DriveConfigError(f"dialect file {path} is not valid TOML: {err}") from None
     return parse_dialect(data, str(path))
@@ -274,6 +280,7 @@ def _get(table: Mapping[str, object], key: str, kind: type, where: str, default:
     return value
 
 
+@one_line_errors
 def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dialect:
     """Validate the TOML tables of a dialect and compile its templates.
 

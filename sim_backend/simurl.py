@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from drivers.errors import DriveConfigError, UsageError
+from drivers.messages import one_line_errors
 from drivers.url import DriveURL, parse_drive_url
 from sim_backend import effects
 from sim_backend.plant import PlantParams
@@ -43,13 +44,18 @@ def _number(key: str, value: object) -> float:
     return out
 
 
+@one_line_errors
 def load_plant_file(path: str | Path) -> dict[str, object]:
     """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
     path = Path(path)
+    if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
+        raise DriveConfigError(f"plant file {str(path)!r} does not exist or is no file")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise DriveConfigError(f"cannot read plant file {path}: {err.strerror}") from None
+    except UnicodeDecodeError:
+        raise DriveConfigError(f"plant file {path} is not UTF-8 text") from None
     except tomllib.TOMLDecodeError as err:
         raise DriveConfigError(f"plant file {path} is not valid TOML: {err}") from None
     table = data.get("plant", data)
@@ -58,6 +64,7 @@ def load_plant_file(path: str | Path) -> dict[str, object]:
     return table
 
 
+@one_line_errors
 def plant_from_url(url: DriveURL | str) -> PlantParams:
     """Build :class:`PlantParams` from a ``sim://`` URL (and its plant file, if named)."""
     url = parse_drive_url(url) if isinstance(url, str) else url
@@ -75,6 +82,8 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     base = {k: _number(k, values[k]) for k in PLANT_KEYS & set(values)}
     effect_values = {k: _number(k, values[k]) for k in set(values) - PLANT_KEYS}
     seed = url.get_int("seed")
+    if seed is not None and seed < 0:
+        raise DriveConfigError(f"sim seed must be a non-negative integer, got {seed}")
     try:
         return PlantParams(**base, seed=seed, effects=effects.effects_from_query(effect_values))
     except UsageError as err:
