@@ -52,23 +52,24 @@ is switched off); closing disarms the consumer.
 
 from __future__ import annotations
 
-import io
 import math
 import struct
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from importlib import resources
 
 import can
 import canopen
-from can.interfaces.socketcand.socketcand import (
-    SocketCanDaemonBus,
-    convert_can_message_to_ascii_message,
-)
 
 from drivers.base import Drive, DriveInfo, Feedback
+from drivers.canopen_link import (
+    CounterUnwrap,
+    HeartbeatProducer,
+    TappedNetwork,
+    TrafficRecorder,
+    load_eds,
+)
 from drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
     CiA402State,
@@ -120,94 +121,6 @@ COB_INVALID = 0x80000000
 ABORT_NO_OBJECT = (0x06020000, 0x06090011)
 NMT_PRE_OPERATIONAL, NMT_OPERATIONAL = 0x80, 0x01
 NMT_STATES = {0x80: 127, 0x01: 5}  # command -> heartbeat state
-
-
-def load_eds(node_id: int, path: str | None = None) -> canopen.ObjectDictionary:
-    """The object dictionary of ``path`` (default: the shipped generic CiA 402 EDS)."""
-    if path:
-        return canopen.import_od(path, node_id)
-    stream = io.StringIO(resources.files("drivers").joinpath("data/cia402.eds").read_text("ascii"))
-    stream.name = "cia402.eds"
-    return canopen.import_od(stream, node_id)
-
-
-class _Unwrap:
-    """Undo the wrap-around of a ``bits``-wide counter (0x6064, 0x1013)."""
-
-    def __init__(self, bits: int) -> None:
-        self.modulus = 1 << bits
-        self.last: int | None = None
-        self.total = 0
-
-    def __call__(self, raw: int) -> int:
-        if self.last is None:
-            self.total = raw
-        else:
-            delta = (raw - self.last) % self.modulus
-            self.total += delta - self.modulus if delta >= self.modulus // 2 else delta
-        self.last = raw
-        return self.total
-
-
-class _Network(canopen.Network):
-    """canopen's network, with a tap on sent frames for :meth:`Drive.record_traffic`."""
-
-    #: Receive-thread wake-up period [s]; closing waits up to this long.
-    NOTIFIER_CYCLE = 0.05
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.taps: list[can.Listener] = []
-
-    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        self.send_messages([(can_id, data)], remote)
-
-    def send_messages(self, frames: list[tuple[int, bytes]], remote: bool = False) -> None:
-        """Send frames back to back; over socketcand in one TCP write (one wake-up of the hub)."""
-        if self.bus is None:
-            raise DriveConnectionError("CAN bus is closed")
-        msgs = [
-            can.Message(arbitration_id=i, data=d, is_extended_id=i > 0x7FF, is_remote_frame=remote)
-            for i, d in frames
-        ]
-        with self.send_lock:
-            if isinstance(self.bus, SocketCanDaemonBus) and len(msgs) > 1:
-                # python-can sends one TCP write per frame; its own encoder, joined, is one write
-                self.bus._tcp_send("".join(map(convert_can_message_to_ascii_message, msgs)))
-            else:
-                for msg in msgs:
-                    self.bus.send(msg)
-            for tap in self.taps:
-                for msg in msgs:
-                    tap.on_message_received(msg)
-        self.check()
-
-
-class _HeartbeatProducer(threading.Thread):
-    """Sends the host's heartbeat (NMT state OPERATIONAL) every ``period_s``."""
-
-    def __init__(self, network: canopen.Network, node_id: int, period_s: float) -> None:
-        super().__init__(name=f"heartbeat-{node_id}", daemon=True)
-        self.network, self.cob_id, self.period_s = network, 0x700 + node_id, period_s
-        self.failure: BaseException | None = None
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        try:
-            while True:
-                self.network.send_message(self.cob_id, b"\x05")
-                if self._stop_event.wait(self.period_s):
-                    return
-        except BaseException as err:  # surfaced by check() in the host's thread
-            self.failure = err
-
-    def check(self) -> None:
-        if self.failure is not None:
-            raise DriveConnectionError(f"host heartbeat stopped: {self.failure}") from self.failure
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        self.join(timeout=1.0)
 
 
 class CANopen402Drive(Drive):
@@ -269,10 +182,10 @@ class CANopen402Drive(Drive):
             raise DriveConfigError(
                 f"sync_cob=0x{self.sync_cob:X} collides with node {self.node_id}'s own EMCY or PDOs"
             )
-        self.network: _Network | None = None
+        self.network: TappedNetwork | None = None
         self.node: canopen.RemoteNode | None = None
         self.torque_actual = 0.0  #: last 0x6077 [rated torques]
-        self._heartbeat: _HeartbeatProducer | None = None
+        self._heartbeat: HeartbeatProducer | None = None
         self._consumer_armed = False
         self._controlword = 0
         self._torque = 0  # 0x6071 [per-mille]
@@ -285,9 +198,9 @@ class CANopen402Drive(Drive):
         self._emcy: tuple[int, int] | None = None  # (error code, error register) pending
         self._nmt = threading.Condition()
         self._nmt_seen = (0, -1)  # (heartbeats received, last NMT state)
-        self._position = _Unwrap(32)
-        self._clock = _Unwrap(32)
-        self._recorders: list[can.Listener] = []
+        self._position = CounterUnwrap(32)
+        self._clock = CounterUnwrap(32)
+        self._recorders: list[TrafficRecorder] = []
 
     # -------------------------------------------------------------- SDO layer
     @contextmanager
@@ -323,7 +236,7 @@ class CANopen402Drive(Drive):
 
     # -------------------------------------------------------------- lifecycle
     def _open(self) -> None:
-        network = _Network()
+        network = TappedNetwork()
         kwargs = {"interface": self.interface, "channel": self.channel, "bitrate": self.bitrate}
         if self.server is not None:
             kwargs.update(host=self.server[0], port=self.server[1], tcp_tune=True)
@@ -433,7 +346,7 @@ class CANopen402Drive(Drive):
             raise UsageError(f"watchdog {timeout_s} s exceeds the 65.535 s of 0x1016")
         if self._heartbeat is None:
             period_s = max(timeout_s * HOST_HEARTBEAT_FRACTION, 0.001)
-            self._heartbeat = _HeartbeatProducer(self.network, self.host_node, period_s)
+            self._heartbeat = HeartbeatProducer(self.network, self.host_node, period_s)
             self._heartbeat.start()
         self._write(0x1016, 1, self.host_node << 16 | time_ms)
         self._consumer_armed = True
@@ -464,7 +377,7 @@ class CANopen402Drive(Drive):
             self._recorders = []
 
     def _record_traffic(self, path: str) -> None:
-        recorder = can.Logger(path)
+        recorder = TrafficRecorder(path)
         self._recorders.append(recorder)
         self.network.taps.append(recorder)
         self.network.notifier.add_listener(recorder)

@@ -245,10 +245,15 @@ def test_record_traffic_writes_both_directions(tmp_path) -> None:
     with served() as (_, url), open_drive(url) as drive:
         drive.record_traffic(str(path))
         drive.enable()
-        for _ in range(5):
+        for _ in range(2000):  # sender and notifier threads write concurrently
             drive.exchange(0.1)
-    ids = {msg.arbitration_id for msg in can.LogReader(str(path))}
+    msgs = list(can.LogReader(str(path)))  # every line parses: nothing interleaved
+    ids = {msg.arbitration_id for msg in msgs}
     assert {0x202, 0x080, 0x182, 0x282, 0x602, 0x582} <= ids
+    syncs = [m for m in msgs if m.arbitration_id == 0x080]
+    assert len(syncs) >= 2000
+    assert all(not m.is_rx and m.timestamp > 0 for m in syncs)  # sent, stamped at send
+    assert all(m.is_rx for m in msgs if m.arbitration_id in (0x182, 0x282))
 
 
 def test_virtual_bus_in_process() -> None:

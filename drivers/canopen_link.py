@@ -1,0 +1,144 @@
+"""The CAN side of ``canopen://``: EDS loading, the tapped network, the host heartbeat, counters.
+
+Kept apart from :mod:`drivers.canopen402` (the CiA 402 drive logic) so each
+stays small. Sent frames pass through :class:`TappedNetwork`, which can feed
+a :class:`TrafficRecorder` (python-can log formats) together with the
+received frames, under one lock, with the send time and direction.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+from importlib import resources
+
+import can
+import canopen
+from can.interfaces.socketcand.socketcand import (
+    SocketCanDaemonBus,
+    convert_can_message_to_ascii_message,
+)
+
+from drivers.errors import DriveConnectionError
+
+
+def load_eds(node_id: int, path: str | None = None) -> canopen.ObjectDictionary:
+    """The object dictionary of ``path`` (default: the shipped generic CiA 402 EDS)."""
+    if path:
+        return canopen.import_od(path, node_id)
+    stream = io.StringIO(resources.files("drivers").joinpath("data/cia402.eds").read_text("ascii"))
+    stream.name = "cia402.eds"
+    return canopen.import_od(stream, node_id)
+
+
+class CounterUnwrap:
+    """Undo the wrap-around of a ``bits``-wide counter (0x6064, 0x1013)."""
+
+    def __init__(self, bits: int) -> None:
+        self.modulus = 1 << bits
+        self.last: int | None = None
+        self.total = 0
+
+    def __call__(self, raw: int) -> int:
+        if self.last is None:
+            self.total = raw
+        else:
+            delta = (raw - self.last) % self.modulus
+            self.total += delta - self.modulus if delta >= self.modulus // 2 else delta
+        self.last = raw
+        return self.total
+
+
+class TappedNetwork(canopen.Network):
+    """canopen's network, with a tap on sent frames for :meth:`Drive.record_traffic`."""
+
+    #: Receive-thread wake-up period [s]; closing waits up to this long.
+    NOTIFIER_CYCLE = 0.05
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.taps: list[TrafficRecorder] = []
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self.send_messages([(can_id, data)], remote)
+
+    def send_messages(self, frames: list[tuple[int, bytes]], remote: bool = False) -> None:
+        """Send frames back to back; over socketcand in one TCP write (one wake-up of the hub)."""
+        if self.bus is None:
+            raise DriveConnectionError("CAN bus is closed")
+        msgs = [
+            can.Message(arbitration_id=i, data=d, is_extended_id=i > 0x7FF, is_remote_frame=remote)
+            for i, d in frames
+        ]
+        with self.send_lock:
+            if isinstance(self.bus, SocketCanDaemonBus) and len(msgs) > 1:
+                # python-can sends one TCP write per frame; its own encoder, joined, is one write
+                self.bus._tcp_send("".join(map(convert_can_message_to_ascii_message, msgs)))
+            else:
+                for msg in msgs:
+                    self.bus.send(msg)
+            for tap in self.taps:
+                for msg in msgs:
+                    tap.on_sent(msg)
+        self.check()
+
+
+class HeartbeatProducer(threading.Thread):
+    """Sends the host's heartbeat (NMT state OPERATIONAL) every ``period_s``."""
+
+    def __init__(self, network: canopen.Network, node_id: int, period_s: float) -> None:
+        super().__init__(name=f"heartbeat-{node_id}", daemon=True)
+        self.network, self.cob_id, self.period_s = network, 0x700 + node_id, period_s
+        self.failure: BaseException | None = None
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        try:
+            while True:
+                self.network.send_message(self.cob_id, b"\x05")
+                if self._stop_event.wait(self.period_s):
+                    return
+        except BaseException as err:  # surfaced by check() in the host's thread
+            self.failure = err
+
+    def check(self) -> None:
+        if self.failure is not None:
+            raise DriveConnectionError(f"host heartbeat stopped: {self.failure}") from self.failure
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.join(timeout=1.0)
+
+
+class TrafficRecorder(can.Listener):
+    """A python-can :class:`~can.Logger` fed from two threads (sender and notifier).
+
+    The format follows the file suffix (candump ``.log``, ``.blf``, ``.asc``,
+    ``.csv``, ...). Sent frames are stamped with the send time and marked as
+    transmitted; every write holds one lock, so lines never interleave.
+    """
+
+    def __init__(self, path: str) -> None:
+        self._logger = can.Logger(path)
+        self._lock = threading.Lock()
+        self._stopped = False
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self._lock:
+            if not self._stopped:
+                self._logger.on_message_received(msg)
+
+    def on_sent(self, msg: can.Message) -> None:
+        sent = can.Message(
+            timestamp=time.time(), arbitration_id=msg.arbitration_id, data=msg.data,
+            is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+            is_rx=False, channel=msg.channel,
+        )  # fmt: skip
+        self.on_message_received(sent)
+
+    def stop(self) -> None:
+        with self._lock:
+            if not self._stopped:
+                self._stopped = True
+                self._logger.stop()
