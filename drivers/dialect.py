@@ -236,7 +236,7 @@ def load_dialect(name_or_path: str = DEFAULT_DIALECT) -> Dialect:
     """Read, validate and compile a dialect (shipped name or TOML file path)."""
     path = dialect_path(name_or_path)
     if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
-        raise DriveConfigError(f"dialect file {str(path)!r} does not exist or is no file")
+        raise DriveConfigError(f"cannot read dialect file {str(path)!r}: not a regular file")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as err:

@@ -49,7 +49,7 @@ def load_plant_file(path: str | Path) -> dict[str, object]:
     """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
     path = Path(path)
     if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
-        raise DriveConfigError(f"plant file {str(path)!r} does not exist or is no file")
+        raise DriveConfigError(f"cannot read plant file {str(path)!r}: not a regular file")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as err:
