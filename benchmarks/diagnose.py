@@ -86,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"named first correctly: {correct}/{len(results)}; cases with more than one effect: {extra}"
     )
+    for r in results:
+        if (r["named"][0] if r["named"] else NONE) != r["true"] or len(r["named"]) > 1:
+            named = ", ".join(r["named"]) or NONE
+            print(
+                f"  {r['true']} (seed {r['seed']}): named {named}; "
+                f"gap {r['before']:.2f}% -> {r['after']:.2f}%"
+            )
     return 0
 
 
