@@ -52,7 +52,9 @@ is switched off); closing disarms the consumer.
 
 from __future__ import annotations
 
+import logging
 import math
+import socket
 import struct
 import threading
 import time
@@ -88,12 +90,20 @@ from drivers.errors import (
     UsageError,
 )
 
+# The library's own log lines would reach stderr through logging's last-resort
+# handler; every failure is raised as a typed error here instead. An application
+# that configures logging still sees them.
+logging.getLogger("canopen").addHandler(logging.NullHandler())
+logging.getLogger("can").addHandler(logging.NullHandler())
+
 S = CiA402State
 
 #: SDO response timeout unless the URL sets ``sdo_timeout`` [s].
 SDO_TIMEOUT_S = 0.3
 #: Wait for the TPDOs of one SYNC unless the URL sets ``pdo_timeout`` [s].
 PDO_TIMEOUT_S = 0.1
+#: Deadline for reaching a socketcand server over TCP [s] (python-can itself retries for 10 s).
+CONNECT_TIMEOUT_S = 2.0
 #: Deadline of each CiA 402 state transition [s].
 STATE_TIMEOUT_S = 1.0
 #: Deadline for 0x6061 to show the requested mode [s].
@@ -239,6 +249,7 @@ class CANopen402Drive(Drive):
         network = TappedNetwork()
         kwargs = {"interface": self.interface, "channel": self.channel, "bitrate": self.bitrate}
         if self.server is not None:
+            self._probe_server()
             kwargs.update(host=self.server[0], port=self.server[1], tcp_tune=True)
         try:
             network.connect(**kwargs)
@@ -252,6 +263,16 @@ class CANopen402Drive(Drive):
         except BaseException:
             self._disconnect()
             raise
+
+    def _probe_server(self) -> None:
+        """Fail fast (not after python-can's 10 s of retries) when nothing listens."""
+        host, port = self.server
+        try:
+            socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
+        except OSError as err:
+            raise DriveConnectionError(
+                f"cannot reach the socketcand server {host}:{port}: {err.strerror or err}"
+            ) from err
 
     def _set_up(self) -> None:
         node = canopen.RemoteNode(self.node_id, load_eds(self.node_id, self.eds_path))

@@ -30,6 +30,7 @@ the drive one cycle, so :meth:`~drivers.base.Drive.read` advances it too.
 
 from __future__ import annotations
 
+import logging
 import select
 import time
 from collections.abc import Callable, Sequence
@@ -59,6 +60,11 @@ from drivers.regmap import (
     load_map,
     words_of,
 )
+
+# The library's own log lines would reach stderr through logging's last-resort
+# handler; every failure is raised as a typed error here instead. An application
+# that configures logging still sees them.
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
 #: Response timeout when the URL gives none [s].
 DEFAULT_TIMEOUT_S = 0.25

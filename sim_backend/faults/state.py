@@ -52,10 +52,19 @@ def snapshot(device: SimulatedDevice, injector: FaultInjector | None) -> dict[st
 
 
 def write_json_atomic(path: Path, data: object) -> None:
-    """Write ``data`` as JSON to ``path`` so that readers never see half a file."""
+    """Write ``data`` as JSON to ``path`` so that readers never see half a file.
+
+    Raises
+    ------
+    OSError
+        Naming ``path`` (not the temporary file beside it).
+    """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror, str(path)) from None
 
 
 class StateReporter(threading.Thread):
