@@ -230,6 +230,7 @@ def parse_item(item: str, transport: str) -> FaultSpec | tuple[str, int]:
             return key, number
         raise _error(item, "no @N", transport)
     cycle_text, colon, arg_text = rest.partition(":")
+    written = name
     alias_arg: int | None = None
     if name in ALIASES:
         if transport not in ALIASES[name]:
@@ -248,7 +249,7 @@ def parse_item(item: str, transport: str) -> FaultSpec | tuple[str, int]:
     arg: int | None = None
     if colon:
         if not kind.arg or alias_arg is not None:
-            raise _error(item, f"{name} takes no argument", transport)
+            raise _error(item, f"{written} takes no argument", transport)
         arg = _int(arg_text)
         if arg is None:
             raise _error(item, f"argument {arg_text!r} is not an integer", transport)
