@@ -29,8 +29,6 @@ from drivers.errors import IdentificationError, UsageError
 
 #: Prediction horizon of closed-loop logs [s].
 DEFAULT_HORIZON_S = 0.5
-#: Cut-off of the zero-phase filter, as a fraction of the sample rate.
-LOWPASS_FRACTION = 0.04
 #: Blocks per run and which of them are held out.
 BLOCKS = 10
 HELD_OUT_BLOCKS = (2, 5, 8)
@@ -40,22 +38,19 @@ REFIT_MAX_SAMPLES = 8000
 MIN_RUN_SAMPLES = 50
 
 
-def lowpass(signal: np.ndarray, fs_hz: float, cutoff_hz: float | None = None) -> np.ndarray:
-    """Zero-phase 2nd-order Butterworth low-pass (``filtfilt``) at ``cutoff_hz``."""
-    from scipy.signal import butter, filtfilt
+def lowpass(signal: np.ndarray, fs_hz: float) -> np.ndarray:
+    """The project's zero-phase low-pass (:func:`bench.derivative.lowpass`) at its default cut-off."""
+    from bench.derivative import default_cutoff_hz
+    from bench.derivative import lowpass as zero_phase
 
-    cutoff = LOWPASS_FRACTION * fs_hz if cutoff_hz is None else cutoff_hz
-    b, a = butter(2, min(cutoff / (0.5 * fs_hz), 0.99))
-    if signal.size <= 3 * max(len(a), len(b)):
-        return np.asarray(signal, dtype=float).copy()
-    return filtfilt(b, a, signal)
+    return zero_phase(signal, fs_hz, default_cutoff_hz(fs_hz))
 
 
-def velocity_from_position(
-    x: np.ndarray, fs_hz: float, cutoff_hz: float | None = None
-) -> np.ndarray:
-    """Velocity [units/s] from position [units]: central difference, then zero-phase low-pass."""
-    return lowpass(np.gradient(np.asarray(x, dtype=float), 1.0 / fs_hz), fs_hz, cutoff_hz)
+def velocity_from_position(x: np.ndarray, fs_hz: float) -> np.ndarray:
+    """Velocity [units/s] from position [units] (:func:`bench.derivative.differentiate_position`)."""
+    from bench.derivative import differentiate_position
+
+    return differentiate_position(np.asarray(x, dtype=float), fs_hz).v
 
 
 @dataclass(frozen=True)

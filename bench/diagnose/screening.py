@@ -14,11 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.derivative import zoh_centered
 from bench.diagnose.data import DiagnosisData, lowpass
 from bench.diagnose.simulate import Candidate, gap_percent, held_out_windows, simulate
 from drivers.errors import UsageError
 from sim_backend import effects as library
-from sim_backend.effects.spec import RunSignals, Screening, ScreenInput, zoh_center
+from sim_backend.effects.spec import RunSignals, Screening, ScreenInput
 
 #: Samples whose low-passed speed is below this fraction of its rms are left out of the
 #: inverse-dynamics equation (friction is undetermined at rest).
@@ -30,11 +31,15 @@ EXCLUSIVE = ({"resonance", "backlash"},)
 def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarray]) -> ScreenInput:
     """Screening signals of every run given the current model's simulated velocity."""
     fs = data.fs_hz
+
+    def command_filter(u: np.ndarray) -> np.ndarray:
+        return lowpass(zoh_centered(u), fs)
+
     runs = []
     for r, vs in zip(data.runs, v_sim, strict=True):
         v_f = r.v_f
         a_f = np.gradient(v_f, data.dt_s)
-        u_f = lowpass(zoh_center(r.u), fs)
+        u_f = command_filter(r.u)
         vs = np.where(np.isfinite(vs), vs, r.v)
         runs.append(RunSignals(r.u, r.v, r.x, v_f, a_f, u_f, r.v - vs, vs))
     v_all = np.concatenate([s.v_f for s in runs])
@@ -46,7 +51,7 @@ def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarra
         dict(cand.base),
         dict(cand.effects),
         moving,
-        lambda u: lowpass(u, fs),
+        command_filter,
     )
 
 

@@ -173,8 +173,8 @@ class ScreenInput:
         Effects already in the model (their terms are in ``residual`` already).
     moving : ndarray of bool
         Samples (all runs concatenated) where the inverse-dynamics equation holds.
-    lowpass : callable
-        The zero-phase filter that made ``u_f`` from the ZOH-centred command of one run.
+    command_filter : callable
+        What made ``u_f`` from one run's command: ZOH centring and the zero-phase low-pass.
     """
 
     runs: tuple[RunSignals, ...]
@@ -182,7 +182,7 @@ class ScreenInput:
     base: Mapping[str, float]
     effects: Mapping[str, Mapping[str, float]]
     moving: np.ndarray
-    lowpass: Callable[[np.ndarray], np.ndarray]
+    command_filter: Callable[[np.ndarray], np.ndarray]
 
     def cat(self, name: str) -> np.ndarray:
         """Signal ``name`` of all runs, concatenated."""
@@ -265,16 +265,8 @@ def input_fit(
     ctx: ScreenInput, transform: Callable[[np.ndarray], np.ndarray]
 ) -> tuple[np.ndarray, float]:
     """Equation-error fit of the base model to a transformed command ``transform(u)``."""
-    y = np.concatenate([ctx.lowpass(zoh_center(transform(r.u))) for r in ctx.runs])[ctx.moving]
+    y = np.concatenate([ctx.command_filter(transform(r.u)) for r in ctx.runs])[ctx.moving]
     q, r = ctx.base_qr
     qty = q.T @ y
     coef = np.linalg.solve(r, qty)
     return coef, max(float(y @ y - qty @ qty), 0.0)
-
-
-def zoh_center(u: np.ndarray) -> np.ndarray:
-    """Command aligned with central-difference acceleration: ``(u[k-1] + u[k]) / 2``."""
-    out = np.empty_like(u, dtype=float)
-    out[0] = u[0]
-    out[1:] = 0.5 * (u[1:] + u[:-1])
-    return out
