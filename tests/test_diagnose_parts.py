@@ -147,3 +147,19 @@ def test_linear_approximation_pole_moves_with_amplitude_for_friction():
     # Coulomb friction weighs less at run 2's larger amplitude: the DC gain rises.
     assert b.gain_measured > a.gain_measured
     assert a.gain_measured == pytest.approx(a.gain_simulated)
+
+
+def test_motion_in_one_direction_only_is_diagnosed_without_inventing_effects():
+    from bench.diagnose import diagnose
+
+    rng = np.random.default_rng(0)
+    n = 1000
+    u = np.abs(np.repeat(rng.normal(2.0, 1.0, n // 50), 50)) + 0.6  # always pushes forwards
+    runs = []
+    for number in (1, 2):
+        v, x = plant_simulate(
+            u * number, FS, PlantParams(noise=0.005), np.random.default_rng(number)
+        )
+        runs.append(RunData(number, np.arange(n) / FS, u * number, v, x))
+    d = diagnose(make_log(runs))
+    assert d.effects == () and d.base["M"] == pytest.approx(0.1, rel=0.02)

@@ -268,5 +268,5 @@ def input_fit(
     y = np.concatenate([ctx.command_filter(transform(r.u)) for r in ctx.runs])[ctx.moving]
     q, r = ctx.base_qr
     qty = q.T @ y
-    coef = np.linalg.solve(r, qty)
+    coef = np.linalg.lstsq(r, qty, rcond=None)[0]  # R is singular when one direction never moves
     return coef, max(float(y @ y - qty @ qty), 0.0)
