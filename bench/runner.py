@@ -17,9 +17,10 @@ simulated drives and batch work).
 Checks on every sample, before it is logged: feedback must be finite, a
 drive clock must advance, and the feedback must not be frozen -- position
 and velocity bit-identical for ``frozen_cycles`` cycles while the drive
-reports motion (``v != 0``: a moving axis changes position), or while the
-command stays at or above ``breakaway`` when the caller knows it. Any of
-them ends the run with :class:`~drivers.errors.DriveError`.
+reports motion that should have moved the position by now, or while the
+command stays at or above ``breakaway`` when the caller knows it (see
+:class:`FeedbackCheck`). Any of them ends the run with
+:class:`~drivers.errors.DriveError`.
 
 Memory is O(1) in the run length: timing statistics are streamed
 (Welford), samples go straight to the file.
@@ -154,31 +155,40 @@ def _stats(run: int, host: PeriodStats, drive: PeriodStats) -> TimingStats:
 class FeedbackCheck:
     """Per-sample sanity of the feedback: finite, a drive clock that advances, not frozen.
 
+    Frozen feedback: (velocity, position) bit-identical for at least
+    ``frozen_cycles`` cycles while the axis must be moving -- the drive reports
+    ``v != 0`` and ``|v|`` times the time since the feedback froze is at least
+    twice the smallest position step seen in this run (so a coarse encoder
+    creeping slowly is not taken for a frozen one), or, when ``breakaway`` is
+    known, the command stays at or above it.
+
     Parameters
     ----------
     frozen_cycles : int
-        Consecutive bit-identical (velocity, position) samples, taken while the
-        axis must be moving, that end the run (0 disables the frozen check).
+        Cycles of identical feedback that end the run (0 disables the frozen check).
     breakaway : float or None
-        Command magnitude [command units] that surely moves the axis; with it,
-        identical feedback while ``|u| >= breakaway`` counts too, even at ``v == 0``.
+        Command magnitude [command units] that surely moves the axis.
     drive_clock : bool
         The time stamps are the drive's own clock: they must increase.
+    dt_s : float
+        Cycle period [s].
     """
 
     def __init__(
         self, frozen_cycles: int = FROZEN_CYCLES, breakaway: float | None = None,
-        drive_clock: bool = False,
+        drive_clock: bool = False, dt_s: float = 1e-3,
     ) -> None:  # fmt: skip
         self.frozen_cycles = int(frozen_cycles)
         self.breakaway = breakaway
         self.drive_clock = drive_clock
+        self.dt_s = dt_s
         self._prev: tuple[float, float] | None = None
         self._prev_t: float | None = None
         self._same = 0
+        self._step = math.inf  # smallest non-zero position step seen [position units]
 
-    def _moving(self, u: float, velocity: float) -> bool:
-        return velocity != 0.0 or (self.breakaway is not None and abs(u) >= self.breakaway)
+    def _pushing(self, u: float) -> bool:
+        return self.breakaway is not None and abs(u) >= self.breakaway
 
     def check(self, t_s: float, u: float, velocity: float, position: float) -> None:
         """Check one sample; ``u`` is the command that acted over the cycle before it.
@@ -196,18 +206,25 @@ class FeedbackCheck:
             raise DriveError(
                 f"feedback frozen: the drive clock stands at {t_s!r} s (last {self._prev_t!r} s)"
             )
-        same = (velocity, position) == self._prev and self._moving(u, velocity)
+        if self._prev is not None and position != self._prev[1]:
+            self._step = min(self._step, abs(position - self._prev[1]))
+        same = (velocity, position) == self._prev and (velocity != 0.0 or self._pushing(u))
         self._same = self._same + 1 if same else 0
         self._prev, self._prev_t = (velocity, position), t_s
-        if self.frozen_cycles and self._same >= self.frozen_cycles:
+        if not self.frozen_cycles or self._same < self.frozen_cycles:
+            return
+        travel = abs(velocity) * self._same * self.dt_s
+        if travel >= 2 * self._step:
             why = (
-                f"while the drive reports velocity {velocity:.6g}"
-                if velocity != 0.0
-                else f"while commanding |u| >= breakaway {self.breakaway:g}"
+                f"while the drive reports velocity {velocity:.6g} (that is {travel:.3g} of travel)"
             )
-            raise DriveError(
-                f"feedback frozen: position and velocity bit-identical for {self._same} cycles {why}"
-            )
+        elif self._pushing(u):
+            why = f"while commanding |u| >= breakaway {self.breakaway:g}"
+        else:
+            return
+        raise DriveError(
+            f"feedback frozen: position and velocity bit-identical for {self._same} cycles {why}"
+        )
 
     def first_failure(self, t_s: np.ndarray, u: np.ndarray, v: np.ndarray, x: np.ndarray) -> int:
         """Check a block at once; return the index of the first bad sample (``len(v)``: none).
@@ -224,22 +241,27 @@ class FeedbackCheck:
         elif self.drive_clock:
             bad[1:] |= np.diff(t_s) <= 0
         pv, px = self._prev if self._prev is not None else (math.nan, math.nan)
-        same = (v == np.concatenate(([pv], v[:-1]))) & (x == np.concatenate(([px], x[:-1])))
-        moving = v != 0.0
-        if self.breakaway is not None:
-            moving |= np.abs(u) >= self.breakaway
-        flag = same & moving
+        x_before = np.concatenate(([px], x[:-1]))
+        same = (v == np.concatenate(([pv], v[:-1]))) & (x == x_before)
+        with np.errstate(invalid="ignore"):
+            dx = np.abs(x - x_before)
+            steps = np.where(dx > 0, dx, np.inf)  # NaN and 0 are no steps
+        step = np.minimum(np.minimum.accumulate(steps), self._step)
+        pushing = np.abs(u) >= self.breakaway if self.breakaway is not None else np.zeros(n, bool)
+        flag = same & ((v != 0.0) | pushing)
         index = np.arange(n)
         last_reset = np.maximum.accumulate(np.where(flag, -1, index))
         run = np.where(last_reset >= 0, index - last_reset, index + 1 + self._same)
         if self.frozen_cycles:
-            bad |= run >= self.frozen_cycles
+            with np.errstate(invalid="ignore"):
+                moved = np.abs(v) * run * self.dt_s >= 2 * step
+            bad |= (run >= self.frozen_cycles) & (moved | pushing)
         hits = np.flatnonzero(bad)
         stop = int(hits[0]) if hits.size else n
         if stop:
             k = stop - 1
             self._prev, self._prev_t = (float(v[k]), float(x[k])), float(t_s[k])
-            self._same = int(run[k])
+            self._same, self._step = int(run[k]), float(step[k])
         return stop
 
 
@@ -352,10 +374,8 @@ def stream_runs(
                 u = np.asarray(u, dtype=float)
                 if index:
                     _settle(drive, dt, settle_s, pace)
-                run = _Run(
-                    number, writer, FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock),
-                    progress, done, total,
-                )  # fmt: skip
+                check = FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock, dt)
+                run = _Run(number, writer, check, progress, done, total)
                 try:
                     if pace == "fast" and getattr(drive, "supports_block", False):
                         _stream_blocks(drive, u, run)
@@ -463,7 +483,9 @@ def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:
         td = block.t_s - t0_drive
         prev_u = np.concatenate(([last_u], block.applied[:-1]))
         good = run.check.first_failure(block.t_s, prev_u, block.velocity, block.position)
-        if good < len(td):  # an earlier failed feedback check wins over a later limit breach  # log the good head, then fail with the check's message
+        if (
+            good < len(td)
+        ):  # an earlier failed feedback check wins over a later limit breach  # log the good head, then fail with the check's message
             try:
                 run.check.check(
                     float(block.t_s[good]), float(prev_u[good]),

@@ -183,3 +183,22 @@ def test_state_report_changes_and_final(tmp_path) -> None:
     assert report["cycles"] == 2 and report["faults_injected"][0]["kind"] == "fault"
     assert report["torque_off"] and report["command"] == 0.0
     assert snapshot(dev, None)["cycles"] is None
+
+
+def test_frozen_check_spares_a_coarse_encoder_and_catches_a_frozen_one() -> None:
+    from bench.runner import FeedbackCheck
+    from drivers.errors import DriveError
+
+    check = FeedbackCheck(frozen_cycles=100, dt_s=1e-3)
+    for k in range(2000):  # creeping at 0.05 units/s on a 0.01-unit encoder: x steps every 200
+        check.check(k * 1e-3, 0.3, 0.05, 0.01 * (k // 200))
+    check = FeedbackCheck(frozen_cycles=100, dt_s=1e-3)
+    with pytest.raises(DriveError, match="bit-identical for 100 cycles while the drive reports"):
+        for k in range(2000):  # moving at 1 unit/s (steps of 1e-3), then the sensor stops
+            kk = min(k, 500)
+            check.check(k * 1e-3, 1.0, 1.0, kk * 1e-3)
+    assert k == 600
+    check = FeedbackCheck(frozen_cycles=50, breakaway=0.5, dt_s=1e-3)
+    with pytest.raises(DriveError, match="breakaway 0.5"):  # stuck at rest while pushed hard
+        for k in range(100):
+            check.check(k * 1e-3, 0.8, 0.0, 0.0)

@@ -131,7 +131,7 @@ def test_block_check_agrees_with_the_per_sample_check() -> None:
         t = np.arange(n) * 1e-3
         u = rng.choice([0.0, 1.0, -1.0], n)
         cut = rng.integers(0, n)
-        slow, fast = FeedbackCheck(10, 0.5, True), FeedbackCheck(10, 0.5, True)
+        slow, fast = FeedbackCheck(10, 0.5, True, 0.2), FeedbackCheck(10, 0.5, True, 0.2)
         slow_fail = fast_fail = n
         slow_msg = ""
         for k in range(n):

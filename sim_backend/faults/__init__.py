@@ -44,6 +44,8 @@ Modbus
 ``timeout``, ``crc``  ends: DriveTimeoutError (the FC23 may have been executed)
 ``delay``          rides through below ``timeout=`` (0.25 s), else ends
 ``fault``          ends: DriveFaultError from the fault register
+(``drop``/``dup`` are not injected: the pymodbus server answers each request
+once; a lost answer is what ``timeout`` shows the host)
 Serial
 ``garble``, ``truncate``, ``interleave``  ends: MalformedReplyError; the
                    driver resynchronises the line before its next request
@@ -56,10 +58,11 @@ Serial
                    poll period after the fault are logged
 Every transport
 ``freeze``         ends: the runner sees position and velocity bit-identical
-                   for ``frozen_cycles`` (100) cycles while the axis reports
-                   motion (or while ``|u| >= breakaway`` when given): DriveError
-                   "feedback frozen"; those samples are in the log, flagged by
-                   the reason
+                   for ``frozen_cycles`` (100) cycles while the reported
+                   velocity should have moved the position by two of its
+                   smallest steps (or while ``|u| >= breakaway`` when given):
+                   DriveError "feedback frozen"; those samples are in the log,
+                   flagged by the reason
 host killed        the drive's watchdog (heartbeat consumer, Modbus watchdog
                    register, serial watchdog) faults the axis; the log, flushed
                    per sample, ends without a trailer: ``# status = running``
