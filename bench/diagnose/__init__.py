@@ -93,7 +93,9 @@ def diagnose(log: ExperimentLog, horizon_s: float | None = None) -> Diagnosis:
             if name == "viscous_asymmetry":
                 params["B_pos"] = final.base["B"] + params["dB"]
                 params["B_neg"] = final.base["B"] - params["dB"]
-            named.append(NamedEffect(name, params, step.evidence[name]))
+            clause = signatures.support(name)
+            evidence = step.evidence[name] if not clause else f"{step.evidence[name]}; {clause}"
+            named.append(NamedEffect(name, params, evidence))
     return Diagnosis(
         tuple(named),
         steps[0].fit.gap,

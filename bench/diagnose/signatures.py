@@ -72,6 +72,36 @@ class Signatures:
     band95: float
     linear: tuple[LinearApprox, ...]
 
+    def gain_change(self) -> tuple[float, float]:
+        """Relative DC-gain change from the first to the last run: measured, simulated."""
+        a, b = self.linear[0], self.linear[-1]
+        return b.gain_measured / a.gain_measured - 1, b.gain_simulated / a.gain_simulated - 1
+
+    def support(self, effect: str) -> str:
+        """The step-3 finding that goes with ``effect``'s signature, as a clause ("" if none)."""
+        if effect in ("stribeck", "viscous_asymmetry", "offset"):
+            return f"velocity explains {100 * self.vs_velocity.eta2:.0f}% of the base residual"
+        if effect == "cogging":
+            return f"position explains {100 * self.vs_position.eta2:.0f}% of the base residual"
+        if effect == "time_delay":
+            return (
+                f"residual-input cross-correlation {self.xcorr_peak:+.2f} at lag {self.xcorr_lag}"
+            )
+        if effect == "resonance":
+            return f"the base residual spectrum peaks at {self.peak_hz:.3g} Hz"
+        if effect == "backlash":
+            return (
+                f"{100 * self.reversal_energy_share:.0f}% of the residual energy in the "
+                f"{100 * self.reversal_time_share:.0f}% of time after reversals"
+            )
+        if effect in ("deadzone", "saturation") and len(self.linear) >= 2:
+            meas, sim = self.gain_change()
+            return (
+                f"the linear approximation's gain changes {100 * meas:+.0f}% from run "
+                f"{self.linear[0].run} to run {self.linear[-1].run} (base model {100 * sim:+.0f}%)"
+            )
+        return ""
+
     def findings(self) -> list[str]:
         """Plain sentences, strongest first."""
         out = []
@@ -104,8 +134,7 @@ class Signatures:
         out.append((0.0, f"the residual spectrum peaks at {self.peak_hz:.3g} Hz"))
         if len(self.linear) >= 2:
             a, b = self.linear[0], self.linear[-1]
-            dg_meas = b.gain_measured / a.gain_measured - 1
-            dg_sim = b.gain_simulated / a.gain_simulated - 1
+            dg_meas, dg_sim = self.gain_change()
             dp_meas = b.pole_measured / a.pole_measured - 1
             dp_sim = b.pole_simulated / a.pole_simulated - 1
             text = (

@@ -53,7 +53,7 @@ def screen(ctx: ScreenInput) -> Screening:
     score = max(0.0, 1.0 - sse_free / sse_con) if sse_con > 0 else 0.0
     side = "positive" if fcp < 0 else "negative"
     evidence = (
-        f"the free Coulomb fit needs a negative {side}-direction level "
+        f"the free Coulomb fit puts the {side}-direction level below zero "
         f"({min(fcp, fcn):.3g}): a constant force of about {guess:.3g} acts whatever the motion"
     )
     base = {"M": coef[0], "B": coef[1], "fc_pos": fcp + guess, "fc_neg": fcn - guess}
