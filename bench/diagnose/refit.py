@@ -3,14 +3,15 @@
 The parameters are scaled to order one (``M`` and ``B`` on a log scale) so a
 single relative finite-difference step suits them all; the step is large
 enough (1e-3) to see through the kinks stick-slip puts into the error
-surface. Parameters a screening marks *fixed* (a quantization step, on which
-the error is piecewise constant) are searched on a small grid afterwards.
-Stick-slip and impacts make the surface rugged, where a trust region
-shrinks early; the gradient fit restarts while it keeps gaining, and
-candidates with rugged parameters get a coordinate search of those and of
-the base before, and a Nelder-Mead polish after it.
-Parameters marked *scan* (rugged error surface) are scanned coarsely first.
-Only training samples enter the cost; held-out samples judge the result.
+surface. Stick-slip and impacts make the surface rugged, where a trust
+region shrinks early: the gradient fit restarts while it keeps gaining.
+
+Parameters a screening marks *fixed* (a quantization step, on which the error
+is piecewise constant) are searched on a small grid after the gradient fit.
+Candidates with *scan* parameters (a play that closes or not before a
+reversal) get a coordinate search of those and of the base friction and
+inertia before it, and a Nelder-Mead polish after it. Only training samples
+enter the cost; held-out samples judge the result.
 """
 
 from __future__ import annotations
@@ -94,9 +95,8 @@ class _Layout:
         self, cand: Candidate, bounds: Bounds, fixed: Mapping[str, tuple[str, ...]]
     ) -> None:
         self.cand = cand
-        self.slots: list[
-            tuple[str, str, float, float, float]
-        ] = []  # (effect, param, scale, lo, hi)
+        #: (effect, parameter, scale, low, high) of each fitted effect parameter.
+        self.slots: list[tuple[str, str, float, float, float]] = []
         b = cand.base
         fscale = max(abs(b["fc_pos"]), abs(b["fc_neg"]), 1e-3 * b["B"], 1e-12)
         self.fscale = fscale

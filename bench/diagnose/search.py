@@ -18,7 +18,13 @@ from dataclasses import dataclass
 
 from bench.diagnose.data import DiagnosisData, noise_floor_percent
 from bench.diagnose.refit import FitResult, evaluate, refit
-from bench.diagnose.screening import compatible, quick_score, screen_all, screen_input
+from bench.diagnose.screening import (
+    QuickScore,
+    compatible,
+    quick_score,
+    screen_all,
+    screen_input,
+)
 from bench.diagnose.simulate import Candidate
 from sim_backend.effects.spec import Screening
 
@@ -80,16 +86,76 @@ def _ablate(
     return kept, fit
 
 
-def _bounds(screens: dict[str, Screening], names) -> dict:
-    return {n: dict(screens[n].bounds) for n in names}
+@dataclass
+class _Fitter:
+    """Refits candidates of one search with the bounds, grids and scans screening proposed."""
+
+    data: DiagnosisData
+    floor: float
+    bounds: dict[str, dict]
+    fixed: dict[str, tuple]
+    screens: dict[str, Screening]
+
+    def fit(self, start: Candidate, new: tuple[str, ...], scan: bool = True) -> FitResult:
+        s = self.screens
+        return refit(
+            self.data,
+            start,
+            {**self.bounds, **{n: dict(s[n].bounds) for n in new}},
+            {**self.fixed, **{n: tuple(s[n].fixed) for n in new}},
+            {n: tuple(s[n].scan) for n in new} if scan else None,
+            floor=self.floor,
+        )
+
+    def accept(self, names: tuple[str, ...]) -> None:
+        """Later rounds keep refitting accepted terms within their screening's bounds."""
+        self.bounds.update({n: dict(self.screens[n].bounds) for n in names})
+        self.fixed.update({n: tuple(self.screens[n].fixed) for n in names})
 
 
-def _fixed(screens: dict[str, Screening], names) -> dict:
-    return {n: tuple(screens[n].fixed) for n in names}
+def _pool(
+    current: FitResult, screens: dict[str, Screening], quick: dict[str, QuickScore]
+) -> list[str]:
+    """Singles worth a refit: best quick guesses that beat the current model, best scores."""
+    by_quick = sorted(quick, key=lambda n: quick[n].held_out_gap)[:TOP_BY_QUICK]
+    by_score = sorted(screens, key=lambda n: -screens[n].score)[:TOP_BY_SCORE]
+    pool = [n for n in by_quick if quick[n].held_out_gap < current.gap_held_out]
+    return pool + [n for n in by_score if screens[n].score >= MIN_SCORE and n not in pool]
 
 
-def _scan(screens: dict[str, Screening], names) -> dict:
-    return {n: tuple(screens[n].scan) for n in names}
+def _round(
+    fitter: _Fitter, current: FitResult, quick: dict[str, QuickScore], trace: list
+) -> tuple[tuple[str, ...], FitResult | None]:
+    """One round of additions: the chosen names (possibly none) and their fit."""
+    singles: dict[str, FitResult] = {}
+    for n in _pool(current, fitter.screens, quick):
+        fits = [fitter.fit(start, (n,)) for start in quick[n].starts]
+        singles[n] = min(fits, key=lambda f: f.gap_train)
+    tried = [((n,), f.gap_held_out) for n, f in singles.items()]
+    trace.append(tried)
+    order = sorted(singles, key=lambda n: singles[n].gap_held_out)
+    if not order:
+        return (), None
+    chosen: tuple[str, ...] = ()
+    best = None
+    if singles[order[0]].gap_held_out <= (1 - MIN_GAIN) * current.gap_held_out:
+        chosen, best = (order[0],), singles[order[0]]
+    # Pairs can pay where no single does only if some single at least helps.
+    improving = singles[order[0]].gap_held_out <= (1 - MIN_GAIN / 3) * current.gap_held_out
+    if not improving or (
+        best is not None and _explained(current, best, fitter.floor) >= PAIR_BELOW
+    ):
+        return chosen, best
+    for a, b in itertools.combinations(order[:PAIR_POOL], 2):
+        if not compatible(b, [a]):
+            continue
+        fa, fb = singles[a].candidate, singles[b].candidate
+        pair = fitter.fit(Candidate(dict(fa.base), {**fa.effects, b: fb.effects[b]}), (a, b), False)
+        tried.append(((a, b), pair.gap_held_out))
+        reference = best.gap_held_out if best is not None else current.gap_held_out
+        if pair.gap_held_out <= (1 - MIN_GAIN) * reference:
+            chosen, best = (a, b), pair
+    return chosen, best
 
 
 def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrace]:
@@ -97,84 +163,32 @@ def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrac
     floor = noise_floor_percent(data)
     steps = [Step((), base, {})]
     current = base
-    bounds_all: dict[str, dict] = {}
-    fixed_all: dict[str, tuple] = {}
-    trace = []
+    fitter = _Fitter(data, floor, {}, {}, {})
+    trace: list[list] = []
     for _ in range(MAX_ROUNDS):
         if current.gap_held_out <= FLOOR_FACTOR * floor:
             break
         cand = current.candidate
-        ctx = screen_input(data, cand, current.v_sim)
-        screens = screen_all(ctx, cand.names)
-        quick = {n: quick_score(data, cand, n, s) for n, s in screens.items()}
-        by_quick = sorted(quick, key=lambda n: quick[n].held_out_gap)[:TOP_BY_QUICK]
-        by_score = sorted(screens, key=lambda n: -screens[n].score)[:TOP_BY_SCORE]
-        pool = [n for n in by_quick if quick[n].held_out_gap < current.gap_held_out]
-        pool += [n for n in by_score if screens[n].score >= MIN_SCORE and n not in pool]
-        singles: dict[str, FitResult] = {}
-        for n in pool:
-            fits = [
-                refit(
-                    data,
-                    start,
-                    {**bounds_all, **_bounds(screens, [n])},
-                    {**fixed_all, **_fixed(screens, [n])},
-                    _scan(screens, [n]),
-                    floor=floor,
-                )
-                for start in quick[n].starts
-            ]
-            singles[n] = min(fits, key=lambda f: f.gap_train)
-        tried = [((n,), f.gap_held_out) for n, f in singles.items()]
-        order = sorted(singles, key=lambda n: singles[n].gap_held_out)
-        best_single = order[0] if order else None
-        chosen: tuple[str, ...] = ()
-        if (
-            best_single
-            and singles[best_single].gap_held_out <= (1 - MIN_GAIN) * current.gap_held_out
-        ):
-            chosen = (best_single,)
-        best_fit = singles[best_single] if chosen else None
-        # Pairs can pay where no single does only if some single at least helps.
-        improving = (
-            bool(order)
-            and singles[order[0]].gap_held_out <= (1 - MIN_GAIN / 3) * current.gap_held_out
-        )
-        if improving and (not chosen or _explained(current, best_fit, floor) < PAIR_BELOW):
-            for a, b in itertools.combinations(order[:PAIR_POOL], 2):
-                if not compatible(b, [a]):
-                    continue
-                fa, fb = singles[a].candidate, singles[b].candidate
-                start = Candidate(dict(fa.base), {**fa.effects, b: fb.effects[b]})
-                pair = refit(
-                    data,
-                    start,
-                    {**bounds_all, **_bounds(screens, [a, b])},
-                    {**fixed_all, **_fixed(screens, [a, b])},
-                    floor=floor,
-                )
-                tried.append(((a, b), pair.gap_held_out))
-                reference = best_fit.gap_held_out if best_fit else current.gap_held_out
-                if pair.gap_held_out <= (1 - MIN_GAIN) * reference:
-                    chosen, best_fit = (a, b), pair
-        trace.append(tuple(tried))
-        if not chosen:
+        fitter.screens = screen_all(screen_input(data, cand, current.v_sim), cand.names)
+        quick = {n: quick_score(data, cand, n, s) for n, s in fitter.screens.items()}
+        chosen, best = _round(fitter, current, quick, trace)
+        if best is None or not chosen:
             break
-        chosen, best_fit = _ablate(data, chosen, best_fit)
+        chosen, best = _ablate(data, chosen, best)
         if not chosen:
             # The refit only found a better optimum of the terms already there: keep it, name nothing.
-            if best_fit.gap_held_out > (1 - MIN_GAIN) * current.gap_held_out:
+            if best.gap_held_out > (1 - MIN_GAIN) * current.gap_held_out:
                 break
-            steps[-1] = Step(steps[-1].added, best_fit, steps[-1].evidence)
-            current = best_fit
+            steps[-1] = Step(steps[-1].added, best, steps[-1].evidence)
+            current = best
             continue
         evidence = {
-            n: f"{screens[n].evidence}; held-out gap {current.gap_held_out:.3g}% -> "
-            f"{best_fit.gap_held_out:.3g}%"
+            n: f"{fitter.screens[n].evidence}; held-out gap {current.gap_held_out:.3g}% -> "
+            f"{best.gap_held_out:.3g}%"
             for n in chosen
         }
-        bounds_all.update(_bounds(screens, chosen))
-        fixed_all.update(_fixed(screens, chosen))
-        steps.append(Step(chosen, best_fit, evidence))
-        current = best_fit
-    return steps, SearchTrace(tuple(trace), floor if math.isfinite(floor) else 0.0)
+        fitter.accept(chosen)
+        steps.append(Step(chosen, best, evidence))
+        current = best
+    rounds = tuple(tuple(r) for r in trace)
+    return steps, SearchTrace(rounds, floor if math.isfinite(floor) else 0.0)
