@@ -49,6 +49,11 @@ MAX_FREQUENCIES = 2000
 PERIODOGRAM_SAMPLES = 6000
 #: Frequencies of the refinement between two grid lines.
 REFINE = 41
+#: Divisors of the strongest spatial frequency also tried as the fundamental.
+SUBHARMONICS = (2, 3)
+#: Fewest periods over the travel searched, and accepted for a fundamental.
+MIN_PERIODS = 3.0
+MIN_PERIODS_FUNDAMENTAL = 1.5
 
 
 def contribute(p, plant, terms: Terms) -> None:
@@ -81,8 +86,8 @@ def screen(ctx: ScreenInput) -> Screening:
     bounds0 = {"amp": (0.0, 1.0), "period": (1e-9, 1.0), "phase": (-4 * math.pi, 4 * math.pi)}
     if span <= 0 or step <= 0:
         return Screening(0.0, {"amp": 0.0, "period": 1.0, "phase": 0.0}, bounds0, "no travel")
-    # Spatial frequencies from 3 periods over the travel to 6 samples per period.
-    k_lo, k_hi = 2 * math.pi * 3 / span, 2 * math.pi / (6 * step)
+    # Spatial frequencies from MIN_PERIODS periods over the travel to 6 samples per period.
+    k_lo, k_hi = 2 * math.pi * MIN_PERIODS / span, 2 * math.pi / (6 * step)
     if k_hi <= k_lo:
         return Screening(
             0.0, {"amp": 0.0, "period": span, "phase": 0.0}, bounds0, "travel too short"
@@ -97,19 +102,31 @@ def screen(ctx: ScreenInput) -> Screening:
     # a percent already drifts by a good part of a period over a long travel.
     step_k = ks[1] - ks[0]
     k = _peak(np.linspace(k - step_k, k + step_k, REFINE), x, e)
-    coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
-    amp, phase = float(math.hypot(coef[4], coef[5])), float(math.atan2(coef[5], coef[4]))
-    period = 2 * math.pi / k
+
+    def fit_at(k: float) -> tuple[dict[str, float], np.ndarray, float]:
+        coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
+        amp, phase = float(math.hypot(coef[4], coef[5])), float(math.atan2(coef[5], coef[4]))
+        return {"amp": amp, "period": 2 * math.pi / k, "phase": phase}, coef, sse
+
+    guess, coef, sse = fit_at(k)
+    # Stick-slip puts harmonics into the residual: the strongest line may be the second or
+    # third of the true period. Those fundamentals go to the quick simulation as alternatives.
+    others = []
+    for m in SUBHARMONICS:
+        if k / m >= 2 * math.pi * MIN_PERIODS_FUNDAMENTAL / span:
+            km = _peak(np.linspace(k / m - step_k, k / m + step_k, REFINE), x, e)
+            others.append(fit_at(km)[0])
+    period, amp = guess["period"], guess["amp"]
+    longest = max([period] + [g["period"] for g in others])
     bounds = {
-        "amp": (0.0, 4 * amp + 1e-12),
-        "period": (0.95 * period, 1.05 * period),
-        "phase": (phase - 2 * math.pi, phase + 2 * math.pi),
+        "amp": (0.0, 4 * max([amp] + [g["amp"] for g in others]) + 1e-12),
+        "period": (0.95 * period, 1.05 * longest),
+        "phase": (-3 * math.pi, 3 * math.pi),
     }
     evidence = (
         f"the force residual repeats every {period:.4g} position units "
         f"(amplitude {amp:.3g}; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
-    guess = {"amp": amp, "period": period, "phase": phase}
     score = explained(sse0, sse, 3, y.size)
-    return Screening(score, guess, bounds, evidence, base=base)
+    return Screening(score, guess, bounds, evidence, base=base, alternatives=tuple(others))
