@@ -89,7 +89,9 @@ class ServedSim:
             raise DriveConnectionError(
                 f"serve-sim --transport {self.transport} exited ({self.returncode}): {err.strip()[-500:]}"
             )
-        raise DriveTimeoutError(f"serve-sim --transport {self.transport} printed no URL in {timeout_s} s")
+        raise DriveTimeoutError(
+            f"serve-sim --transport {self.transport} printed no URL in {timeout_s} s"
+        )
 
     def _drain_stderr(self) -> str:
         if self.proc is None or self.proc.stderr is None or self.proc.poll() is None:

@@ -22,6 +22,20 @@ def consts(h: float, M: float, Bp: float, Bn: float) -> tuple[float, ...]:
     return (h, Bp, Bn, tp, tn, ap, an, tp * (1.0 - ap), tn * (1.0 - an))
 
 
+def friction_force(v: float, f: float, fr: tuple) -> float | None:
+    """Friction on a body [command units, signed]: at velocity ``v``, or at rest under ``f``.
+
+    ``None`` when the body rests and ``f`` is within breakaway (it stays at rest).
+    ``fr`` as for :func:`slider`, which inlines the same rule on its hot path.
+    """
+    fcp, fcn, bkp, bkn, exc = fr
+    if v > 0.0 or (v == 0.0 and f > bkp):
+        return fcp if exc is None else fcp + exc(v, 1)
+    if v < 0.0 or (v == 0.0 and f < -bkn):
+        return -fcn if exc is None else -fcn - exc(-v, -1)
+    return None
+
+
 def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], tuple[float, float]]:
     """``step(v, x, f)``: advance one body by one segment under a constant applied force ``f``.
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_backend.effects.bodies import Propagator, consts, slider
+from sim_backend.effects.bodies import Propagator, consts, friction_force, slider
 
 
 class CouplingMixin:
@@ -64,7 +64,6 @@ class CouplingMixin:
         Exact up to the crossing; then the motor sticks (within breakaway) or
         continues the other way, exactly, for the rest of the segment.
         """
-        fcp, fcn, bkp, bkn, exc = self.friction
         c = self.terms.coupling
         sl = 1 if s0[2] >= 0.0 else -1
         A, b = self._spring_step(th * h, sm, sl, False, cache=False)
@@ -74,16 +73,13 @@ class CouplingMixin:
         )
         rest = (1.0 - th) * h
         net = f + c.stiffness * (xl - xm) + c.damping * vl
-        if -bkn <= net <= bkp:
+        F = friction_force(0.0, net, self.friction)
+        if F is None:
             (c00, c01), (c10, c11) = (A2 := self._spring_step(rest, 1, sl, True, cache=False))[0]
             d0, d1 = A2[1]
             w = c.stiffness * xm
             return 0.0, xm, c00 * vl + c01 * xl + d0 * w, c10 * vl + c11 * xl + d1 * w
-        if net > 0.0:
-            sm2, F = 1, (fcp if exc is None else fcp + exc(0.0, 1))
-        else:
-            sm2, F = -1, (-fcn if exc is None else -fcn - exc(0.0, -1))
-        A, b = self._spring_step(rest, sm2, sl, False, cache=False)
+        A, b = self._spring_step(rest, 1 if net > 0.0 else -1, sl, False, cache=False)
         s1 = (0.0, xm, vl, xl)
         return tuple(
             sum(a * z for a, z in zip(row, s1, strict=True)) + bi * (f - F)
@@ -99,8 +95,7 @@ class CouplingMixin:
         while the load moves alone.
         """
         vm, xm, vl, xl, _ = self._hidden
-        fcp, fcn, bkp, bkn, exc = self.friction
-        segs, pf = self._segs, self._pos_force
+        fr, segs, pf = self.friction, self._segs, self._pos_force
         kk, cc = c.stiffness, c.damping
         step = self._spring_step
         last = None
@@ -114,22 +109,15 @@ class CouplingMixin:
                 if pf is not None:
                     f -= pf(xm)
                 sl = 1 if vl >= 0.0 else -1
-                if vm > 0.0:
-                    sm, F = 1, (fcp if exc is None else fcp + exc(vm, 1))
-                elif vm < 0.0:
-                    sm, F = -1, (-fcn if exc is None else -fcn - exc(-vm, -1))
-                else:
-                    net = f + kk * (xl - xm) + cc * vl
-                    if -bkn <= net <= bkp:
-                        (c00, c01), (c10, c11) = step(h, 1, sl, True)[0]
-                        d0, d1 = step(h, 1, sl, True)[1]
-                        w = kk * xm
-                        vl, xl = c00 * vl + c01 * xl + d0 * w, c10 * vl + c11 * xl + d1 * w
-                        continue
-                    if net > 0.0:
-                        sm, F = 1, (fcp if exc is None else fcp + exc(0.0, 1))
-                    else:
-                        sm, F = -1, (-fcn if exc is None else -fcn - exc(0.0, -1))
+                net = f + kk * (xl - xm) + cc * (vl - vm)
+                F = friction_force(vm, net, fr)
+                if F is None:  # the motor is held: the load moves alone
+                    (c00, c01), (c10, c11) = step(h, 1, sl, True)[0]
+                    d0, d1 = step(h, 1, sl, True)[1]
+                    w = kk * xm
+                    vl, xl = c00 * vl + c01 * xl + d0 * w, c10 * vl + c11 * xl + d1 * w
+                    continue
+                sm = 1 if vm > 0.0 or (vm == 0.0 and net > 0.0) else -1
                 key = (h, sm, sl)
                 if key != last:
                     last = key
@@ -164,7 +152,6 @@ class CouplingMixin:
         """
         vm, xm, vl, xl, side = self._hidden
         fr, segs, pf = self.friction, self._segs, self._pos_force
-        fcp, fcn, bkp, bkn, exc = fr
         r = c.load_ratio
         half = 0.5 * c.gap
         vs: list[float] = []
@@ -178,15 +165,8 @@ class CouplingMixin:
                     f -= pf(xm)
                 if side:
                     # Friction the joint body would feel; the contact force is r (f - F).
-                    if vm > 0.0:
-                        F = fcp if exc is None else fcp + exc(vm, 1)
-                    elif vm < 0.0:
-                        F = -fcn if exc is None else -fcn - exc(-vm, -1)
-                    elif -bkn <= f <= bkp:
-                        F = f
-                    else:
-                        F = fcp if f > 0 else -fcn
-                    if side * (f - F) < 0.0:
+                    F = friction_force(vm, f, fr)
+                    if F is not None and side * (f - F) < 0.0:
                         side = 0
                 if side:
                     vm, xm = rigid(vm, xm, f)
