@@ -86,7 +86,7 @@ def test_a_million_samples_stream_in_bounded_memory(tmp_path: Path) -> None:
 def test_memory_does_not_grow_with_the_run(tmp_path: Path, block: bool) -> None:
     """Peak Python allocations while streaming are the same for 3x the samples."""
     peaks = []
-    for n in (10_000, 30_000):
+    for n in (5_000, 15_000):
         with open_drive(SIM) as drive:
             drive.supports_block = block
             u = square(n, 250)
@@ -94,7 +94,7 @@ def test_memory_does_not_grow_with_the_run(tmp_path: Path, block: bool) -> None:
             stream_runs(drive, [(1, u)], 1000.0, tmp_path / f"{n}.csv")
             peaks.append(tracemalloc.get_traced_memory()[1])
             tracemalloc.stop()
-    # holding arrays of n floats (the old timing arrays) would add 2 * 8 * 20000 = 320 kB
+    # holding arrays of n floats (the old timing arrays) would add 2 * 8 * 10000 = 160 kB
     assert peaks[1] < peaks[0] + 64_000, peaks
 
 
