@@ -84,7 +84,7 @@ ROWS = (
         "No such file",
     ),  # fmt: skip
 )
-#: Known to print more than the error line; owned elsewhere (see the xfail reason).
+#: The progress bar must not draw (an empty stderr line) when the run fails before its first sample.
 OUTPUT_FILE_IS_A_FOLDER = Row(
     "output folder is a file", ("run", "--drive", "sim://", "--out", "{tmp}/file/l.csv"),
     "Not a directory",
@@ -127,10 +127,5 @@ def test_bad_arguments_give_one_line_and_a_non_zero_exit(row: Row, results) -> N
     check(row, results[row.name])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="bench/commands/progress.py: the rich progress bar (transient=False) prints an empty "
-    "line on stderr when `run` fails before the first sample",
-)
 def test_output_path_under_a_file(results) -> None:
     check(OUTPUT_FILE_IS_A_FOLDER, results[OUTPUT_FILE_IS_A_FOLDER.name])

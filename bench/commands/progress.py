@@ -17,18 +17,24 @@ def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], 
 
     console = Console(stderr=True)
     tasks: dict[int, int] = {}
-    with Progress(
+    bar = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         console=console,
         transient=False,
-    ) as bar:
+    )
 
-        def update(index: int, done: int, total: int) -> None:
-            if index not in tasks:
-                tasks[index] = bar.add_task(f"streaming round {index}", total=total)
-            bar.update(tasks[index], completed=done)
+    def update(index: int, done: int, total: int) -> None:
+        if not tasks:
+            bar.start()  # drawn from the first sample on: an early failure prints only its error
+        if index not in tasks:
+            tasks[index] = bar.add_task(f"streaming round {index}", total=total)
+        bar.update(tasks[index], completed=done)
 
+    try:
         yield update
+    finally:
+        if tasks:
+            bar.stop()
