@@ -39,7 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from bench.logio import LogWriter
+from bench.timing_stats import PeriodStats, TimingStats
 from drivers.base import Drive
 from drivers.errors import DriveError, LimitExceededError, UsageError
 
@@ -51,33 +53,8 @@ BLOCK_CYCLES = 2000
 DEFAULT_SETTLE_S = 1.0
 #: Consecutive samples at rest that end the settle phase early.
 REST_SAMPLES = 20
-#: Consecutive bit-identical feedback samples (while moving) that mean "feedback frozen".
-FROZEN_CYCLES = 100
 
 ProgressCallback = Callable[[int, int], None]
-
-
-@dataclass(frozen=True)
-class TimingStats:
-    """Achieved timing of one run [s]: mean and std of the period, worst period, on host and drive clocks."""
-
-    run: int
-    samples: int
-    host_period_mean_s: float
-    host_jitter_std_s: float
-    host_period_max_s: float
-    drive_period_mean_s: float
-    drive_jitter_std_s: float
-
-    def as_metadata(self) -> dict[str, float]:
-        p = f"run{self.run}_"
-        return {
-            p + "host_period_mean_s": self.host_period_mean_s,
-            p + "host_jitter_std_s": self.host_jitter_std_s,
-            p + "host_period_max_s": self.host_period_max_s,
-            p + "drive_period_mean_s": self.drive_period_mean_s,
-            p + "drive_jitter_std_s": self.drive_jitter_std_s,
-        }
 
 
 @dataclass(frozen=True)
@@ -90,179 +67,8 @@ class RunResult:
     complete: bool
 
 
-class PeriodStats:
-    """Mean, population std and maximum of the steps of a time series, streamed (Welford).
-
-    :meth:`add` takes time stamps [s] one at a time (or :meth:`add_block`
-    many); memory is O(1) in their number.
-    """
-
-    def __init__(self) -> None:
-        self.samples = 0
-        self._last: float | None = None
-        self._n = 0
-        self._mean = 0.0
-        self._m2 = 0.0
-        self._max = -math.inf
-
-    def add(self, t: float) -> None:
-        self.samples += 1
-        if self._last is not None:
-            d = t - self._last
-            self._n += 1
-            delta = d - self._mean
-            self._mean += delta / self._n
-            self._m2 += delta * (d - self._mean)
-            self._max = max(self._max, d)
-        self._last = t
-
-    def add_block(self, t: np.ndarray) -> None:
-        """Several time stamps at once (Chan's parallel update of the moments)."""
-        t = np.asarray(t, dtype=float)
-        if t.size == 0:
-            return
-        steps = np.diff(t) if self._last is None else np.diff(np.concatenate(([self._last], t)))
-        self.samples += t.size
-        self._last = float(t[-1])
-        if steps.size == 0:
-            return
-        n_b, mean_b = steps.size, float(steps.mean())
-        m2_b = float(((steps - mean_b) ** 2).sum())
-        n = self._n + n_b
-        delta = mean_b - self._mean
-        self._mean += delta * n_b / n
-        self._m2 += m2_b + delta * delta * self._n * n_b / n
-        self._n = n
-        self._max = max(self._max, float(steps.max()))
-
-    @property
-    def mean(self) -> float:
-        return self._mean if self._n else math.nan
-
-    @property
-    def std(self) -> float:
-        return math.sqrt(self._m2 / self._n) if self._n else math.nan
-
-    @property
-    def max(self) -> float:
-        return self._max if self._n else math.nan
-
-
 def _stats(run: int, host: PeriodStats, drive: PeriodStats) -> TimingStats:
     return TimingStats(run, host.samples, host.mean, host.std, host.max, drive.mean, drive.std)
-
-
-class FeedbackCheck:
-    """Per-sample sanity of the feedback: finite, a drive clock that advances, not frozen.
-
-    Frozen feedback: (velocity, position) bit-identical for at least
-    ``frozen_cycles`` cycles while the axis must be moving -- the drive reports
-    ``v != 0`` and ``|v|`` times the time since the feedback froze is at least
-    twice the smallest position step seen in this run (so a coarse encoder
-    creeping slowly is not taken for a frozen one), or, when ``breakaway`` is
-    known, the command stays at or above it.
-
-    Parameters
-    ----------
-    frozen_cycles : int
-        Cycles of identical feedback that end the run (0 disables the frozen check).
-    breakaway : float or None
-        Command magnitude [command units] that surely moves the axis.
-    drive_clock : bool
-        The time stamps are the drive's own clock: they must increase.
-    dt_s : float
-        Cycle period [s].
-    """
-
-    def __init__(
-        self, frozen_cycles: int = FROZEN_CYCLES, breakaway: float | None = None,
-        drive_clock: bool = False, dt_s: float = 1e-3,
-    ) -> None:  # fmt: skip
-        self.frozen_cycles = int(frozen_cycles)
-        self.breakaway = breakaway
-        self.drive_clock = drive_clock
-        self.dt_s = dt_s
-        self._prev: tuple[float, float] | None = None
-        self._prev_t: float | None = None
-        self._same = 0
-        self._step = math.inf  # smallest non-zero position step seen [position units]
-
-    def _pushing(self, u: float) -> bool:
-        return self.breakaway is not None and abs(u) >= self.breakaway
-
-    def check(self, t_s: float, u: float, velocity: float, position: float) -> None:
-        """Check one sample; ``u`` is the command that acted over the cycle before it.
-
-        Raises
-        ------
-        DriveError
-            Non-finite feedback, a drive clock that stands still, frozen feedback.
-        """
-        if not (math.isfinite(velocity) and math.isfinite(position) and math.isfinite(t_s)):
-            raise DriveError(
-                f"drive returned non-finite feedback (v={velocity!r}, x={position!r}, t={t_s!r})"
-            )
-        if self.drive_clock and self._prev_t is not None and not t_s > self._prev_t:
-            raise DriveError(
-                f"feedback frozen: the drive clock stands at {t_s!r} s (last {self._prev_t!r} s)"
-            )
-        if self._prev is not None and position != self._prev[1]:
-            self._step = min(self._step, abs(position - self._prev[1]))
-        same = (velocity, position) == self._prev and (velocity != 0.0 or self._pushing(u))
-        self._same = self._same + 1 if same else 0
-        self._prev, self._prev_t = (velocity, position), t_s
-        if not self.frozen_cycles or self._same < self.frozen_cycles:
-            return
-        travel = abs(velocity) * self._same * self.dt_s
-        if travel >= 2 * self._step:
-            why = (
-                f"while the drive reports velocity {velocity:.6g} (that is {travel:.3g} of travel)"
-            )
-        elif self._pushing(u):
-            why = f"while commanding |u| >= breakaway {self.breakaway:g}"
-        else:
-            return
-        raise DriveError(
-            f"feedback frozen: position and velocity bit-identical for {self._same} cycles {why}"
-        )
-
-    def first_failure(self, t_s: np.ndarray, u: np.ndarray, v: np.ndarray, x: np.ndarray) -> int:
-        """Check a block at once; return the index of the first bad sample (``len(v)``: none).
-
-        The state advances over the good samples; :meth:`check` on the bad one
-        then raises with the message.
-        """
-        n = v.size
-        if n == 0:
-            return 0
-        bad = ~(np.isfinite(v) & np.isfinite(x) & np.isfinite(t_s))
-        if self.drive_clock and self._prev_t is not None:
-            bad |= np.diff(np.concatenate(([self._prev_t], t_s))) <= 0
-        elif self.drive_clock:
-            bad[1:] |= np.diff(t_s) <= 0
-        pv, px = self._prev if self._prev is not None else (math.nan, math.nan)
-        x_before = np.concatenate(([px], x[:-1]))
-        same = (v == np.concatenate(([pv], v[:-1]))) & (x == x_before)
-        with np.errstate(invalid="ignore"):
-            dx = np.abs(x - x_before)
-            steps = np.where(dx > 0, dx, np.inf)  # NaN and 0 are no steps
-        step = np.minimum(np.minimum.accumulate(steps), self._step)
-        pushing = np.abs(u) >= self.breakaway if self.breakaway is not None else np.zeros(n, bool)
-        flag = same & ((v != 0.0) | pushing)
-        index = np.arange(n)
-        last_reset = np.maximum.accumulate(np.where(flag, -1, index))
-        run = np.where(last_reset >= 0, index - last_reset, index + 1 + self._same)
-        if self.frozen_cycles:
-            with np.errstate(invalid="ignore"):
-                moved = np.abs(v) * run * self.dt_s >= 2 * step
-            bad |= (run >= self.frozen_cycles) & (moved | pushing)
-        hits = np.flatnonzero(bad)
-        stop = int(hits[0]) if hits.size else n
-        if stop:
-            k = stop - 1
-            self._prev, self._prev_t = (float(v[k]), float(x[k])), float(t_s[k])
-            self._same, self._step = int(run[k]), float(step[k])
-        return stop
 
 
 class TerminatedError(KeyboardInterrupt):
