@@ -35,8 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import LogFormatError
-from drivers.messages import LINE_BREAKS, one_line
+from drivers.errors import LINE_BREAKS, LogFormatError, one_line
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")

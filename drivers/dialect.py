@@ -25,7 +25,6 @@ from pathlib import Path
 from drivers.ascii_line import MalformedReplyError
 from drivers.errors import DriveConfigError, DriveError
 from drivers.line_template import Template
-from drivers.messages import one_line_errors
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -231,7 +230,6 @@ def dialect_path(name_or_path: str) -> Path:
     return path
 
 
-@one_line_errors
 def load_dialect(name_or_path: str = DEFAULT_DIALECT) -> Dialect:
     """Read, validate and compile a dialect (shipped name or TOML file path)."""
     path = dialect_path(name_or_path)
@@ -280,7 +278,6 @@ def _get(table: Mapping[str, object], key: str, kind: type, where: str, default:
     return value
 
 
-@one_line_errors
 def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dialect:
     """Validate the TOML tables of a dialect and compile its templates.
 

@@ -22,9 +22,28 @@ and a non-zero exit status.
 
 from __future__ import annotations
 
+import re
+
+#: Every character ``str.splitlines`` breaks at.
+LINE_BREAKS = re.compile("[\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]+")
+
+
+def one_line(text: str) -> str:
+    """``text`` with each run of line breaks replaced by one space."""
+    return LINE_BREAKS.sub(" ", text)
+
 
 class ServobenchError(Exception):
-    """Root of every error servobench raises on purpose."""
+    """Root of every error servobench raises on purpose.
+
+    The message is kept to one line whatever text it quotes (file paths, TOML
+    keys, URL values), so the CLI can always print an error as one line.
+    """
+
+    def __init__(self, *args: object) -> None:
+        if args and isinstance(args[0], str):
+            args = (one_line(args[0]), *args[1:])
+        super().__init__(*args)
 
 
 class DriveError(ServobenchError):

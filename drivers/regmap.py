@@ -30,7 +30,6 @@ from importlib import resources
 from pathlib import Path
 
 from drivers.errors import DriveConfigError, UsageError
-from drivers.messages import one_line_errors
 
 try:
     import tomllib
@@ -275,7 +274,6 @@ def resolve_map(name_or_path: str) -> Path:
     return Path(str(resources.files("drivers") / "data" / "maps" / f"{name_or_path}.toml"))
 
 
-@one_line_errors
 def load_map(name_or_path: str) -> RegisterMap:
     """Read and validate a register map (a shipped name or a TOML path)."""
     path = resolve_map(name_or_path)
@@ -397,7 +395,6 @@ def _feedback_blocks(regs: Mapping[str, Register], max_gap: int) -> tuple[Block,
     return tuple(blocks)
 
 
-@one_line_errors
 def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
     """Validate a parsed TOML document; every malformed entry names file and key."""
     top = _Table(dict(doc), "top level", path)

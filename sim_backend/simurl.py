@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 from drivers.errors import DriveConfigError, UsageError
-from drivers.messages import one_line_errors
 from drivers.url import DriveURL, parse_drive_url
 from sim_backend import effects
 from sim_backend.plant import PlantParams
@@ -44,7 +43,6 @@ def _number(key: str, value: object) -> float:
     return out
 
 
-@one_line_errors
 def load_plant_file(path: str | Path) -> dict[str, object]:
     """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
     path = Path(path)
@@ -64,7 +62,6 @@ def load_plant_file(path: str | Path) -> dict[str, object]:
     return table
 
 
-@one_line_errors
 def plant_from_url(url: DriveURL | str) -> PlantParams:
     """Build :class:`PlantParams` from a ``sim://`` URL (and its plant file, if named)."""
     url = parse_drive_url(url) if isinstance(url, str) else url

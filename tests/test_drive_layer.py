@@ -188,3 +188,12 @@ def test_base_class_demands_a_watchdog():
     with pytest.raises(NotImplementedError, match="watchdog"):
         drive.open()
     assert not drive.is_open
+
+
+def test_every_servobench_error_message_is_one_line():
+    from drivers.errors import LogFormatError
+
+    assert str(DriveConfigError("bad key 'a\nb'\r\nin file")) == "bad key 'a b' in file"
+    fault = DriveFaultError("overcurrent\nphase U", 0x2310)
+    assert str(fault) == "overcurrent phase U" and fault.code == 0x2310
+    assert isinstance(LogFormatError("x\u2028y"), ValueError) and str(LogFormatError("x\u2028y")) == "x y"
