@@ -197,3 +197,43 @@ def test_every_servobench_error_message_is_one_line():
     fault = DriveFaultError("overcurrent\nphase U", 0x2310)
     assert str(fault) == "overcurrent phase U" and fault.code == 0x2310
     assert isinstance(LogFormatError("x\u2028y"), ValueError) and str(LogFormatError("x\u2028y")) == "x y"
+
+
+def test_a_third_party_drive_joins_by_entry_point(tmp_path, monkeypatch):
+    (tmp_path / "thirdparty_drive.py").write_text(
+        "from drivers.sim import SimDrive\n\n"
+        "class BenchTwinDrive(SimDrive):\n"
+        "    '''A vendor's drive, here a renamed simulated one.'''\n"
+    )
+    info = tmp_path / "thirdparty_drive-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-drive\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(
+        "[servobench.drives]\nbenchtwin = thirdparty_drive:BenchTwinDrive\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert "benchtwin" in available_schemes()
+    with open_drive("benchtwin://?M=0.2&B=2") as drive:
+        assert type(drive).__name__ == "BenchTwinDrive"
+        drive.enable()
+        assert drive.exchange(1.0)[1] == 1.0
+    (info / "entry_points.txt").write_text("[servobench.drives]\nbroken = no_such_module:Drive\n")
+    with pytest.raises(DriveUnavailableError, match="cannot be loaded"):
+        open_drive("broken://")
+
+
+def test_plant_from_a_toml_file_with_url_overrides(tmp_path):
+    plant = tmp_path / "plant.toml"
+    plant.write_text("[plant]\nM = 0.2\nB = 2.0\nfc_pos = 0.3\nfc_neg = 0.6\n")
+    u = np.full(300, 3.0)
+    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=4.0, fc_pos=0.3, fc_neg=0.6))
+    with open_drive(f"sim://?plant={plant}&B=4") as drive:
+        drive.set_cycle(1e-3)
+        drive.enable()
+        got = drive.exchange_block(u).velocity
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    plant.write_text("[plant]\nM = 'heavy'\n")
+    with pytest.raises(DriveConfigError, match="not a number"):
+        open_drive(f"sim://?plant={plant}")
+    with pytest.raises(DriveConfigError, match="plant file"):
+        open_drive(f"sim://?plant={tmp_path / 'missing.toml'}")
