@@ -86,6 +86,8 @@ class SimulatedDevice:
         self._t_s = 0.0
         self._command = 0.0
         self.state = PowerState.DISABLED
+        #: Called as ``listener(state, fault_code)`` on every power-state change, under the lock.
+        self.listeners: list[Callable[[PowerState, int], None]] = []
         self.fault_code = 0
         self.fault_reason = ""
         self.last_host_activity = clock()
@@ -129,14 +131,14 @@ class SimulatedDevice:
                     f"drive in fault 0x{self.fault_code:04X}: {self.fault_reason}", self.fault_code
                 )
             self._command = 0.0
-            self.state = PowerState.ENABLED
+            self._set_state(PowerState.ENABLED)
 
     def disable(self) -> None:
         with self._lock:
             self.feed()
             self._command = 0.0
             if self.state is not PowerState.FAULT:
-                self.state = PowerState.DISABLED
+                self._set_state(PowerState.DISABLED)
 
     def quick_stop(self) -> None:
         """Remove the command; friction brings the axis to rest."""
@@ -144,23 +146,30 @@ class SimulatedDevice:
             self.feed()
             self._command = 0.0
             if self.state is PowerState.ENABLED:
-                self.state = PowerState.QUICK_STOP
+                self._set_state(PowerState.QUICK_STOP)
 
     def fault(self, code: int = GENERIC_FAULT, reason: str = "injected fault") -> None:
         """Enter the fault state: torque off until :meth:`reset_fault`."""
         with self._lock:
             self._command = 0.0
-            self.state = PowerState.FAULT
             self.fault_code = int(code)
             self.fault_reason = reason
+            self._set_state(PowerState.FAULT)
 
     def reset_fault(self) -> None:
         with self._lock:
             self.feed()
             if self.state is PowerState.FAULT:
-                self.state = PowerState.DISABLED
                 self.fault_code = 0
                 self.fault_reason = ""
+                self._set_state(PowerState.DISABLED)
+
+    def _set_state(self, state: PowerState) -> None:
+        changed = state is not self.state
+        self.state = state
+        if changed:
+            for listener in self.listeners:
+                listener(state, self.fault_code)
 
     # --------------------------------------------------------------- clocking
     def sample(self) -> DeviceSample:

@@ -237,3 +237,24 @@ def test_plant_from_a_toml_file_with_url_overrides(tmp_path):
         open_drive(f"sim://?plant={plant}")
     with pytest.raises(DriveConfigError, match="plant file"):
         open_drive(f"sim://?plant={tmp_path / 'missing.toml'}")
+
+
+def test_device_listeners_see_every_state_change_with_its_fault_code():
+    dev = SimulatedDevice(PlantParams())
+    seen = []
+    dev.listeners.append(lambda state, code: seen.append((state, code)))
+    dev.enable()
+    dev.fault(0x2310, "overcurrent")
+    dev.reset_fault()
+    dev.enable()
+    dev.quick_stop()
+    dev.disable()
+    dev.disable()  # no change, no call
+    assert seen == [
+        (PowerState.ENABLED, 0),
+        (PowerState.FAULT, 0x2310),
+        (PowerState.DISABLED, 0),
+        (PowerState.ENABLED, 0),
+        (PowerState.QUICK_STOP, 0),
+        (PowerState.DISABLED, 0),
+    ]

@@ -28,8 +28,8 @@ from pathlib import Path
 from sim_backend.device import PowerState, SimulatedDevice
 from sim_backend.faults.injector import FaultInjector
 
-#: How often the reporter looks at the drive [s] (a state held shorter may be missed
-#: in the history; the report written at exit is always current).
+#: Longest wait between two writes of the report [s]; state changes are written at once
+#: and every change enters the history (the device calls the reporter on each).
 POLL_S = 0.02
 
 
@@ -92,31 +92,38 @@ class StateReporter(threading.Thread):
         self._stop_event = threading.Event()
         self._write_lock = threading.Lock()
         self.failure: BaseException | None = None
+        self._changed = threading.Event()
+        self._record(device.state, device.fault_code)
+        device.listeners.append(self._on_change)
         self._poll(final=False)  # the file exists before the URL is announced
+
+    def _record(self, state: PowerState, fault_code: int) -> None:
+        cycle = self.injector.cycle if self.injector is not None else None
+        self.history.append({"state": state.value, "cycle": cycle, "fault_code": fault_code})
+
+    def _on_change(self, state: PowerState, fault_code: int) -> None:
+        """Device listener (under the device's lock): every change enters the history."""
+        with self._write_lock:
+            self._record(state, fault_code)
+        self._changed.set()
 
     def _poll(self, final: bool) -> None:
         with self._write_lock:
             dev = self.device
-            key = (dev.state, dev.fault_code, dev.watchdog_trips)
+            key = (dev.state, dev.fault_code, dev.watchdog_trips, len(self.history))
             if key == self._key and not final:
                 return
+            self._key = key
             data = snapshot(dev, self.injector)
-            if key != self._key:
-                self.history.append(
-                    {
-                        "state": data["state"],
-                        "cycle": data["cycles"],
-                        "fault_code": data["fault_code"],
-                    }
-                )
-                self._key = key
             write_json_atomic(
                 self.path, {**data, "history": self.history, "final": final, "pid": os.getpid()}
             )
 
     def run(self) -> None:
         try:
-            while not self._stop_event.wait(POLL_S):
+            while not self._stop_event.is_set():
+                self._changed.wait(POLL_S)
+                self._changed.clear()
                 self._poll(final=False)
         except BaseException as err:  # surfaced by finish()
             self.failure = err
