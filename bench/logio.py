@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import LINE_BREAKS, LogFormatError, one_line
+from drivers.errors import LogFormatError, one_line
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")
@@ -44,6 +44,8 @@ MAX_RUN = 2**31 - 1
 _META = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*=\s*(.*?)\s*$")
 _KEY_BAD = re.compile(r"[^\w.\-]")
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
+#: Line breaks other than CR/LF (vertical tab, form feed, separators, ...): never in a data row.
+_ODD_BREAK = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 
 
 def _show(text: str, limit: int = 60) -> str:
@@ -257,6 +259,8 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
     text = text.removeprefix("\ufeff")  # a byte-order mark from a spreadsheet
     truncated = bool(text) and not text.endswith(("\n", "\r"))
     lines = _LINE_BREAK.split(text)
+    # Odd line breaks are searched once in the whole text, not row by row.
+    odd_lines = sorted({len(_LINE_BREAK.findall(text, 0, m.start())) for m in _ODD_BREAK.finditer(text)})
     if truncated:
         lines = lines[:-1]  # a crash mid-write: the last partial row is dropped
     for lineno, raw in enumerate(lines, start=1):
@@ -277,8 +281,10 @@ def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
             raise LogFormatError(
                 f"{source}:{lineno}: expected {len(header)} fields, got {line.count(',') + 1}"
             )
-        if LINE_BREAKS.search(line):
-            raise LogFormatError(f"{source}:{lineno}: control character in row {_show(line)}")
+    for index in (i for i in odd_lines if i < len(lines)):  # a dropped partial row is no row
+        row = lines[index]
+        if header is not None and not row.lstrip().startswith("#") and row.strip() != ",".join(header):
+            raise LogFormatError(f"{source}:{index + 1}: control character in row {_show(row)}")
     if header is None:
         raise LogFormatError(f"{source}: no CSV header (expected columns like run,t,u,v,x)")
     if not rows:

@@ -65,6 +65,8 @@ def test_sample_rate_inferred_from_time():
         ("run,t,u,v\n1.5,0,1,2\n", "integers"),
         ("# fs = fast\nt,u,v\n0,1,2\n", "fs"),
         ("t,u,v\n0,1,2\n", "sample rate"),
+        ("# fs = 1\nt,u,v\n0,1,2\n0.1,1\x0b,2\n", "4: control character"),
+        ("# fs = 1\rt,u,v\r0,1,2\r0.1,\u20281,2\r", "4: control character"),
     ],
 )
 def test_malformed_logs_raise_one_clear_error(text, match):
