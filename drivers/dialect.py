@@ -25,11 +25,12 @@ from pathlib import Path
 from drivers.ascii_line import MalformedReplyError
 from drivers.errors import DriveConfigError, DriveError
 from drivers.line_template import Template
+from drivers.tomlfile import read_toml
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover
-    import tomli as tomllib
+    pass
 
 #: Folder of the shipped dialects (``dialect=NAME`` means ``NAME.toml`` here).
 DIALECT_DIR = Path(__file__).parent / "data" / "dialects"
@@ -233,17 +234,7 @@ def dialect_path(name_or_path: str) -> Path:
 def load_dialect(name_or_path: str = DEFAULT_DIALECT) -> Dialect:
     """Read, validate and compile a dialect (shipped name or TOML file path)."""
     path = dialect_path(name_or_path)
-    if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
-        raise DriveConfigError(f"cannot read dialect file {str(path)!r}: not a regular file")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as err:
-        raise DriveConfigError(f"cannot read dialect file {path}: {err.strerror}") from None
-    except UnicodeDecodeError:
-        raise DriveConfigError(f"dialect file {path} is not UTF-8 text") from None
-    except tomllib.TOMLDecodeError as err:
-        raise DriveConfigError(f"dialect file {path} is not valid TOML: {err}") from None
-    return parse_dialect(data, str(path))
+    return parse_dialect(read_toml(path, "dialect file"), str(path))
 
 
 def _table(data: Mapping[str, object], key: str, where: str, required: bool = True) -> dict:

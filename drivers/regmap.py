@@ -30,11 +30,7 @@ from importlib import resources
 from pathlib import Path
 
 from drivers.errors import DriveConfigError, UsageError
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+from drivers.tomlfile import read_toml
 
 #: format -> (struct code, registers); "string" takes its count from the map.
 FORMATS: dict[str, tuple[str, int]] = {
@@ -277,11 +273,7 @@ def resolve_map(name_or_path: str) -> Path:
 def load_map(name_or_path: str) -> RegisterMap:
     """Read and validate a register map (a shipped name or a TOML path)."""
     path = resolve_map(name_or_path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-        raise DriveConfigError(f"{path}: cannot read register map: {err}") from None
-    return parse_map(doc, str(path))
+    return parse_map(read_toml(path, "register map file"), str(path))
 
 
 class _Table:

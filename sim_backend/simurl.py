@@ -11,14 +11,15 @@ import sys
 from pathlib import Path
 
 from drivers.errors import DriveConfigError, UsageError
+from drivers.tomlfile import read_toml
 from drivers.url import DriveURL, parse_drive_url
 from sim_backend import effects
 from sim_backend.plant import PlantParams
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover
-    import tomli as tomllib
+    pass
 
 #: Base physics keys of ``sim://`` (see :class:`~sim_backend.plant.PlantParams`).
 PLANT_KEYS = frozenset(
@@ -45,17 +46,7 @@ def _number(key: str, value: object) -> float:
 
 def load_plant_file(path: str | Path) -> dict[str, object]:
     """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
-    path = Path(path)
-    if not path.is_file():  # a folder, a device (/dev/zero would never end), nothing
-        raise DriveConfigError(f"cannot read plant file {str(path)!r}: not a regular file")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as err:
-        raise DriveConfigError(f"cannot read plant file {path}: {err.strerror}") from None
-    except UnicodeDecodeError:
-        raise DriveConfigError(f"plant file {path} is not UTF-8 text") from None
-    except tomllib.TOMLDecodeError as err:
-        raise DriveConfigError(f"plant file {path} is not valid TOML: {err}") from None
+    data = read_toml(path, "plant file")
     table = data.get("plant", data)
     if not isinstance(table, dict):
         raise DriveConfigError(f"plant file {path}: [plant] must be a table")

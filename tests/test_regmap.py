@@ -21,9 +21,9 @@ from drivers.regmap import (
     parse_map,
     resolve_map,
     shipped_maps,
-    tomllib,
     words_of,
 )
+from drivers.tomlfile import read_toml
 
 
 def reg(
@@ -168,7 +168,7 @@ def test_toml_syntax_error_names_file(tmp_path: Path):
 
 
 # -------------------------------------------------------------------- validation
-SIM_DOC = tomllib.loads(Path(resolve_map("servobench-sim")).read_text())
+SIM_DOC = read_toml(resolve_map("servobench-sim"), "register map file")
 
 
 def _set(doc, dotted, value):
