@@ -22,6 +22,7 @@ import math
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -308,18 +309,10 @@ def _rounds(drive, options, design, cap, out, progress):
         fit = None if result is None else result.fit_percent
         if result is not None and (best is None or result.fit_percent > best[0].fit_percent):
             best = (result, design, log_path)
+        method = None if result is None else result.method
+        this_round = partial(Iteration, index, design.amplitude, design.freqs_hz, fit, method, log_path)
         if fit is not None and fit >= options.fit_threshold:
-            iterations.append(
-                Iteration(
-                    index,
-                    design.amplitude,
-                    design.freqs_hz,
-                    fit,
-                    result.method,
-                    log_path,
-                    "accepted",
-                )
-            )
+            iterations.append(this_round("accepted", error))
             break
         last = index == options.max_iterations
         if design.amplitude < cap:
@@ -336,32 +329,8 @@ def _rounds(drive, options, design, cap, out, progress):
             next_design = design.with_freqs(freqs)
             redesigned = True
         else:
-            iterations.append(
-                Iteration(
-                    index,
-                    design.amplitude,
-                    design.freqs_hz,
-                    fit,
-                    None if result is None else result.method,
-                    log_path,
-                    "stopped: threshold not reached within the drive limits",
-                    error,
-                )
-            )
+            iterations.append(this_round("stopped: threshold not reached within the drive limits", error))
             break
-        if last:
-            action = "stopped: iteration limit reached"
-        iterations.append(
-            Iteration(
-                index,
-                design.amplitude,
-                design.freqs_hz,
-                fit,
-                None if result is None else result.method,
-                log_path,
-                action,
-                error,
-            )
-        )
+        iterations.append(this_round("stopped: iteration limit reached" if last else action, error))
         design = replace(next_design)
     return iterations, best
