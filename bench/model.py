@@ -18,7 +18,6 @@ This module is public API (``diagnose`` and ``commission`` build on it):
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -126,17 +125,9 @@ class ServoModel:
 
         ``extra`` sets other plant fields (``noise``, ``seed``, ...).
         """
-        # A Coulomb level of exactly 0 takes a wrong branch of simulate_coulomb (it tests
-        # the direction by the sign of the friction force); the smallest normal float
-        # keeps the branch right and changes nothing else.
-        tiny = sys.float_info.min
         try:
             return PlantParams(
-                M=self.M,
-                B=self.B,
-                fc_pos=max(self.coulomb_pos, tiny),
-                fc_neg=max(self.coulomb_neg, tiny),
-                **extra,
+                M=self.M, B=self.B, fc_pos=self.coulomb_pos, fc_neg=self.coulomb_neg, **extra
             )
         except UsageError as err:
             raise IdentificationError(f"model cannot be simulated: {err}") from None

@@ -31,9 +31,6 @@ from sim_backend.plant import Plant, PlantParams
 AMPLITUDE_OVER_BREAKAWAY = 2.0
 #: Largest default reference amplitude [fraction of max_v].
 MAX_AMPLITUDE_FRACTION = 0.25
-#: Smallest Coulomb level simulated [command units]: the exact plant needs a
-#: non-zero level to tell the direction of motion.
-FRICTION_FLOOR = 1e-12
 #: Fraction of max_u the default reference may need.
 SAFE_COMMAND_FRACTION = 0.5
 
@@ -119,8 +116,6 @@ def simulate_loop(
     u_ff = ff(ahead) if ff is not None else np.zeros(n)
     plant = Plant(
         params.with_changes(
-            fc_pos=max(params.fc_pos, FRICTION_FLOOR),
-            fc_neg=max(params.fc_neg, FRICTION_FLOOR),
             brk_pos=None, brk_neg=None, noise=0.0, noise_x=0.0, res_x=0.0, res_v=0.0,
         )
     )  # fmt: skip

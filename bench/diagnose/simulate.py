@@ -18,9 +18,6 @@ from sim_backend.effects import build_model
 from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
 
 BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
-#: Smallest Coulomb level simulated: the exact integrator tells the direction of motion by
-#: the sign of the friction force, which a level of exactly zero does not have.
-FC_FLOOR = 1e-12
 
 
 @dataclass(frozen=True)
@@ -35,8 +32,8 @@ class Candidate:
         return PlantParams(
             M=float(b["M"]),
             B=float(b["B"]),
-            fc_pos=max(float(b["fc_pos"]), FC_FLOOR),
-            fc_neg=max(float(b["fc_neg"]), FC_FLOOR),
+            fc_pos=max(float(b["fc_pos"]), 0.0),  # a fit may step below zero
+            fc_neg=max(float(b["fc_neg"]), 0.0),
             effects={k: dict(v) for k, v in self.effects.items()},
         )
 
