@@ -1,3 +1,16 @@
-"""servobench: SIDBE identification of servo drives with friction, on a real bus."""
+"""The bench: excite a drive, log it, identify, diagnose and report (the SIDBE flow).
 
-__version__ = "0.1.0"
+=============  ==============================================================
+``run/``       streaming runs to a drive, the feedback check, timing figures
+``identify/``  SIDBE, the joint estimator, IDIM-LS, verification
+``diagnose/``  where simulation and measurement disagree, and which effect
+``report/``    summaries, plots, the diagnose and commissioning reports
+``commission`` field commissioning sequence
+``commands/``  the ``servobench`` subcommands
+``testing/``   harnesses for tests and benchmarks only (not installed)
+=============  ==============================================================
+
+At this level: the excitation design (:mod:`.excitation`), the log format
+(:mod:`.logio`), the identified model (:mod:`.model`), the SIDBE procedure
+(:mod:`.procedure`) and the command line (:mod:`.cli`).
+"""

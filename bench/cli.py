@@ -1,8 +1,8 @@
 """The ``servobench`` command line.
 
-Each subcommand lives in ``bench.commands.<module>`` and exposes
+Each subcommand lives in ``servobench.bench.commands.<module>`` and exposes
 ``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only
-when their subcommand runs. Any :class:`~drivers.errors.ServobenchError`
+when their subcommand runs. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
 """
@@ -13,17 +13,17 @@ import argparse
 import importlib
 import sys
 
-from drivers.errors import ServobenchError
+from servobench.errors import ServobenchError
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "sidbe": ("bench.commands.sidbe", "run the whole SIDBE procedure on a drive"),
-    "run": ("bench.commands.run", "excite a drive with u1/u2 and log only"),
-    "identify": ("bench.commands.identify", "identify the model from a log"),
-    "serve-sim": ("bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
-    "diagnose": ("bench.commands.diagnose", "find, name and add the effect the model lacks"),
-    "commission": ("bench.commands.commission", "commission a drive in the field"),
-    "udev": ("bench.commands.udev", "install the udev rules for bench adapters"),
+    "sidbe": ("servobench.bench.commands.sidbe", "run the whole SIDBE procedure on a drive"),
+    "run": ("servobench.bench.commands.run", "excite a drive with u1/u2 and log only"),
+    "identify": ("servobench.bench.commands.identify", "identify the model from a log"),
+    "serve-sim": ("servobench.bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
+    "diagnose": ("servobench.bench.commands.diagnose", "find, name and add the effect the model lacks"),
+    "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
+    "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),
 }
 
 
@@ -34,7 +34,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="servobench", description=__doc__.splitlines()[0])
-    from bench import __version__
+    from servobench import __version__
 
     parser.add_argument("--version", action="version", version=f"servobench {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)

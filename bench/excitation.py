@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import LogFormatError, UsageError
+from servobench.errors import LogFormatError, UsageError
 
 #: Default sample rate [Hz].
 DEFAULT_FS_HZ = 1000.0
@@ -131,7 +131,7 @@ class Excitation:
     line_power_share: float
 
     def runs(self) -> list[tuple[int, np.ndarray]]:
-        """``[(1, u1), (2, u2)]`` as :func:`bench.runner.stream_runs` takes them."""
+        """``[(1, u1), (2, u2)]`` as :func:`servobench.bench.run.runner.stream_runs` takes them."""
         return [(1, self.u1), (2, self.u2)]
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import LogFormatError, one_line
+from servobench.errors import LogFormatError, one_line
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")

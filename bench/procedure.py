@@ -1,9 +1,9 @@
 """The whole SIDBE procedure on a drive, including the paper's step 6.
 
 1. Design the periodic binary excitation ``u1`` and ``u2 = ratio * u1``
-   (:mod:`bench.excitation`).
-2.-3. Apply both to the drive and log them (:func:`bench.runner.stream_runs`).
-4.-5. Identify the model (:func:`bench.identify.identify`: SIDBE and/or the
+   (:mod:`servobench.bench.excitation`).
+2.-3. Apply both to the drive and log them (:func:`servobench.bench.run.runner.stream_runs`).
+4.-5. Identify the model (:func:`servobench.bench.identify.auto.identify`: SIDBE and/or the
    joint estimator) and verify it by simulation.
 6. When the verification fit falls short of ``fit_threshold`` (or the data
    cannot yield a model, e.g. the axis did not break away), raise the
@@ -26,13 +26,13 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from bench import excitation as exc
-from bench.identify import METHODS, identify
-from bench.logio import read_log
-from bench.model import IdentificationResult
-from bench.runner import DEFAULT_SETTLE_S, stream_runs
-from drivers.base import Drive
-from drivers.errors import IdentificationError, UsageError
+from servobench.bench import excitation as exc
+from servobench.bench.identify.auto import METHODS, identify
+from servobench.bench.logio import read_log
+from servobench.bench.model import IdentificationResult
+from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
+from servobench.drivers.base import Drive
+from servobench.errors import IdentificationError, UsageError
 
 #: Default verification fit that ends the procedure [%].
 DEFAULT_FIT_THRESHOLD = 90.0
@@ -53,7 +53,7 @@ class SidbeOptions:
     Attributes
     ----------
     amplitude, ratio, fs_hz, periods, period_s, freqs_hz
-        The excitation (see :func:`bench.excitation.make_design`); ``freqs_hz``
+        The excitation (see :func:`servobench.bench.excitation.make_design`); ``freqs_hz``
         None means log-spaced default lines.
     method : {"auto", "sidbe", "joint"}
     fit_threshold : float
@@ -258,7 +258,7 @@ def run_sidbe(
     passed = result.fit_percent >= options.fit_threshold
     plots: tuple[Path, ...] = ()
     if options.plots:
-        from bench.plots import write_plots
+        from servobench.bench.report.plots import write_plots
 
         plots = tuple(write_plots(result, out))
     model_path = out / "model.json"

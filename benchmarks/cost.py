@@ -20,13 +20,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.excitation import design_excitation, make_design  # noqa: E402
-from bench.identify import identify  # noqa: E402
-from bench.logio import ExperimentLog, RunData, read_log  # noqa: E402
-from bench.runner import stream_runs  # noqa: E402
-from bench.synthetic import simulate_experiment  # noqa: E402
-from drivers.registry import open_drive  # noqa: E402
-from sim_backend.plant import PlantParams, simulate_coulomb  # noqa: E402
+from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
+from servobench.bench.identify.auto import identify  # noqa: E402
+from servobench.bench.logio import ExperimentLog, RunData, read_log  # noqa: E402
+from servobench.bench.run.runner import stream_runs  # noqa: E402
+from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402
+from servobench.drivers.registry import open_drive  # noqa: E402
+from servobench.sim_backend.physics.plant import PlantParams, simulate_coulomb  # noqa: E402
 
 TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 

@@ -1,8 +1,8 @@
 """Confusion table of the discrepancy workflow over random hidden-effect plants.
 
 For every library effect (and a control with nothing hidden) draws ``--cases``
-random plants with that effect (:func:`bench.diagnose.cases.random_case`),
-writes their logs, hands only the log to :func:`bench.diagnose.diagnose` and
+random plants with that effect (:func:`servobench.bench.testing.hidden_effects.random_case`),
+writes their logs, hands only the log to :func:`servobench.bench.diagnose.workflow.diagnose` and
 tabulates the true effect against the first effect named ("none" when
 nothing was named), with the median velocity gap before and after and the
 smallest shrink factor. Cases run in ``--jobs`` worker processes.
@@ -23,10 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.diagnose import diagnose  # noqa: E402
-from bench.diagnose.cases import random_case, write_case_log  # noqa: E402
-from bench.logio import read_log  # noqa: E402
-from sim_backend import effects as library  # noqa: E402
+from servobench.bench.diagnose.workflow import diagnose  # noqa: E402
+from servobench.bench.logio import read_log  # noqa: E402
+from servobench.bench.testing.hidden_effects import random_case, write_case_log  # noqa: E402
+from servobench.sim_backend.physics import effects as library  # noqa: E402
 
 NONE = "none"
 

@@ -1,7 +1,7 @@
 """Faults, bad input and load: what survives, what crashes, what memory a long run takes.
 
 Prints, per transport, the faults injected (every case of
-:data:`sim_backend.faults.scenario.CASES`, plus the host killed) against the
+:data:`servobench.bench.testing.fault_scenarios.CASES`, plus the host killed) against the
 faults survived (the run rode through or ended with the expected one-line
 error, the drive ended with its torque off by its own state report, the log
 kept every sample before the fault intact and marked incomplete); fuzz cases
@@ -31,14 +31,9 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.logio import parse_log_text  # noqa: E402
-from bench.runner import stream_runs  # noqa: E402
-from drivers.ascii_line import decode_reply  # noqa: E402
-from drivers.dialect import dialect_path, load_dialect, parse_dialect  # noqa: E402
-from drivers.errors import ServobenchError  # noqa: E402
-from drivers.registry import BACKENDS, open_drive, resolve  # noqa: E402
-from drivers.regmap import parse_map, resolve_map  # noqa: E402
-from sim_backend.faults.scenario import (  # noqa: E402
+from servobench.bench.logio import parse_log_text  # noqa: E402
+from servobench.bench.run.runner import stream_runs  # noqa: E402
+from servobench.bench.testing.fault_scenarios import (  # noqa: E402
     CASES,
     HOST_KEYS,
     SERVE_ARGS,
@@ -47,8 +42,13 @@ from sim_backend.faults.scenario import (  # noqa: E402
     run_case,
     wait_for_state,
 )
-from sim_backend.faults.spec import TRANSPORTS  # noqa: E402
-from sim_backend.launch import ServedSim  # noqa: E402
+from servobench.bench.testing.served import ServedSim  # noqa: E402
+from servobench.drivers.ascii_line import decode_reply  # noqa: E402
+from servobench.drivers.dialect import dialect_path, load_dialect, parse_dialect  # noqa: E402
+from servobench.drivers.registry import BACKENDS, open_drive, resolve  # noqa: E402
+from servobench.drivers.regmap import parse_map, resolve_map  # noqa: E402
+from servobench.errors import ServobenchError  # noqa: E402
+from servobench.sim_backend.faults.spec import TRANSPORTS  # noqa: E402
 
 try:
     import tomllib
@@ -57,8 +57,8 @@ except ModuleNotFoundError:  # Python 3.10
 
 KILL_HOST = """
 import sys, numpy as np
-from bench.runner import stream_runs
-from drivers.registry import open_drive
+from servobench.bench.run.runner import stream_runs
+from servobench.drivers.registry import open_drive
 u = np.tile(np.where((np.arange(160) // 20) % 2 == 0, 1.0, -1.0), 20)
 def progress(done, total):
     if done >= 60 and not progress.said:
@@ -72,7 +72,7 @@ with open_drive(sys.argv[1]) as drive:
 # ------------------------------------------------------------------ faults
 def kill_case(transport: str, work: Path) -> bool:
     """Kill a streaming host: the drive's watchdog must fault the axis, the log must read back."""
-    from bench.logio import read_log
+    from servobench.bench.logio import read_log
 
     state, log = work / f"kill-{transport}.json", work / f"kill-{transport}.csv"
     args = [*SERVE_ARGS[transport], "--state-file", str(state)]

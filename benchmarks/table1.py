@@ -23,12 +23,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.excitation import design_excitation, make_design  # noqa: E402
-from bench.identify import identify  # noqa: E402
-from bench.model import ServoModel  # noqa: E402
-from bench.output_error import Chunk, cramer_rao  # noqa: E402
-from bench.synthetic import simulate_experiment  # noqa: E402
-from sim_backend.plant import PlantParams, simulate_coulomb  # noqa: E402
+from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
+from servobench.bench.identify.auto import identify  # noqa: E402
+from servobench.bench.identify.output_error import Chunk, cramer_rao  # noqa: E402
+from servobench.bench.model import ServoModel  # noqa: E402
+from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402
+from servobench.sim_backend.physics.plant import PlantParams, simulate_coulomb  # noqa: E402
 
 #: The paper's Table I: amplitude -> (pole [1/s], DC gain).
 PAPER = {1.0: (-35.01, 0.1926), 60.0: (-10.2805, 0.96651), 150.0: (-10.0767, 0.98616)}

@@ -23,16 +23,16 @@ import time
 
 import numpy as np
 
-from bench.runner import sleep_until
-from drivers.link_budget import (
+from servobench.bench.run.runner import sleep_until
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.link_budget import (
     canopen_cycle_s,
     modbus_rtu_cycle_s,
     modbus_rtu_frames,
     modbus_tcp_cycle_s,
     uart_cycle_s,
 )
-from drivers.registry import open_drive
-from sim_backend.launch import ServedSim
+from servobench.drivers.registry import open_drive
 
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 

@@ -4,8 +4,9 @@ Importing this package loads no transport library; backends are imported on
 demand by :func:`open_drive`.
 """
 
-from drivers.base import Drive, DriveInfo, Feedback, Limits
-from drivers.errors import (
+from servobench.drivers.base import Drive, DriveInfo, Feedback, Limits
+from servobench.drivers.registry import available_schemes, open_drive
+from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
     DriveError,
@@ -15,7 +16,6 @@ from drivers.errors import (
     ServobenchError,
     StateTransitionError,
 )
-from drivers.registry import available_schemes, open_drive
 
 __all__ = [
     "Drive",

@@ -1,6 +1,6 @@
 """Line framing of ASCII drive protocols: terminators, comments and XOR checksums.
 
-Pure bytes <-> text, no I/O; :mod:`drivers.dialect` says what the lines mean.
+Pure bytes <-> text, no I/O; :mod:`servobench.drivers.dialect` says what the lines mean.
 
 ::
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.errors import DriveConnectionError, UsageError
+from servobench.errors import DriveConnectionError, UsageError
 
 
 class MalformedReplyError(DriveConnectionError):

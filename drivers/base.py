@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from drivers.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
-from drivers.url import DriveURL, parse_drive_url
+from servobench.drivers.url import DriveURL, parse_drive_url
+from servobench.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
 
 #: Query keys every backend accepts: the safety envelope, the watchdog, and the
 #: host pacing (``pace=real``: the host holds the cycle rate, the default;

@@ -32,14 +32,14 @@ Set-up runs over SDO in NMT PRE-OPERATIONAL (mode, PDO mapping, heartbeats),
 the cycle in OPERATIONAL: :meth:`exchange` sends RPDO1 (controlword, target
 torque) and a SYNC, and waits for the SYNC's TPDO1 (statusword, torque
 actual, 0x1013) and TPDO2 (velocity 0x606C, position 0x6064). The CiA 402
-state machine is walked with :func:`drivers.cia402.plan`, each step under a
+state machine is walked with :func:`servobench.drivers.cia402.plan`, each step under a
 deadline; failures raise, never log. :meth:`read` uses SDO and sends no
 SYNC, so it does not clock a lock-step simulated drive. Position (0x6064)
 and the time stamp (0x1013) are unwrapped across their 32-bit roll-over.
 A TPDO pair whose time stamp was already consumed (a duplicate, or a late
 answer to an earlier SYNC) is dropped, never taken for this SYNC's. An EMCY
 with a non-zero error code ends the next cycle with
-:class:`~drivers.errors.DriveFaultError` even if the drive stays enabled
+:class:`~servobench.errors.DriveFaultError` even if the drive stays enabled
 (a warning): identification data taken while the drive signals an error is
 not trusted.
 
@@ -64,15 +64,15 @@ from contextlib import contextmanager
 import can
 import canopen
 
-from drivers.base import Drive, DriveInfo, Feedback
-from drivers.canopen_link import (
+from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.canopen_link import (
     CounterUnwrap,
     HeartbeatProducer,
     TappedNetwork,
     TrafficRecorder,
     load_eds,
 )
-from drivers.cia402 import (
+from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
     CiA402State,
     Step,
@@ -80,7 +80,7 @@ from drivers.cia402 import (
     interpolation_period,
     plan,
 )
-from drivers.errors import (
+from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
     DriveError,

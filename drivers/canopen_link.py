@@ -1,6 +1,6 @@
 """The CAN side of ``canopen://``: EDS loading, the tapped network, the host heartbeat, counters.
 
-Kept apart from :mod:`drivers.canopen402` (the CiA 402 drive logic) so each
+Kept apart from :mod:`servobench.drivers.canopen402` (the CiA 402 drive logic) so each
 stays small. Sent frames pass through :class:`TappedNetwork`, which can feed
 a :class:`TrafficRecorder` (python-can log formats) together with the
 received frames, under one lock, with the send time and direction.
@@ -20,7 +20,7 @@ from can.interfaces.socketcand.socketcand import (
     convert_can_message_to_ascii_message,
 )
 
-from drivers.errors import DriveConnectionError
+from servobench.errors import DriveConnectionError
 
 
 def load_eds(node_id: int, path: str | None = None) -> canopen.ObjectDictionary:

@@ -4,14 +4,14 @@ A dialect names, for one family of drives, the text of every request the
 serial backend sends (torque command, feedback query, enable, state and
 error reads, watchdog set-up and feed, clear errors ...), the shape of the
 replies, the line terminators and the checksum rule. Both sides use it: the
-host (:mod:`drivers.serial_ascii`) formats requests and parses replies, the
-served simulator (:mod:`sim_backend.serve_serial`) parses requests and
+host (:mod:`servobench.drivers.serial_ascii`) formats requests and parses replies, the
+served simulator (:mod:`servobench.sim_backend.servers.serve_serial`) parses requests and
 formats replies, so the two agree by construction.
 
 Everything here is pure: text in, text or frozen dataclasses out, no I/O.
 
-Templates (``"c {axis} {u}"``) are :class:`drivers.line_template.Template`;
-line framing and checksums are in :mod:`drivers.ascii_line`.
+Templates (``"c {axis} {u}"``) are :class:`servobench.drivers.line_template.Template`;
+line framing and checksums are in :mod:`servobench.drivers.ascii_line`.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers.ascii_line import MalformedReplyError
-from drivers.errors import DriveConfigError, DriveError
-from drivers.line_template import Template
-from drivers.tomlfile import read_toml
+from servobench.drivers.ascii_line import MalformedReplyError
+from servobench.drivers.line_template import Template
+from servobench.errors import DriveConfigError, DriveError
+from servobench.tomlfile import read_toml
 
 if sys.version_info >= (3, 11):
     pass

@@ -15,7 +15,7 @@ import re
 import string
 from dataclasses import dataclass
 
-from drivers.errors import DriveConfigError, UsageError
+from servobench.errors import DriveConfigError, UsageError
 
 #: Placeholder name -> type of its value.
 FIELD_KINDS: dict[str, type] = {

@@ -6,7 +6,7 @@ URLs::
     modbus+rtu:///dev/ttyUSB0?baud=115200&unit=1&map=NAME
 
 ``map`` is a shipped register map (``servobench-sim``, ``zlac8015d``) or a
-path to a TOML file (:mod:`drivers.regmap`). Further keys: ``timeout``
+path to a TOML file (:mod:`servobench.drivers.regmap`). Further keys: ``timeout``
 (response timeout [s]) and, for RTU, ``parity`` (N, E, O).
 
 One cycle (:meth:`ModbusDrive.exchange`) is one FC23 transaction (write the
@@ -25,7 +25,7 @@ map has a ``timestamp`` register (unwrapped), else the host's
 ``time.monotonic()`` at reception.
 
 Against the lock-step simulated drive every read of the feedback block clocks
-the drive one cycle, so :meth:`~drivers.base.Drive.read` advances it too.
+the drive one cycle, so :meth:`~servobench.drivers.base.Drive.read` advances it too.
 """
 
 from __future__ import annotations
@@ -40,16 +40,8 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
-from drivers.base import Drive, DriveInfo, Feedback
-from drivers.errors import (
-    DriveConfigError,
-    DriveConnectionError,
-    DriveError,
-    DriveFaultError,
-    DriveTimeoutError,
-    StateTransitionError,
-)
-from drivers.regmap import (
+from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.regmap import (
     Block,
     Register,
     decode,
@@ -59,6 +51,14 @@ from drivers.regmap import (
     encode_raw,
     load_map,
     words_of,
+)
+from servobench.errors import (
+    DriveConfigError,
+    DriveConnectionError,
+    DriveError,
+    DriveFaultError,
+    DriveTimeoutError,
+    StateTransitionError,
 )
 
 # The library's own log lines would reach stderr through logging's last-resort

@@ -12,19 +12,19 @@ import importlib
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
 
-from drivers.errors import DriveUnavailableError
-from drivers.url import parse_drive_url
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import DriveUnavailableError
 
 if TYPE_CHECKING:
-    from drivers.base import Drive
+    from servobench.drivers.base import Drive
 
 #: Built-in backends: URL scheme -> (module, class name).
 BACKENDS: dict[str, tuple[str, str]] = {
-    "sim": ("drivers.sim", "SimDrive"),
-    "canopen": ("drivers.canopen402", "CANopen402Drive"),
-    "modbus+tcp": ("drivers.modbus", "ModbusDrive"),
-    "modbus+rtu": ("drivers.modbus", "ModbusDrive"),
-    "serial": ("drivers.serial_ascii", "SerialAsciiDrive"),
+    "sim": ("servobench.drivers.sim", "SimDrive"),
+    "canopen": ("servobench.drivers.canopen402", "CANopen402Drive"),
+    "modbus+tcp": ("servobench.drivers.modbus", "ModbusDrive"),
+    "modbus+rtu": ("servobench.drivers.modbus", "ModbusDrive"),
+    "serial": ("servobench.drivers.serial_ascii", "SerialAsciiDrive"),
 }
 
 ENTRY_POINT_GROUP = "servobench.drives"
@@ -44,7 +44,7 @@ def available_schemes() -> list[str]:
 
 
 def resolve(scheme: str) -> type[Drive]:
-    """Return the :class:`~drivers.base.Drive` subclass registered for ``scheme``."""
+    """Return the :class:`~servobench.drivers.base.Drive` subclass registered for ``scheme``."""
     scheme = scheme.lower()
     table = {**_entry_point_backends(), **BACKENDS}
     if scheme not in table:

@@ -5,8 +5,8 @@ A map names the registers a servo drive exposes for cyclic control
 ``watchdog``; optionally ``status``, ``timestamp``, ``cycle``,
 ``watchdog_feed`` and the identity strings) with their address, format,
 scale, word and byte order, register type and access. Both sides read the
-same file: :mod:`drivers.modbus` (the client) and
-:mod:`sim_backend.serve_modbus` (the served simulated drive), so they agree by
+same file: :mod:`servobench.drivers.modbus` (the client) and
+:mod:`servobench.sim_backend.servers.serve_modbus` (the served simulated drive), so they agree by
 construction. This module is pure: parsing, validation and the codec, no I/O
 beyond reading the file.
 
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from drivers.errors import DriveConfigError, UsageError
-from drivers.tomlfile import read_toml
+from servobench.errors import DriveConfigError, UsageError
+from servobench.tomlfile import read_toml
 
 #: format -> (struct code, registers); "string" takes its count from the map.
 FORMATS: dict[str, tuple[str, int]] = {

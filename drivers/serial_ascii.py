@@ -1,7 +1,7 @@
 """``serial://`` -- drives that speak a line-based ASCII protocol over a serial port.
 
 ``serial:///dev/ttyACM0?baud=115200&dialect=odrive`` opens the port with
-pyserial and talks the dialect (:mod:`drivers.dialect`) named by
+pyserial and talks the dialect (:mod:`servobench.drivers.dialect`) named by
 ``dialect`` -- a shipped name or a path to a TOML file. The default,
 ``odrive``, is the ODrive ASCII protocol of firmware 0.5.x
 (https://docs.odriverobotics.com/v/0.5.5/ascii-protocol.html); its units are
@@ -21,10 +21,10 @@ Cycle semantics
 :meth:`Drive.exchange` writes the torque command and the feedback query in
 one write and reads the feedback reply: on the lock-step simulator the
 command latches and the feedback query clocks one cycle (sample at ``t_k``,
-then ``u_k`` acts), which is the :class:`~drivers.base.Drive` contract. A real
+then ``u_k`` acts), which is the :class:`~servobench.drivers.base.Drive` contract. A real
 ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
-raises :class:`~drivers.errors.DriveFaultError` with the drive's code.
+raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
 protocol carries no drive clock).
 
@@ -39,8 +39,8 @@ register; the watchdog is armed as ``w axis0.config.watchdog_timeout <s>``,
 ``u 0``, ``w axis0.config.enable_watchdog 1`` and read back; :meth:`enable`
 refuses a drive in fault, sends ``c 0 0`` (torque control, zero torque) and
 ``w axis0.requested_state 8`` and waits for ``r axis0.current_state`` to read
-8 (:class:`~drivers.errors.StateTransitionError` if it does not, or
-:class:`~drivers.errors.DriveFaultError` with ``axis0.error`` if that is set);
+8 (:class:`~servobench.errors.StateTransitionError` if it does not, or
+:class:`~servobench.errors.DriveFaultError` with ``axis0.error`` if that is set);
 :meth:`reset_fault` is ``sc``; :meth:`set_cycle` uses the dialect's servobench
 extension and, if the drive rejects it (a stock ODrive), records the drive as
 free-running (:attr:`SerialAsciiDrive.lockstep` is False).
@@ -62,10 +62,16 @@ from collections import deque
 
 import serial
 
-from drivers.ascii_line import MalformedReplyError, decode_reply, encode_line
-from drivers.base import Drive, DriveInfo, Feedback
-from drivers.dialect import COMMAND_SPECS, CommandRejectedError, Dialect, ParsedLine, load_dialect
-from drivers.errors import (
+from servobench.drivers.ascii_line import MalformedReplyError, decode_reply, encode_line
+from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.dialect import (
+    COMMAND_SPECS,
+    CommandRejectedError,
+    Dialect,
+    ParsedLine,
+    load_dialect,
+)
+from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
     DriveFaultError,
@@ -95,7 +101,7 @@ READBACK_RTOL = 1e-3
 
 
 class SerialAsciiDrive(Drive):
-    """A drive on a serial port speaking a line-based ASCII :class:`~drivers.dialect.Dialect`."""
+    """A drive on a serial port speaking a line-based ASCII :class:`~servobench.drivers.dialect.Dialect`."""
 
     query_keys = frozenset({"baud", "dialect", "axis", "checksum", "timeout", "poll"})
 

@@ -1,7 +1,7 @@
 """``sim://`` -- the simulated DC servo with friction, in-process.
 
 ``sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.001&pace=fast`` (see
-:mod:`sim_backend.simurl` for every key). ``pace=real`` paces each cycle to
+:mod:`servobench.sim_backend.simurl` for every key). ``pace=real`` paces each cycle to
 wall-clock time like a real drive; ``pace=fast`` (default) runs as fast as
 the host asks, and supports block exchange for batch work.
 Timestamps are the drive's own clock (cycle count times cycle period).
@@ -13,10 +13,10 @@ import time
 
 import numpy as np
 
-from drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
-from drivers.errors import DriveConfigError, DriveFaultError
-from sim_backend.device import PowerState, SimulatedDevice
-from sim_backend.simurl import plant_from_url, sim_query_keys
+from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
+from servobench.errors import DriveConfigError, DriveFaultError
+from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.simurl import plant_from_url, sim_query_keys
 
 
 class SimDrive(Drive):

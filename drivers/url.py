@@ -1,6 +1,6 @@
 """Drive URLs: ``scheme://[host[:port]][/path]?key=value&...``.
 
-The scheme selects the backend (see :mod:`drivers.registry`); everything after
+The scheme selects the backend (see :mod:`servobench.drivers.registry`); everything after
 it is handed to the backend as a :class:`DriveURL`. Query keys are checked
 against what the backend declares, so a misspelled option is an error, never
 silently ignored.
@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from urllib.parse import parse_qsl, unquote, urlsplit
 
-from drivers.errors import DriveConfigError
+from servobench.errors import DriveConfigError
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""The simulated drive: a :class:`~sim_backend.plant.Plant` behind a power stage.
+"""The simulated drive: a :class:`~servobench.sim_backend.physics.plant.Plant` behind a power stage.
 
 :class:`SimulatedDevice` is what every transport serves (and what ``sim://``
 wraps in-process): a lock-step drive that samples its feedback and then
@@ -20,8 +20,8 @@ from enum import Enum
 
 import numpy as np
 
-from drivers.errors import DriveFaultError
-from sim_backend.plant import Plant, PlantParams
+from servobench.errors import DriveFaultError
+from servobench.sim_backend.physics.plant import Plant, PlantParams
 
 #: Fault code the watchdog raises: CiA 301/402 "heartbeat / life guard error".
 WATCHDOG_FAULT = 0x8130
@@ -257,12 +257,12 @@ class WatchdogThread(threading.Thread):
 
 def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
     """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``)."""
-    from drivers.url import parse_drive_url
-    from sim_backend.simurl import plant_from_url
+    from servobench.drivers.url import parse_drive_url
+    from servobench.sim_backend.simurl import plant_from_url
 
     parsed = parse_drive_url(url)
     if parsed.scheme != "sim":
-        from drivers.errors import DriveConfigError
+        from servobench.errors import DriveConfigError
 
         raise DriveConfigError(f"expected a sim:// URL, got {url!r}")
     params = plant_from_url(parsed)

@@ -10,18 +10,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from drivers.errors import DriveConfigError, UsageError
-from drivers.tomlfile import read_toml
-from drivers.url import DriveURL, parse_drive_url
-from sim_backend import effects
-from sim_backend.plant import PlantParams
+from servobench.drivers.url import DriveURL, parse_drive_url
+from servobench.errors import DriveConfigError, UsageError
+from servobench.sim_backend.physics import effects
+from servobench.sim_backend.physics.plant import PlantParams
+from servobench.tomlfile import read_toml
 
 if sys.version_info >= (3, 11):
     pass
 else:  # pragma: no cover
     pass
 
-#: Base physics keys of ``sim://`` (see :class:`~sim_backend.plant.PlantParams`).
+#: Base physics keys of ``sim://`` (see :class:`~servobench.sim_backend.physics.plant.PlantParams`).
 PLANT_KEYS = frozenset(
     {"M", "B", "fc_pos", "fc_neg", "brk_pos", "brk_neg", "noise", "noise_x", "res_x", "res_v"}
 )
@@ -60,7 +60,7 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     if "plant" in url.query:
         values.update(load_plant_file(url.query["plant"]))
     values.update({k: v for k, v in url.query.items() if k not in DEVICE_KEYS})
-    from drivers.base import COMMON_QUERY_KEYS
+    from servobench.drivers.base import COMMON_QUERY_KEYS
 
     for key in COMMON_QUERY_KEYS:
         values.pop(key, None)

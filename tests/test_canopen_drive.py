@@ -18,18 +18,23 @@ import canopen
 import numpy as np
 import pytest
 
-from drivers.canopen402 import CANopen402Drive, load_eds
-from drivers.errors import (
+from servobench.drivers.canopen402 import CANopen402Drive, load_eds
+from servobench.drivers.registry import open_drive
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import (
     DriveConfigError,
     DriveFaultError,
     DriveTimeoutError,
     StateTransitionError,
 )
-from drivers.registry import open_drive
-from drivers.url import parse_drive_url
-from sim_backend import serve_canopen
-from sim_backend.device import PowerState, SimulatedDevice, WatchdogThread, device_from_url
-from sim_backend.plant import PlantParams, simulate
+from servobench.sim_backend.device import (
+    PowerState,
+    SimulatedDevice,
+    WatchdogThread,
+    device_from_url,
+)
+from servobench.sim_backend.physics.plant import PlantParams, simulate
+from servobench.sim_backend.servers import serve_canopen
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 

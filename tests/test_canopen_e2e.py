@@ -15,16 +15,16 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from drivers.registry import open_drive
-from sim_backend.launch import ServedSim
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 #: A host that enables, streams and keeps streaming until it is killed.
 STREAMING_HOST = """
 import sys
-from drivers.registry import open_drive
+from servobench.drivers.registry import open_drive
 drive = open_drive(sys.argv[1]).open()
 drive.set_cycle(0.001)
 drive.enable()

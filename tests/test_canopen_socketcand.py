@@ -11,7 +11,7 @@ from can.interfaces.socketcand.socketcand import (
     convert_can_message_to_ascii_message,
 )
 
-from sim_backend.can_wire import (
+from servobench.sim_backend.servers.can_wire import (
     CanFrame,
     WireError,
     encode_frame,
@@ -20,7 +20,7 @@ from sim_backend.can_wire import (
     parse_send,
     split_commands,
 )
-from sim_backend.socketcand_server import JOIN_GRACE_S, SocketcandHub
+from servobench.sim_backend.servers.socketcand_server import JOIN_GRACE_S, SocketcandHub
 
 FRAMES = [
     CanFrame(0x000, b""),

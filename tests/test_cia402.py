@@ -6,7 +6,7 @@ import itertools
 
 import pytest
 
-from drivers.cia402 import (
+from servobench.drivers.cia402 import (
     AUTOMATIC,
     CW_DISABLE_VOLTAGE,
     CW_ENABLE_OPERATION,
@@ -23,12 +23,12 @@ from drivers.cia402 import (
     next_state,
     plan,
 )
-from drivers.errors import DriveError, StateTransitionError
+from servobench.errors import DriveError, StateTransitionError
 
 S = CiA402State
 ALL = list(CiA402State)
 
-# The standard's transitions, written out independently of drivers.cia402:
+# The standard's transitions, written out independently of servobench.drivers.cia402:
 # (number, from, command, to).
 STANDARD = [
     (2, S.SWITCH_ON_DISABLED, CW_SHUTDOWN, S.READY_TO_SWITCH_ON),

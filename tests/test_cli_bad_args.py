@@ -1,6 +1,6 @@
 """The real CLI on bad arguments: one line on stderr, a non-zero exit, never a traceback.
 
-Every row runs ``python -m bench.cli ...`` in its own process; the processes
+Every row runs ``python -m servobench.bench.cli ...`` in its own process; the processes
 run concurrently (each one mostly imports), then each row is checked.
 """
 
@@ -95,7 +95,7 @@ def run_cli(row: Row, tmp: Path) -> subprocess.CompletedProcess[str]:
     argv = [a.replace("{tmp}", str(tmp)) for a in row.argv]
     env = {**os.environ, "COLUMNS": "200", "PYTHONWARNINGS": "ignore"}
     return subprocess.run(
-        [sys.executable, "-m", "bench.cli", *argv],
+        [sys.executable, "-m", "servobench", *argv],
         capture_output=True,
         text=True,
         timeout=60,

@@ -38,7 +38,7 @@ def files(tmp_path_factory):
 def test_bad_input_is_one_line_error(name, files):
     args = [a.format(tmp=files) for a in CASES[name]]
     p = subprocess.run(
-        [sys.executable, "-m", "bench.cli", *args], capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "servobench", *args], capture_output=True, text=True, timeout=60
     )
     assert p.returncode != 0
     assert "Traceback" not in p.stderr

@@ -23,7 +23,7 @@ CONTRACT = {
 
 def servobench(*args, cwd=None, env=None):
     return subprocess.run(
-        [sys.executable, "-m", "bench.cli", *args],
+        [sys.executable, "-m", "servobench", *args],
         capture_output=True,
         text=True,
         timeout=120,

@@ -6,16 +6,16 @@ import io
 
 import pytest
 
-from bench.commission.bump import run_bump_test
-from bench.commission.checks import check_drive
-from bench.commission.config import BumpSettings
-from bench.commission.errors import CommissionRefused
-from bench.commission.limits import ConfirmedLimits, url_with_limits
-from bench.commission.ui import Console
-from bench.logio import read_log
-from drivers.base import Feedback
-from drivers.sim import SimDrive
-from sim_backend.device import PowerState
+from servobench.bench.commission.bump import run_bump_test
+from servobench.bench.commission.checks import check_drive
+from servobench.bench.commission.config import BumpSettings
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.bench.commission.limits import ConfirmedLimits, url_with_limits
+from servobench.bench.commission.ui import Console
+from servobench.bench.logio import read_log
+from servobench.drivers.base import Feedback
+from servobench.drivers.sim import SimDrive
+from servobench.sim_backend.device import PowerState
 
 LIMITS = ConfirmedLimits(5.0, 20.0, -100.0, 100.0)
 

@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 from test_commission_bump import StuckFault
 
-import drivers.registry
-from bench.cli import main
-from bench.logio import read_log
-from drivers.sim import SimDrive
-from sim_backend.device import PowerState
+import servobench.drivers.registry
+from servobench.bench.cli import main
+from servobench.bench.logio import read_log
+from servobench.drivers.sim import SimDrive
+from servobench.sim_backend.device import PowerState
 
 PLANT = {"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4}
 #: Limits for --yes, and a short SIDBE (3 periods of 1 s per run): noise-free, it is exact and fast.
@@ -44,7 +44,7 @@ def config(tmp_path) -> Path:
 def drives(monkeypatch):
     """Every drive the command creates, in order; ``drives.cls`` picks the SimDrive subclass."""
     made: list[SimDrive] = []
-    real = drivers.registry.open_drive
+    real = servobench.drivers.registry.open_drive
 
     class Made(list):
         cls = None
@@ -56,7 +56,7 @@ def drives(monkeypatch):
         made.append(drive)
         return drive
 
-    monkeypatch.setattr(drivers.registry, "open_drive", factory)
+    monkeypatch.setattr(servobench.drivers.registry, "open_drive", factory)
     return made
 
 
@@ -252,10 +252,10 @@ def test_interactive_confirmation_at_the_terminal(tmp_path, drives):
 
     from rich.console import Console as RichConsole
 
-    from bench.commission.config import load_config
-    from bench.commission.limits import TerminalPrompter
-    from bench.commission.sequence import CommissionOptions, commission
-    from bench.commission.ui import Console
+    from servobench.bench.commission.config import load_config
+    from servobench.bench.commission.limits import TerminalPrompter
+    from servobench.bench.commission.sequence import CommissionOptions, commission
+    from servobench.bench.commission.ui import Console
 
     console = Console(RichConsole(file=io.StringIO(), width=200))
     answers = io.StringIO("2.5\n\n-1\n1\ny\n")  # max_v: the configured 20 is the default

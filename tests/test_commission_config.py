@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.commission.config import LimitSettings, load_config, parse_config
-from bench.commission.errors import CommissionRefused
-from bench.commission.limits import (
+from servobench.bench.commission.config import LimitSettings, load_config, parse_config
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.bench.commission.limits import (
     ConfirmedLimits,
     TerminalPrompter,
     confirm_at_terminal,
@@ -18,9 +18,9 @@ from bench.commission.limits import (
     merge_limits,
     url_with_limits,
 )
-from drivers.errors import UsageError
-from drivers.registry import open_drive
-from drivers.url import parse_drive_url
+from servobench.drivers.registry import open_drive
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import UsageError
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "bench.toml"
 

@@ -8,17 +8,21 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from bench.commission.closedloop import check_compensation, reference_amplitude, simulate_loop
-from bench.commission.config import CompensationSettings
-from bench.commission.design import (
+from servobench.bench.commission.closedloop import (
+    check_compensation,
+    reference_amplitude,
+    simulate_loop,
+)
+from servobench.bench.commission.config import CompensationSettings
+from servobench.bench.commission.design import (
     FrictionFeedForward,
     design_pi,
     friction_feed_forward,
     loop_response,
     margins,
 )
-from drivers.errors import UsageError
-from sim_backend.plant import PlantParams
+from servobench.errors import UsageError
+from servobench.sim_backend.physics.plant import PlantParams
 
 PLANTS = [(0.1, 1.0), (2.0, 0.5), (0.001, 1.0), (100.0, 0.01)]
 

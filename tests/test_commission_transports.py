@@ -11,9 +11,9 @@ import re
 import pytest
 from test_commission_cli import CONFIG, check_record
 
-from bench.cli import main
-from drivers.registry import open_drive
-from sim_backend.launch import ServedSim
+from servobench.bench.cli import main
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
 
 #: One candump line: ``(timestamp) channel ID#DATA [R|T]``.
 CANDUMP_LINE = re.compile(r"^\(\d+\.\d+\) \S+ [0-9A-F]{3,8}#[0-9A-F]* [RT]$")

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from bench.cli import main
-from bench.diagnose.cases import random_case, write_case_log
-from bench.logio import LogWriter
+from servobench.bench.cli import main
+from servobench.bench.logio import LogWriter
+from servobench.bench.testing.hidden_effects import random_case, write_case_log
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.diagnose import diagnose
-from bench.logio import read_log
+from servobench.bench.diagnose.workflow import diagnose
+from servobench.bench.logio import read_log
 
 EMPS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "emps" / "emps.csv"
 

@@ -15,10 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.diagnose import diagnose
-from bench.diagnose.cases import CASE_FS_HZ, case_commands, random_case, write_case_log
-from bench.logio import read_log
-from sim_backend import effects as library
+from servobench.bench.diagnose.workflow import diagnose
+from servobench.bench.logio import read_log
+from servobench.bench.testing.hidden_effects import (
+    CASE_FS_HZ,
+    case_commands,
+    random_case,
+    write_case_log,
+)
+from servobench.sim_backend.physics import effects as library
 
 #: Seed of each case's generator (plant, parameters, excitation, noise).
 SEEDS = {name: 100 + i for i, name in enumerate(library.names())} | {None: 99}
@@ -29,9 +34,9 @@ SHRINK = 3.0
 
 
 def stream_case_log(case, path: Path, rng: np.random.Generator) -> Path:
-    """The case's runs through ``drivers.sim.SimDrive`` (from its sim:// URL) and the runner."""
-    from bench.runner import stream_runs
-    from drivers.sim import SimDrive
+    """The case's runs through ``servobench.drivers.sim.SimDrive`` (from its sim:// URL) and the runner."""
+    from servobench.bench.run.runner import stream_runs
+    from servobench.drivers.sim import SimDrive
 
     url = case.sim_url() + f"&seed={int(rng.integers(2**31))}&pace=fast"
     with SimDrive(url) as drive:

@@ -7,19 +7,19 @@ import math
 import numpy as np
 import pytest
 
-from bench.diagnose.data import (
+from servobench.bench.diagnose.data import (
     DEFAULT_HORIZON_S,
     noise_floor_percent,
     prepare,
     velocity_from_position,
 )
-from bench.diagnose.refit import refit
-from bench.diagnose.signatures import compute_signatures
-from bench.diagnose.simulate import Candidate, gap_percent, simulate
-from bench.logio import ExperimentLog, RunData
-from drivers.errors import IdentificationError
-from sim_backend.plant import PlantParams
-from sim_backend.plant import simulate as plant_simulate
+from servobench.bench.diagnose.refit import refit
+from servobench.bench.diagnose.signatures import compute_signatures
+from servobench.bench.diagnose.simulate import Candidate, gap_percent, simulate
+from servobench.bench.logio import ExperimentLog, RunData
+from servobench.errors import IdentificationError
+from servobench.sim_backend.physics.plant import PlantParams
+from servobench.sim_backend.physics.plant import simulate as plant_simulate
 
 FS = 500.0
 
@@ -150,7 +150,7 @@ def test_linear_approximation_pole_moves_with_amplitude_for_friction():
 
 
 def test_motion_in_one_direction_only_is_diagnosed_without_inventing_effects():
-    from bench.diagnose import diagnose
+    from servobench.bench.diagnose.workflow import diagnose
 
     rng = np.random.default_rng(0)
     n = 1000

@@ -7,21 +7,21 @@ from pathlib import Path
 
 import pytest
 
-from drivers.ascii_line import (
+from servobench.drivers.ascii_line import (
     MalformedReplyError,
     decode_reply,
     decode_request,
     encode_line,
     xor_checksum,
 )
-from drivers.dialect import (
+from servobench.drivers.dialect import (
     COMMAND_SPECS,
     DIALECT_DIR,
     CommandRejectedError,
     load_dialect,
     parse_dialect,
 )
-from drivers.errors import DriveConfigError, DriveConnectionError, DriveError, UsageError
+from servobench.errors import DriveConfigError, DriveConnectionError, DriveError, UsageError
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -8,8 +8,10 @@ import warnings
 import numpy as np
 import pytest
 
-from drivers.base import Drive, Feedback, Limits
-from drivers.errors import (
+from servobench.drivers.base import Drive, Feedback, Limits
+from servobench.drivers.registry import available_schemes, open_drive, resolve
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import (
     DriveConfigError,
     DriveError,
     DriveFaultError,
@@ -17,10 +19,8 @@ from drivers.errors import (
     LimitExceededError,
     UsageError,
 )
-from drivers.registry import available_schemes, open_drive, resolve
-from drivers.url import parse_drive_url
-from sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
-from sim_backend.plant import PlantParams, simulate
+from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 
 def test_url_parts():
@@ -191,7 +191,7 @@ def test_base_class_demands_a_watchdog():
 
 
 def test_every_servobench_error_message_is_one_line():
-    from drivers.errors import LogFormatError
+    from servobench.errors import LogFormatError
 
     assert str(DriveConfigError("bad key 'a\nb'\r\nin file")) == "bad key 'a b' in file"
     fault = DriveFaultError("overcurrent\nphase U", 0x2310)
@@ -201,7 +201,7 @@ def test_every_servobench_error_message_is_one_line():
 
 def test_a_third_party_drive_joins_by_entry_point(tmp_path, monkeypatch):
     (tmp_path / "thirdparty_drive.py").write_text(
-        "from drivers.sim import SimDrive\n\n"
+        "from servobench.drivers.sim import SimDrive\n\n"
         "class BenchTwinDrive(SimDrive):\n"
         "    '''A vendor's drive, here a renamed simulated one.'''\n"
     )

@@ -6,10 +6,10 @@ import importlib
 
 import pytest
 
-from drivers.errors import DriveConfigError, UsageError
-from sim_backend import effects
-from sim_backend.effects.spec import EffectSpec, Screening
-from sim_backend.simurl import DEVICE_KEYS, PLANT_KEYS, plant_from_url
+from servobench.errors import DriveConfigError, UsageError
+from servobench.sim_backend.physics import effects
+from servobench.sim_backend.physics.effects.spec import EffectSpec, Screening
+from servobench.sim_backend.simurl import DEVICE_KEYS, PLANT_KEYS, plant_from_url
 
 LIBRARY = (
     "stribeck",
@@ -83,7 +83,7 @@ def test_to_query_inverts_effects_from_query():
 
 
 def test_cross_checks_against_the_base_plant_happen_when_the_model_is_built():
-    from sim_backend.plant import Plant
+    from servobench.sim_backend.physics.plant import Plant
 
     with pytest.raises(UsageError, match="at least the Coulomb"):
         Plant(plant_from_url("sim://?fc_pos=0.5&stribeck_fs=0.3&stribeck_vs=0.1"))

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.identify import identify
-from bench.logio import read_log
+from servobench.bench.identify.auto import identify
+from servobench.bench.logio import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 EMPS = REPO.parent / "shared" / "data" / "emps"
@@ -33,7 +33,7 @@ def _check(out):
 
 def test_emps_csv_through_the_cli():
     p = subprocess.run(
-        [sys.executable, "-m", "bench.cli", "identify", str(EMPS / "emps.csv"), "--json"],
+        [sys.executable, "-m", "servobench", "identify", str(EMPS / "emps.csv"), "--json"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bench.excitation import (
+from servobench.bench.excitation import (
     ExcitationDesign,
     binary_period,
     default_freqs,
@@ -12,7 +12,7 @@ from bench.excitation import (
     freqs_around,
     make_design,
 )
-from drivers.errors import LogFormatError, UsageError
+from servobench.errors import LogFormatError, UsageError
 
 
 def test_default_design_is_binary_periodic_and_scaled():

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.logio import read_log
-from sim_backend.faults.scenario import SIM_URL, read_state
-from sim_backend.launch import ServedSim
+from servobench.bench.logio import read_log
+from servobench.bench.testing.fault_scenarios import SIM_URL, read_state
+from servobench.bench.testing.served import ServedSim
 
 
 @pytest.mark.parametrize(
@@ -27,7 +27,7 @@ def test_servobench_run_ends_with_one_line(
     args = ["--fault", spec, "--state-file", str(state)]
     with ServedSim(transport, SIM_URL, args) as served:
         proc = subprocess.run(
-            [sys.executable, "-m", "bench.cli", "run", "--drive", served.url + "&pace=fast",
+            [sys.executable, "-m", "servobench", "run", "--drive", served.url + "&pace=fast",
              "--out", str(log), "--periods", "2", "--period", "0.5", "--amplitude", "1"],
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip

@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.logio import read_log
-from sim_backend.device import WATCHDOG_FAULT
-from sim_backend.faults.scenario import (
+from servobench.bench.logio import read_log
+from servobench.bench.testing.fault_scenarios import (
     FS_HZ,
     HOST_KEYS,
     SERVE_ARGS,
@@ -30,8 +29,9 @@ from sim_backend.faults.scenario import (
     read_state,
     wait_for_state,
 )
-from sim_backend.launch import ServedSim
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.testing.served import ServedSim
+from servobench.sim_backend.device import WATCHDOG_FAULT
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 #: Samples the host announces before it is killed.
@@ -40,9 +40,9 @@ STREAMING_AFTER = 60
 HOST = f"""
 import sys
 import numpy as np
-from bench.runner import stream_runs
-from drivers.registry import open_drive
-from sim_backend.faults.scenario import excitation
+from servobench.bench.run.runner import stream_runs
+from servobench.drivers.registry import open_drive
+from servobench.bench.testing.fault_scenarios import excitation
 
 said = []
 def progress(done, total):

@@ -1,8 +1,8 @@
 """Every fault kind on every transport it applies to, end to end across processes.
 
 Each case serves the simulated drive with ``serve-sim --fault SPEC --state-file``,
-streams the standard two runs with :func:`bench.runner.stream_runs` and holds
-the outcome to :func:`sim_backend.faults.scenario.judge`: the run rides through
+streams the standard two runs with :func:`servobench.bench.run.runner.stream_runs` and holds
+the outcome to :func:`servobench.bench.testing.fault_scenarios.judge`: the run rides through
 (log equal to the fault-free reference run, row for row) or ends with the
 expected typed error and a one-line message; the drive's own state report
 shows it disabled or in fault with no torque; the log keeps every sample before
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.logio import read_log
-from sim_backend.faults.scenario import (
+from servobench.bench.logio import read_log
+from servobench.bench.testing.fault_scenarios import (
     CASES,
     Case,
     Outcome,
@@ -30,7 +30,7 @@ from sim_backend.faults.scenario import (
     run_case,
     uncovered,
 )
-from sim_backend.faults.spec import TRANSPORTS
+from servobench.sim_backend.faults.spec import TRANSPORTS
 
 ORDERED = sorted(CASES, key=lambda c: TRANSPORTS.index(c.transport))
 
@@ -121,8 +121,8 @@ def test_fault_outcome(case: Case, pools: Pools) -> None:
 
 
 def test_bad_fault_spec_is_one_line_and_names_the_kinds() -> None:
-    from drivers.errors import DriveConfigError
-    from sim_backend.faults.spec import parse_plan
+    from servobench.errors import DriveConfigError
+    from servobench.sim_backend.faults.spec import parse_plan
 
     with pytest.raises(DriveConfigError) as err:
         parse_plan("drop@5;crc@7", "modbus-tcp")

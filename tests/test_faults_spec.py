@@ -8,16 +8,16 @@ import time
 
 import pytest
 
-from drivers.errors import DriveConfigError
-from sim_backend.device import GENERIC_FAULT, PowerState, SimulatedDevice
-from sim_backend.faults.can import CanFaultHook, emcy_frame
-from sim_backend.faults.injector import FaultInjector
-from sim_backend.faults.modbus import corrupt_crc
-from sim_backend.faults.serial import STRAY_LINE, SerialFaultHook
-from sim_backend.faults.spec import KINDS, TRANSPORTS, FaultSpec, kinds_for, parse_plan
-from sim_backend.faults.state import StateReporter, snapshot
-from sim_backend.plant import PlantParams
-from sim_backend.pty_link import PtyLink
+from servobench.errors import DriveConfigError
+from servobench.sim_backend.device import GENERIC_FAULT, PowerState, SimulatedDevice
+from servobench.sim_backend.faults.can import CanFaultHook, emcy_frame
+from servobench.sim_backend.faults.injector import FaultInjector
+from servobench.sim_backend.faults.modbus import corrupt_crc
+from servobench.sim_backend.faults.serial import STRAY_LINE, SerialFaultHook
+from servobench.sim_backend.faults.spec import KINDS, TRANSPORTS, FaultSpec, kinds_for, parse_plan
+from servobench.sim_backend.faults.state import StateReporter, snapshot
+from servobench.sim_backend.physics.plant import PlantParams
+from servobench.sim_backend.servers.pty_link import PtyLink
 
 
 def device() -> SimulatedDevice:
@@ -186,8 +186,8 @@ def test_state_report_changes_and_final(tmp_path) -> None:
 
 
 def test_frozen_check_spares_a_coarse_encoder_and_catches_a_frozen_one() -> None:
-    from bench.runner import FeedbackCheck
-    from drivers.errors import DriveError
+    from servobench.bench.run.runner import FeedbackCheck
+    from servobench.errors import DriveError
 
     check = FeedbackCheck(frozen_cycles=100, dt_s=1e-3)
     for k in range(2000):  # creeping at 0.05 units/s on a 0.01-unit encoder: x steps every 200

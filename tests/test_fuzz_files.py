@@ -12,9 +12,9 @@ import copy
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from drivers.dialect import dialect_path, load_dialect, parse_dialect
-from drivers.errors import DriveConfigError
-from drivers.regmap import load_map, parse_map, resolve_map
+from servobench.drivers.dialect import dialect_path, load_dialect, parse_dialect
+from servobench.drivers.regmap import load_map, parse_map, resolve_map
+from servobench.errors import DriveConfigError
 
 try:
     import tomllib

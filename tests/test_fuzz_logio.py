@@ -8,8 +8,8 @@ import numpy as np
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from bench.logio import LogWriter, parse_log_text, read_log
-from drivers.errors import LogFormatError, ServobenchError
+from servobench.bench.logio import LogWriter, parse_log_text, read_log
+from servobench.errors import LogFormatError, ServobenchError
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -12,10 +12,10 @@ from urllib.parse import quote
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from drivers.base import COMMON_QUERY_KEYS, Drive
-from drivers.errors import DriveConfigError, ServobenchError
-from drivers.registry import BACKENDS, open_drive, resolve
-from drivers.url import DriveURL, parse_drive_url
+from servobench.drivers.base import COMMON_QUERY_KEYS, Drive
+from servobench.drivers.registry import BACKENDS, open_drive, resolve
+from servobench.drivers.url import DriveURL, parse_drive_url
+from servobench.errors import DriveConfigError, ServobenchError
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 SCHEMES = sorted(BACKENDS)

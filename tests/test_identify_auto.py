@@ -6,13 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from bench.excitation import make_design
-from bench.identify import identify
-from bench.logio import ExperimentLog
-from bench.model import IdentificationResult, ServoModel, fit_percent
-from bench.synthetic import simulate_experiment
-from drivers.errors import IdentificationError, UsageError
-from sim_backend.plant import PlantParams
+from servobench.bench.excitation import make_design
+from servobench.bench.identify.auto import identify
+from servobench.bench.logio import ExperimentLog
+from servobench.bench.model import IdentificationResult, ServoModel, fit_percent
+from servobench.bench.testing.synthetic import simulate_experiment
+from servobench.errors import IdentificationError, UsageError
+from servobench.sim_backend.physics.plant import PlantParams
 
 TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 CONTRACT = {
@@ -89,7 +89,7 @@ def test_fit_percent_definition():
 
 
 def test_incomplete_log_is_identified_with_a_note(tmp_path):
-    from bench.logio import read_log
+    from servobench.bench.logio import read_log
 
     log = simulate_experiment(TRUE, make_design(2.0, periods=2, period_s=1.0))
     path = tmp_path / "cut.csv"

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from bench.dataset import prepare
-from bench.excitation import make_design
-from bench.identify import identify
-from bench.identify_joint import identify_joint
-from bench.logio import ExperimentLog, RunData
-from bench.synthetic import simulate_experiment
-from drivers.errors import IdentificationError
-from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.bench.excitation import make_design
+from servobench.bench.identify.auto import identify
+from servobench.bench.identify.dataset import prepare
+from servobench.bench.identify.joint import identify_joint
+from servobench.bench.logio import ExperimentLog, RunData
+from servobench.bench.testing.synthetic import simulate_experiment
+from servobench.errors import IdentificationError
+from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
 
 TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 

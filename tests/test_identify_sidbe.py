@@ -6,15 +6,20 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from bench.dataset import prepare
-from bench.excitation import design_excitation, make_design
-from bench.frequency import FrequencyResponse, differential_frf, fit_linear_block, model_frf
-from bench.identify import identify
-from bench.identify_sidbe import identify_sidbe
-from bench.model import Resonance, ServoModel
-from bench.synthetic import simulate_experiment
-from drivers.errors import IdentificationError
-from sim_backend.plant import PlantParams
+from servobench.bench.excitation import design_excitation, make_design
+from servobench.bench.identify.auto import identify
+from servobench.bench.identify.dataset import prepare
+from servobench.bench.identify.frequency import (
+    FrequencyResponse,
+    differential_frf,
+    fit_linear_block,
+    model_frf,
+)
+from servobench.bench.identify.sidbe import identify_sidbe
+from servobench.bench.model import Resonance, ServoModel
+from servobench.bench.testing.synthetic import simulate_experiment
+from servobench.errors import IdentificationError
+from servobench.sim_backend.physics.plant import PlantParams
 
 TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
 

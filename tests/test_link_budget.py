@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.link_budget import (
+from servobench.drivers.link_budget import (
     can_frame_bits,
     canopen_cycle_s,
     modbus_rtu_cycle_s,

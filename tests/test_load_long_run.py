@@ -16,10 +16,10 @@ import numpy as np
 import psutil
 import pytest
 
-from bench.runner import FeedbackCheck, PeriodStats, stream_runs
-from drivers.errors import DriveError
-from drivers.registry import open_drive
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.run.runner import FeedbackCheck, PeriodStats, stream_runs
+from servobench.drivers.registry import open_drive
+from servobench.errors import DriveError
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)

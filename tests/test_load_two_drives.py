@@ -2,7 +2,7 @@
 
 Drive A (node 2) starts the socketcand hub; drive B (node 3, another plant)
 joins it as a TCP client (``serve-sim --can socketcand://HOST:PORT``). Each
-host runs :func:`bench.runner.stream_runs` in its own thread with its own
+host runs :func:`servobench.bench.run.runner.stream_runs` in its own thread with its own
 excitation. Every CANopen host sends SYNC and the lock-step drives clock on
 every SYNC they listen to, so each pair gets its own SYNC COB-ID
 (``sync_cob``, written to the drive's 0x1005) and each host its own
@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.logio import read_log
-from bench.runner import stream_runs
-from drivers.errors import DriveConfigError, DriveError
-from drivers.registry import open_drive
-from drivers.url import parse_drive_url
-from sim_backend.launch import ServedSim
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.logio import read_log
+from servobench.bench.run.runner import stream_runs
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import DriveConfigError, DriveError
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM_A = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 SIM_B = "sim://?M=0.2&B=0.5&fc_pos=0.3&fc_neg=0.3"

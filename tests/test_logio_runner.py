@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from bench.logio import LogWriter, parse_log_text, read_log
-from bench.runner import LOG_COLUMNS, stream_runs
-from drivers.errors import DriveFaultError, LogFormatError, UsageError
-from drivers.registry import open_drive
-from sim_backend.device import PowerState
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.logio import LogWriter, parse_log_text, read_log
+from servobench.bench.run.runner import LOG_COLUMNS, stream_runs
+from servobench.drivers.registry import open_drive
+from servobench.errors import DriveFaultError, LogFormatError, UsageError
+from servobench.sim_backend.device import PowerState
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 
 def square(n: int, amplitude: float, period: int = 200) -> np.ndarray:
@@ -166,7 +166,7 @@ def test_limit_breach_in_block_mode_keeps_the_samples_before_it(tmp_path):
     path = tmp_path / "log.csv"
     u = np.full(5000, 3.0)
     with open_drive("sim://?max_v=1.5") as drive:
-        from drivers.errors import LimitExceededError
+        from servobench.errors import LimitExceededError
 
         with pytest.raises(LimitExceededError, match="velocity"):
             stream_runs(drive, [(1, u)], 1000.0, path, pace="fast")

@@ -1,7 +1,7 @@
 """Modbus TCP and RTU end to end: ``servobench serve-sim`` in a child process, the real client.
 
 The served drive is lock-step (one FC23 = one cycle), so a square wave streamed
-over the wire must reproduce :func:`sim_backend.plant.simulate` of the same
+over the wire must reproduce :func:`servobench.sim_backend.physics.plant.simulate` of the same
 command to the register resolution (1e-6 units).
 """
 
@@ -15,11 +15,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers.errors import DriveFaultError
-from drivers.registry import open_drive
-from sim_backend.device import WATCHDOG_FAULT
-from sim_backend.launch import ServedSim
-from sim_backend.plant import PlantParams, simulate
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
+from servobench.errors import DriveFaultError
+from servobench.sim_backend.device import WATCHDOG_FAULT
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
@@ -56,7 +56,7 @@ def test_square_wave_matches_the_plant(transport):
 
 HOST = """
 import sys
-from drivers.registry import open_drive
+from servobench.drivers.registry import open_drive
 drive = open_drive(sys.argv[1])
 drive.open()
 drive.set_cycle(0.001)

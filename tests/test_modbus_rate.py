@@ -1,6 +1,6 @@
 """The served Modbus RTU link is never faster than the wire (rates are figures: benchmarks/transport_rate.py).
 
-The served RTU link emulates the line (:mod:`sim_backend.pty_link`): 10 bits
+The served RTU link emulates the line (:mod:`servobench.sim_backend.servers.pty_link`): 10 bits
 per byte at the baud rate and the Modbus t3.5 silence (1.75 ms above 19200
 baud) that ends every frame, so one cycle cannot beat the sum of its frames'
 line times. Run with ``-s`` to see the figures.
@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.link_budget import modbus_rtu_cycle_s, modbus_rtu_frames
-from drivers.registry import open_drive
-from drivers.regmap import RegisterMap, load_map, resolve_map
-from sim_backend.launch import ServedSim
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.link_budget import modbus_rtu_cycle_s, modbus_rtu_frames
+from servobench.drivers.registry import open_drive
+from servobench.drivers.regmap import RegisterMap, load_map, resolve_map
 
 BAUD = 115200
 

@@ -16,25 +16,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.errors import (
+from servobench.drivers.modbus import ModbusDrive, exception_error
+from servobench.drivers.registry import open_drive
+from servobench.drivers.regmap import resolve_map
+from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
     DriveFaultError,
     DriveTimeoutError,
 )
-from drivers.modbus import ModbusDrive, exception_error
-from drivers.registry import open_drive
-from drivers.regmap import resolve_map
-from sim_backend import serve_modbus
-from sim_backend.device import (
+from servobench.sim_backend.device import (
     GENERIC_FAULT,
     PowerState,
     SimulatedDevice,
     WatchdogThread,
     device_from_url,
 )
-from sim_backend.plant import PlantParams, simulate
-from sim_backend.serve_modbus import parse_faults
+from servobench.sim_backend.physics.plant import PlantParams, simulate
+from servobench.sim_backend.servers import serve_modbus
+from servobench.sim_backend.servers.serve_modbus import parse_faults
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)

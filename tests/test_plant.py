@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from drivers.errors import UsageError
-from sim_backend.plant import Plant, PlantParams, PlantState, simulate, simulate_coulomb
+from servobench.errors import UsageError
+from servobench.sim_backend.physics.plant import (
+    Plant,
+    PlantParams,
+    PlantState,
+    simulate,
+    simulate_coulomb,
+)
 
 DT = 1e-3
 

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers.errors import DriveConfigError, UsageError
-from drivers.regmap import (
+from servobench.drivers.regmap import (
     Register,
     decode,
     decode_raw,
@@ -23,13 +22,14 @@ from drivers.regmap import (
     shipped_maps,
     words_of,
 )
-from drivers.tomlfile import read_toml
+from servobench.errors import DriveConfigError, UsageError
+from servobench.tomlfile import read_toml
 
 
 def reg(
     fmt: str, scale: float = 1.0, word_order: str = "big", byte_order: str = "big", count: int = 0
 ) -> Register:
-    from drivers.regmap import FORMATS
+    from servobench.drivers.regmap import FORMATS
 
     return Register("r", 0, fmt, count or FORMATS[fmt][1], scale, word_order, byte_order)
 

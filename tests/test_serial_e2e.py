@@ -14,19 +14,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.ascii_line import MalformedReplyError
-from drivers.dialect import DIALECT_DIR, CommandRejectedError
-from drivers.errors import (
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.ascii_line import MalformedReplyError
+from servobench.drivers.dialect import DIALECT_DIR, CommandRejectedError
+from servobench.drivers.registry import open_drive
+from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
     DriveFaultError,
     DriveTimeoutError,
     StateTransitionError,
 )
-from drivers.registry import open_drive
-from sim_backend.launch import ServedSim
-from sim_backend.plant import PlantParams, simulate
-from sim_backend.serve_serial import PtyPort
+from servobench.sim_backend.physics.plant import PlantParams, simulate
+from servobench.sim_backend.servers.serve_serial import PtyPort
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
@@ -95,7 +95,7 @@ def test_info_units_and_state():
 def test_killed_host_trips_the_drive_watchdog():
     streamer = (
         "import sys\n"
-        "from drivers.registry import open_drive\n"
+        "from servobench.drivers.registry import open_drive\n"
         "d = open_drive(sys.argv[1]); d.open(); d.set_cycle(0.001); d.enable()\n"
         "k = 0\n"
         "while True:\n"

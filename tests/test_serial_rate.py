@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from drivers.registry import open_drive
-from sim_backend.launch import ServedSim
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
 
 N_EXCHANGES = 300
 BAUD = 115200

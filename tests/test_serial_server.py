@@ -8,12 +8,18 @@ import time
 import pytest
 import serial
 
-from drivers.ascii_line import encode_line, xor_checksum
-from drivers.dialect import load_dialect
-from drivers.errors import DriveConfigError
-from sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
-from sim_backend.plant import PlantParams
-from sim_backend.serve_serial import AsciiDriveServer, PtyPort, UartClock, parse_faults, pump
+from servobench.drivers.ascii_line import encode_line, xor_checksum
+from servobench.drivers.dialect import load_dialect
+from servobench.errors import DriveConfigError
+from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from servobench.sim_backend.physics.plant import PlantParams
+from servobench.sim_backend.servers.serve_serial import (
+    AsciiDriveServer,
+    PtyPort,
+    UartClock,
+    parse_faults,
+    pump,
+)
 
 
 @pytest.fixture

@@ -5,10 +5,10 @@ import json
 import pytest
 from numpy.testing import assert_allclose
 
-from bench.logio import read_log
-from bench.procedure import SidbeOptions, run_sidbe
-from drivers.errors import UsageError
-from drivers.registry import open_drive
+from servobench.bench.logio import read_log
+from servobench.bench.procedure import SidbeOptions, run_sidbe
+from servobench.drivers.registry import open_drive
+from servobench.errors import UsageError
 
 FAST = {"period_s": 2.0, "periods": 3}
 

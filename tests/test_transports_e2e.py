@@ -15,15 +15,14 @@ import sys
 
 import pytest
 
-from drivers.registry import BACKENDS
-from sim_backend.launch import ServedSim
-from sim_backend.serve import TRANSPORTS
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import BACKENDS
+from servobench.sim_backend.servers.serve import TRANSPORTS
 
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 TRUE_POLE, TRUE_GAIN = -10.0, 1.0
 # A short excitation: 4 s period at 50 Hz, so the slowest link (RTU) finishes in seconds.
 SIDBE_ARGS = ["--fs", "50", "--periods", "3", "--freqs", "1,2,3,5,8,13", "--amplitude", "3"]
-SAFE_PATH = ["-P"] if sys.version_info >= (3, 11) else []  # ignore stray modules in the cwd
 SCHEME = {"canopen": "canopen", "modbus-tcp": "modbus+tcp", "modbus-rtu": "modbus+rtu", "serial": "serial"}
 
 
@@ -38,7 +37,7 @@ def test_sidbe_identifies_the_served_plant(transport, tmp_path):
         assert served.url.startswith(SCHEME[transport] + "://")
         url = served.url + ("&" if "?" in served.url else "?") + "pace=fast"
         out = subprocess.run(
-            [sys.executable, *SAFE_PATH, "-m", "bench.cli", "sidbe", "--drive", url, "--json",
+            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json",
              "--out", str(tmp_path / "run"), *SIDBE_ARGS],
             capture_output=True, text=True, timeout=240,
         )  # fmt: skip

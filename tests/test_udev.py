@@ -12,8 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.udev_lint import KEYS, lint_file, lint_text
-from bench.udev_rules import (
+from servobench.udev.lint import KEYS, lint_file, lint_text
+from servobench.udev.rules import (
     InstallOptions,
     UsageError,
     install,

@@ -35,8 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bench.commission.config import load_config
-    from bench.commission.sequence import CommissionOptions, commission
+    from servobench.bench.commission.config import load_config
+    from servobench.bench.commission.sequence import CommissionOptions, commission
 
     out = Path(args.out) if args.out else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
     options = CommissionOptions(

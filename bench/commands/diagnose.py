@@ -2,7 +2,7 @@
 
 Identifies the base model (linear block + Coulomb per direction), compares
 it with the measured velocity, looks for the signatures of the library's
-effects (:mod:`sim_backend.effects`), adds what pays on held-out data and
+effects (:mod:`servobench.sim_backend.physics.effects`), adds what pays on held-out data and
 reports the velocity gap before and after. ``--json`` prints exactly one JSON
 object; ``--out DIR`` writes ``comparison.csv``, plots and ``report.md``.
 """
@@ -33,9 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from bench.diagnose import diagnose
-    from bench.diagnose.report import to_json, write_report
-    from bench.logio import read_log
+    from servobench.bench.diagnose.workflow import diagnose
+    from servobench.bench.logio import read_log
+    from servobench.bench.report.diagnose import to_json, write_report
 
     log = read_log(args.log, args.mat_map)
     result = diagnose(log, horizon_s=args.horizon)

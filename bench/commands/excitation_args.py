@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from bench import excitation as exc
-from drivers.errors import UsageError
+from servobench.bench import excitation as exc
+from servobench.errors import UsageError
 
 
 def add_excitation_arguments(p: argparse.ArgumentParser) -> None:

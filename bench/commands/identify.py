@@ -43,16 +43,16 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from bench.commands.summary import print_json, print_result
-    from bench.identify import identify
-    from bench.logio import read_log
+    from servobench.bench.identify.auto import identify
+    from servobench.bench.logio import read_log
+    from servobench.bench.report.summary import print_json, print_result
 
     log = read_log(args.log, mat_map=args.mat_map)
     if args.loop:
         log = replace(log, metadata={**log.metadata, "loop": args.loop})
     result = identify(log, args.method, resonance=args.resonance, velocity_cutoff_hz=args.cutoff)
     if args.plots:
-        from bench.plots import write_plots
+        from servobench.bench.report.plots import write_plots
 
         out = Path(args.plots)
         out.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from bench.commands.excitation_args import (
+from servobench.bench.commands.excitation_args import (
     add_excitation_arguments,
     check_amplitude,
     design_from_args,
@@ -21,11 +21,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bench.commands.progress import stream_progress
-    from bench.commands.summary import print_json
-    from bench.excitation import design_excitation
-    from bench.runner import stream_runs
-    from drivers.registry import open_drive
+    from servobench.bench.commands.progress import stream_progress
+    from servobench.bench.excitation import design_excitation
+    from servobench.bench.report.summary import print_json
+    from servobench.bench.run.runner import stream_runs
+    from servobench.drivers.registry import open_drive
 
     design = design_from_args(args)
     drive = open_drive(args.drive)

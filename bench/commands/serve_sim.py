@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-from sim_backend.serve import TRANSPORTS, run_server
+from servobench.sim_backend.servers.serve import TRANSPORTS, run_server
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from sim_backend.faults.spec import grammar_help
+    from servobench.sim_backend.faults.spec import grammar_help
 
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = grammar_help()

@@ -12,14 +12,14 @@ import argparse
 import time
 from pathlib import Path
 
-from bench.commands.excitation_args import add_excitation_arguments, parse_freqs
+from servobench.bench.commands.excitation_args import add_excitation_arguments, parse_freqs
 
 #: Parent of the default output folders.
 RUNS_DIR = "servobench-runs"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from bench.procedure import DEFAULT_FIT_THRESHOLD, DEFAULT_MAX_ITERATIONS
+    from servobench.bench.procedure import DEFAULT_FIT_THRESHOLD, DEFAULT_MAX_ITERATIONS
 
     add_excitation_arguments(p)
     p.add_argument(
@@ -73,10 +73,10 @@ def default_out_dir(base: Path | None = None) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bench.commands.progress import stream_progress
-    from bench.commands.summary import print_json, print_result
-    from bench.procedure import SidbeOptions, run_sidbe
-    from drivers.registry import open_drive
+    from servobench.bench.commands.progress import stream_progress
+    from servobench.bench.procedure import SidbeOptions, run_sidbe
+    from servobench.bench.report.summary import print_json, print_result
+    from servobench.drivers.registry import open_drive
 
     options = SidbeOptions(
         amplitude=args.amplitude,

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from bench.udev_rules import InstallOptions
+    from servobench.udev.rules import InstallOptions
 
 RELOAD_HINT = "udevadm control --reload-rules && udevadm trigger"
 
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _options(args: argparse.Namespace) -> InstallOptions:
-    from bench.udev_rules import InstallOptions, parse_can_name
+    from servobench.udev.rules import InstallOptions, parse_can_name
 
     return InstallOptions(
         bitrate=args.bitrate,
@@ -74,7 +74,7 @@ def _options(args: argparse.Namespace) -> InstallOptions:
 
 
 def _install(args: argparse.Namespace) -> int:
-    from bench.udev_rules import install, render, shipped_rules
+    from servobench.udev.rules import install, render, shipped_rules
 
     options = _options(args)
     if args.dry_run:
@@ -103,8 +103,8 @@ def _install(args: argparse.Namespace) -> int:
 
 
 def _lint(args: argparse.Namespace) -> int:
-    from bench.udev_lint import lint_file, lint_text
-    from bench.udev_rules import InstallOptions, render, shipped_rules
+    from servobench.udev.lint import lint_file, lint_text
+    from servobench.udev.rules import InstallOptions, render, shipped_rules
 
     results = []
     if args.files:
@@ -126,8 +126,8 @@ def _lint(args: argparse.Namespace) -> int:
 
 
 def _list(args: argparse.Namespace) -> int:
-    from bench.udev_lint import lint_file
-    from bench.udev_rules import rules_dir, scan_usb, shipped_rules, udev_glob, usb_matches
+    from servobench.udev.lint import lint_file
+    from servobench.udev.rules import rules_dir, scan_usb, shipped_rules, udev_glob, usb_matches
 
     sources = shipped_rules()
     results = [lint_file(src, template=True) for src in sources]

@@ -1,6 +1,6 @@
 """Field commissioning: from "plugged in" to "identified, compensated, documented".
 
-The step sequence (:mod:`bench.commission.sequence`) checks the link and the
+The step sequence (:mod:`servobench.bench.commission.sequence`) checks the link and the
 drive, confirms the limits, bump-tests the axis, runs SIDBE with its
 verification loop and the diagnosis, designs friction feed-forward and a
 velocity-loop PI from the identified model, checks both in simulation and
@@ -25,6 +25,6 @@ ui           messages and progress bars (rich)
 sequence     the steps, Ctrl-C safe
 """
 
-from bench.commission.errors import CommissionRefused
+from servobench.bench.commission.errors import CommissionRefused
 
 __all__ = ["CommissionRefused"]

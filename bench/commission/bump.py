@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.commission.config import BumpSettings
-from bench.commission.errors import CommissionRefused
-from bench.commission.limits import ConfirmedLimits
-from bench.logio import LogWriter
-from bench.runner import LOG_COLUMNS, sleep_until
-from drivers.base import Drive
-from drivers.errors import DriveError
+from servobench.bench.commission.config import BumpSettings
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.bench.commission.limits import ConfirmedLimits
+from servobench.bench.logio import LogWriter
+from servobench.bench.run.runner import LOG_COLUMNS, sleep_until
+from servobench.drivers.base import Drive
+from servobench.errors import DriveError
 
 #: Cycles at zero command before the first pulse (noise estimate).
 REST_CYCLES = 50

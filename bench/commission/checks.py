@@ -12,10 +12,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from bench.commission.errors import CommissionRefused
-from bench.commission.ui import Console
-from drivers.base import Drive, DriveInfo, Feedback
-from drivers.errors import DriveError, LimitExceededError
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.bench.commission.ui import Console
+from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.errors import DriveError, LimitExceededError
 
 
 @dataclass(frozen=True)

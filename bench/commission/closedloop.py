@@ -1,7 +1,7 @@
 """Check the PI and the friction feed-forward in simulation on the identified plant.
 
 The velocity loop runs on the exact stick-slip plant of
-:mod:`sim_backend.plant` built from the identified model (Coulomb friction
+:mod:`servobench.sim_backend.physics.plant` built from the identified model (Coulomb friction
 per direction, no sensor noise), at the design's sample time, with its delay,
 the command clamped to max_u and a clamping anti-windup. A slow reversing
 reference (a sinusoid a few times the Coulomb breakaway velocity) makes the
@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.commission.config import CompensationSettings
-from bench.commission.design import FrictionFeedForward, PIDesign
-from sim_backend.plant import Plant, PlantParams
+from servobench.bench.commission.config import CompensationSettings
+from servobench.bench.commission.design import FrictionFeedForward, PIDesign
+from servobench.sim_backend.physics.plant import Plant, PlantParams
 
 #: Default reference amplitude over the Coulomb breakaway velocity mean(Fc)/B.
 AMPLITUDE_OVER_BREAKAWAY = 2.0

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from drivers.errors import UsageError
+from servobench.errors import UsageError
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import UsageError
+from servobench.errors import UsageError
 
 #: Bisection steps of the crossover search.
 _BISECTION_STEPS = 60

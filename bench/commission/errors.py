@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drivers.errors import ServobenchError
+from servobench.errors import ServobenchError
 
 
 class CommissionRefused(ServobenchError):

@@ -1,8 +1,8 @@
 """The one place commissioning touches identification, SIDBE and the diagnosis.
 
-Everything the steps need from :mod:`bench.procedure` (``run_sidbe``,
-``SidbeOptions``), :mod:`bench.model` (``IdentificationResult``) and
-:mod:`bench.diagnose` (``diagnose``, ``report.to_json``/``write_report``)
+Everything the steps need from :mod:`servobench.bench.procedure` (``run_sidbe``,
+``SidbeOptions``), :mod:`servobench.bench.model` (``IdentificationResult``) and
+:mod:`servobench.bench.diagnose.workflow` (``diagnose``, ``report.to_json``/``write_report``)
 passes through here and comes out as the small result types below, so an
 API change elsewhere is a fix in this module only.
 """
@@ -15,13 +15,13 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from bench.model import IdentificationResult
-from drivers.base import Drive
-from drivers.errors import UsageError
+from servobench.bench.model import IdentificationResult
+from servobench.drivers.base import Drive
+from servobench.errors import UsageError
 
 ProgressCallback = Callable[[int, int], None]
 
-#: Model keys of ``servobench identify --json`` (bench.model.IdentificationResult.to_json()).
+#: Model keys of ``servobench identify --json`` (servobench.bench.model.IdentificationResult.to_json()).
 IDENTIFY_KEYS = ("M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent", "method")
 #: Default SIDBE amplitude over the bump pulse that moved the axis.
 AMPLITUDE_OVER_BUMP = 2.0
@@ -34,7 +34,7 @@ class SidbeOutcome:
     Attributes
     ----------
     result : IdentificationResult
-        The accepted model (:mod:`bench.model`): ``result.model`` (M, B,
+        The accepted model (:mod:`servobench.bench.model`): ``result.model`` (M, B,
         coulomb_pos, coulomb_neg, pole, dc_gain), ``std``, ``fit_percent``,
         ``method``, ``to_json()`` (the ``identify --json`` keys).
     log_path : Path
@@ -81,7 +81,7 @@ class DiagnoseOutcome:
 
 
 def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> Any:
-    """:class:`bench.procedure.SidbeOptions` from the ``[sidbe]`` table.
+    """:class:`servobench.bench.procedure.SidbeOptions` from the ``[sidbe]`` table.
 
     Keys are the option names (``amplitude``, ``ratio``, ``fs_hz``, ``periods``,
     ``period_s``, ``freqs_hz``, ``method``, ``fit_threshold``, ``max_iterations``,
@@ -91,7 +91,7 @@ def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> 
     starts well past friction and the verification loop may still grow it up
     to max_u. The options are validated here (:class:`UsageError`).
     """
-    from bench.procedure import SidbeOptions
+    from servobench.bench.procedure import SidbeOptions
 
     known = {f.name for f in fields(SidbeOptions)} - {"pace", "plots"}
     unknown = sorted(set(options) - known)
@@ -119,7 +119,7 @@ def run_sidbe(
     progress: ProgressCallback | None = None,
 ) -> SidbeOutcome:
     """SIDBE with its verification loop on an open drive; ``log.csv``, ``log-<i>.csv`` and plots in ``out_dir``."""
-    from bench import procedure
+    from servobench.bench import procedure
 
     def tick(iteration: int, done: int, total: int) -> None:
         if progress is not None:
@@ -150,9 +150,9 @@ def run_sidbe(
 
 def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> DiagnoseOutcome:
     """Diagnose ``log_path`` (``[diagnose]`` keys: ``horizon_s``); ``comparison.csv``, plots, ``report.md`` in ``out_dir``."""
-    from bench.diagnose import diagnose as run_diagnosis
-    from bench.diagnose.report import to_json, write_report
-    from bench.logio import read_log
+    from servobench.bench.diagnose.workflow import diagnose as run_diagnosis
+    from servobench.bench.logio import read_log
+    from servobench.bench.report.diagnose import to_json, write_report
 
     unknown = sorted(set(options) - {"horizon_s"})
     if unknown:

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 from typing import TextIO
 from urllib.parse import urlencode, urlsplit
 
-from bench.commission.config import LIMIT_KEYS, LimitSettings
-from bench.commission.errors import CommissionRefused
-from drivers.url import DriveURL, parse_drive_url
+from servobench.bench.commission.config import LIMIT_KEYS, LimitSettings
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.drivers.url import DriveURL, parse_drive_url
 
 _DESCRIPTIONS = {
     "max_u": "max |command| (torque/current) [command units]",

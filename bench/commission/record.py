@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from bench.commission.closedloop import CompensationCheck
-from bench.commission.design import FrictionFeedForward, PIDesign
-from bench.commission.integration import IDENTIFY_KEYS
-from bench.logio import ExperimentLog
-from bench.model import STD_KEYS, IdentificationResult
+from servobench.bench.commission.closedloop import CompensationCheck
+from servobench.bench.commission.design import FrictionFeedForward, PIDesign
+from servobench.bench.commission.integration import IDENTIFY_KEYS
+from servobench.bench.logio import ExperimentLog
+from servobench.bench.model import STD_KEYS, IdentificationResult
 
 MODEL_FILE = "model.json"
 MAT_FILE = "commission.mat"
@@ -118,7 +118,7 @@ def write_mat(
 ) -> Path:
     """``commission.mat``: ``run, t, u, v, x`` (column vectors over all runs), ``fs`` and the numbers.
 
-    Readable back with :func:`bench.logio.read_log` (default variable names).
+    Readable back with :func:`servobench.bench.logio.read_log` (default variable names).
     """
     from scipy.io import savemat
 

@@ -24,14 +24,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.commission import document, integration
-from bench.commission.bump import BumpResult, plan_text, run_bump_test
-from bench.commission.checks import DriveCheck, check_drive
-from bench.commission.closedloop import check_compensation, reference_amplitude
-from bench.commission.config import CommissionConfig, LimitSettings
-from bench.commission.design import design_pi, friction_feed_forward
-from bench.commission.errors import CommissionRefused
-from bench.commission.limits import (
+from servobench.bench.commission import integration
+from servobench.bench.commission.bump import BumpResult, plan_text, run_bump_test
+from servobench.bench.commission.checks import DriveCheck, check_drive
+from servobench.bench.commission.closedloop import check_compensation, reference_amplitude
+from servobench.bench.commission.config import CommissionConfig, LimitSettings
+from servobench.bench.commission.design import design_pi, friction_feed_forward
+from servobench.bench.commission.errors import CommissionRefused
+from servobench.bench.commission.limits import (
     ConfirmedLimits,
     TerminalPrompter,
     confirm_at_terminal,
@@ -39,7 +39,7 @@ from bench.commission.limits import (
     merge_limits,
     url_with_limits,
 )
-from bench.commission.record import (
+from servobench.bench.commission.record import (
     MAT_FILE,
     MODEL_FILE,
     STATUS_FILE,
@@ -49,13 +49,14 @@ from bench.commission.record import (
     write_json,
     write_mat,
 )
-from bench.commission.report import REPORT_FILE, write_report
-from bench.commission.ui import Console
-from bench.logio import read_log
-from bench.model import IdentificationResult, ServoModel
-from drivers.base import Drive
-from drivers.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
-from drivers.url import parse_drive_url
+from servobench.bench.commission.ui import Console
+from servobench.bench.logio import read_log
+from servobench.bench.model import IdentificationResult, ServoModel
+from servobench.bench.report import commission_record as document
+from servobench.bench.report.html import REPORT_FILE, write_report
+from servobench.drivers.base import Drive
+from servobench.drivers.url import parse_drive_url
+from servobench.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
 
 BUMP_LOG = "bump.csv"
 DIAGNOSE_DIR = "diagnose"
@@ -102,7 +103,7 @@ DriveFactory = Callable[[str], Drive]
 
 
 def _default_factory(url: str) -> Drive:
-    from drivers.registry import open_drive
+    from servobench.drivers.registry import open_drive
 
     return open_drive(url)
 
@@ -117,7 +118,7 @@ class Commissioning:
     prompter : TerminalPrompter, optional
         Questions at the terminal (limits, fault reset); needed without ``--yes``.
     drive_factory : callable(url) -> Drive
-        Creates (not opens) a drive; :func:`drivers.registry.open_drive` by default.
+        Creates (not opens) a drive; :func:`servobench.drivers.registry.open_drive` by default.
     """
 
     def __init__(
@@ -368,7 +369,7 @@ class Commissioning:
 
 
 def _version() -> str:
-    from bench import __version__
+    from servobench import __version__
 
     return __version__
 

@@ -1,7 +1,7 @@
 """Step 1: the base model, a linear block plus Coulomb friction per direction.
 
 :func:`initial_base` is the one place that chooses where the starting values
-come from: ``bench.identify.identify`` when that module is present (and the
+come from: ``servobench.bench.identify.auto.identify`` when that module is present (and the
 log is open loop), else -- or when the identifier gives up on the log -- an
 equation-error (inverse-dynamics) least-squares fit on the moving samples.
 Either is only a start:
@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.diagnose.data import DiagnosisData
-from bench.diagnose.refit import FitResult, refit
-from bench.diagnose.screening import screen_input
-from bench.diagnose.simulate import Candidate
-from bench.logio import ExperimentLog
-from drivers.errors import IdentificationError
-from sim_backend.effects.spec import base_fit
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.refit import FitResult, refit
+from servobench.bench.diagnose.screening import screen_input
+from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.logio import ExperimentLog
+from servobench.errors import IdentificationError
+from servobench.sim_backend.physics.effects.spec import base_fit
 
 
 def equation_error_base(data: DiagnosisData) -> dict[str, float]:
@@ -42,7 +42,7 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
 def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
     """Starting base model: the project's identifier when available, else equation error."""
     try:
-        from bench.identify import identify
+        from servobench.bench.identify.auto import identify
     except ImportError:
         return equation_error_base(data)
     if data.horizon_s is not None:  # closed loop: the identifier assumes open-loop runs

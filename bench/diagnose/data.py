@@ -24,8 +24,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from bench.logio import ExperimentLog
-from drivers.errors import IdentificationError, UsageError
+from servobench.bench.logio import ExperimentLog
+from servobench.errors import IdentificationError, UsageError
 
 #: Prediction horizon of closed-loop logs [s].
 DEFAULT_HORIZON_S = 0.5
@@ -39,16 +39,16 @@ MIN_RUN_SAMPLES = 50
 
 
 def lowpass(signal: np.ndarray, fs_hz: float) -> np.ndarray:
-    """The project's zero-phase low-pass (:func:`bench.derivative.lowpass`) at its default cut-off."""
-    from bench.derivative import default_cutoff_hz
-    from bench.derivative import lowpass as zero_phase
+    """The project's zero-phase low-pass (:func:`servobench.bench.identify.derivative.lowpass`) at its default cut-off."""
+    from servobench.bench.identify.derivative import default_cutoff_hz
+    from servobench.bench.identify.derivative import lowpass as zero_phase
 
     return zero_phase(signal, fs_hz, default_cutoff_hz(fs_hz))
 
 
 def velocity_from_position(x: np.ndarray, fs_hz: float) -> np.ndarray:
-    """Velocity [units/s] from position [units] (:func:`bench.derivative.differentiate_position`)."""
-    from bench.derivative import differentiate_position
+    """Velocity [units/s] from position [units] (:func:`servobench.bench.identify.derivative.differentiate_position`)."""
+    from servobench.bench.identify.derivative import differentiate_position
 
     return differentiate_position(np.asarray(x, dtype=float), fs_hz).v
 

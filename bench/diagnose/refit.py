@@ -22,10 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
-from bench.diagnose.simulate import Candidate, Window, gap_percent, simulate, windows
-from drivers.errors import UsageError
-from sim_backend import effects as library
+from servobench.bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
+from servobench.bench.diagnose.simulate import Candidate, Window, gap_percent, simulate, windows
+from servobench.errors import UsageError
+from servobench.sim_backend.physics import effects as library
 
 #: Relative finite-difference step of the Jacobian.
 DIFF_STEP = 1e-3

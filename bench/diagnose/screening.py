@@ -1,6 +1,6 @@
 """Look for each library effect's signature in what the current model leaves unexplained.
 
-Builds the :class:`~sim_backend.effects.spec.ScreenInput` (low-passed
+Builds the :class:`~servobench.sim_backend.physics.effects.spec.ScreenInput` (low-passed
 velocity, acceleration and command, the residual of the current model) and
 asks every effect module's ``screen`` for a score, a parameter guess and an
 evidence sentence. A quick simulation of each guess then ranks the candidates
@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.derivative import zoh_centered
-from bench.diagnose.data import DiagnosisData, lowpass
-from bench.diagnose.simulate import Candidate, gap_percent, held_out_windows, simulate
-from drivers.errors import UsageError
-from sim_backend import effects as library
-from sim_backend.effects.spec import RunSignals, Screening, ScreenInput
+from servobench.bench.diagnose.data import DiagnosisData, lowpass
+from servobench.bench.diagnose.simulate import Candidate, gap_percent, held_out_windows, simulate
+from servobench.bench.identify.derivative import zoh_centered
+from servobench.errors import UsageError
+from servobench.sim_backend.physics import effects as library
+from servobench.sim_backend.physics.effects.spec import RunSignals, Screening, ScreenInput
 
 #: Samples whose low-passed speed is below this fraction of its rms are left out of the
 #: inverse-dynamics equation (friction is undetermined at rest).

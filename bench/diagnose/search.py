@@ -16,17 +16,17 @@ import itertools
 import math
 from dataclasses import dataclass
 
-from bench.diagnose.data import DiagnosisData, noise_floor_percent
-from bench.diagnose.refit import FitResult, evaluate, refit
-from bench.diagnose.screening import (
+from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent
+from servobench.bench.diagnose.refit import FitResult, evaluate, refit
+from servobench.bench.diagnose.screening import (
     QuickScore,
     compatible,
     quick_score,
     screen_all,
     screen_input,
 )
-from bench.diagnose.simulate import Candidate
-from sim_backend.effects.spec import Screening
+from servobench.bench.diagnose.simulate import Candidate
+from servobench.sim_backend.physics.effects.spec import Screening
 
 #: Relative held-out improvement a term (or a pair over a single) must bring.
 MIN_GAIN = 0.15

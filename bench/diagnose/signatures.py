@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.diagnose.data import DiagnosisData, lowpass
+from servobench.bench.diagnose.data import DiagnosisData, lowpass
 
 #: Bins of the residual-versus-signal curves.
 BINS = 24

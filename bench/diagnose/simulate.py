@@ -2,7 +2,7 @@
 
 A :class:`Candidate` is the base model (``M, B, fc_pos, fc_neg``) plus an
 ordered set of effects; it runs on the same simulator the ``sim://`` drive
-uses (:mod:`sim_backend.plant` for the base, :mod:`sim_backend.rich_plant`
+uses (:mod:`servobench.sim_backend.physics.plant` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
 with effects), so what diagnose names can be simulated back.
 """
 
@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.diagnose.data import DiagnosisData, initial_velocity
-from sim_backend.effects import build_model
-from sim_backend.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.bench.diagnose.data import DiagnosisData, initial_velocity
+from servobench.sim_backend.physics.effects import build_model
+from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
 
 BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
 

@@ -1,6 +1,6 @@
 """The fault injector: between the served simulated drive and its transport.
 
-Every served transport clocks its :class:`~sim_backend.device.SimulatedDevice`
+Every served transport clocks its :class:`~servobench.sim_backend.device.SimulatedDevice`
 through a :class:`FaultInjector` instead of calling it directly::
 
     wire = injector.next_cycle()   # a clocking request arrived: count it, apply drive faults
@@ -9,10 +9,10 @@ through a :class:`FaultInjector` instead of calling it directly::
 
 :meth:`FaultInjector.next_cycle` applies the faults of the drive itself
 (``fault``, ``freeze``) and returns the wire faults due at this cycle, which
-the transport's hook (:mod:`sim_backend.faults.can`, ``.modbus``, ``.serial``)
+the transport's hook (:mod:`servobench.sim_backend.faults.can`, ``.modbus``, ``.serial``)
 carries out, because only it knows what a lost, late or garbled answer is on
 its wire. Every fault applied is recorded in :attr:`FaultInjector.injected`
-for the state report (:mod:`sim_backend.faults.state`).
+for the state report (:mod:`servobench.sim_backend.faults.state`).
 
 Frozen feedback freezes position and velocity only: the drive's clock, power
 state and fault code run on (the sensor stopped, not the drive). The
@@ -25,8 +25,8 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, replace
 
-from sim_backend.device import DeviceSample, SimulatedDevice
-from sim_backend.faults.spec import FaultPlan, FaultSpec
+from servobench.sim_backend.device import DeviceSample, SimulatedDevice
+from servobench.sim_backend.faults.spec import FaultPlan, FaultSpec
 
 
 @dataclass(frozen=True)

@@ -1,16 +1,16 @@
 """Modbus wire faults of the served drive (``serve-sim --transport modbus-tcp|modbus-rtu``).
 
-The register bridge of :mod:`sim_backend.serve_modbus` calls
+The register bridge of :mod:`servobench.sim_backend.servers.serve_modbus` calls
 :meth:`ModbusFaultHook.before_clock` on every clocking read (a read that
 covers the velocity register, FC3/FC4 or the read half of FC23), after
-:meth:`~sim_backend.faults.injector.FaultInjector.next_cycle`:
+:meth:`~servobench.sim_backend.faults.injector.FaultInjector.next_cycle`:
 
 ``exception``  answered with exception code ``C``; the drive is not clocked
 ``timeout``    not answered at all (pymodbus drops the request); not clocked
 ``delay``      the answer leaves ``MS`` ms late (the server awaits; it is clocked)
 ``crc``        clocked and answered, but the RTU link flips a bit of the
                answer's CRC on its way to the host
-               (:meth:`sim_backend.pty_link.PtyLink.tamper_next`)
+               (:meth:`servobench.sim_backend.servers.pty_link.PtyLink.tamper_next`)
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from collections.abc import Sequence
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import NoSuchIdException
 
-from sim_backend.faults.spec import FaultSpec
-from sim_backend.pty_link import PtyLink
+from servobench.sim_backend.faults.spec import FaultSpec
+from servobench.sim_backend.servers.pty_link import PtyLink
 
 
 def corrupt_crc(frame: bytes) -> bytes:

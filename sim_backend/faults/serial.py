@@ -1,6 +1,6 @@
 """Serial wire faults of the served drive (``serve-sim --transport serial``).
 
-The served dialect (:mod:`sim_backend.serve_serial`) clocks the drive for
+The served dialect (:mod:`servobench.sim_backend.servers.serve_serial`) clocks the drive for
 each feedback query, formats the reply and hands it to
 :meth:`SerialFaultHook.reply`, which returns what goes on the wire and when:
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from sim_backend.faults.spec import FaultSpec
+from servobench.sim_backend.faults.spec import FaultSpec
 
 #: Unsolicited text interleaved into a reply (what a drive's debug print might say).
 STRAY_LINE = b"warning: encoder check"

@@ -51,7 +51,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from drivers.errors import DriveConfigError
+from servobench.errors import DriveConfigError
 
 #: Transports of ``serve-sim --transport``.
 TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial")

@@ -25,8 +25,8 @@ import os
 import threading
 from pathlib import Path
 
-from sim_backend.device import PowerState, SimulatedDevice
-from sim_backend.faults.injector import FaultInjector
+from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.faults.injector import FaultInjector
 
 #: Longest wait between two writes of the report [s]; state changes are written at once
 #: and every change enters the history (the device calls the reporter on each).

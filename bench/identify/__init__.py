@@ -1,0 +1,1 @@
+"""Identification: SIDBE, the joint estimator, IDIM-LS, and the choice among them (:mod:`.auto`)."""

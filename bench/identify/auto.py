@@ -1,0 +1,162 @@
+"""Identify a servo model from a log: the method dispatcher and ``auto`` selection.
+
+Methods
+-------
+``sidbe``
+    SIDBE as published (:mod:`servobench.bench.identify.sidbe`); needs the u1/u2 run
+    pair of a periodic excitation.
+``joint``
+    The friction-aware joint estimator (:mod:`servobench.bench.identify.joint`); any
+    log, one run or more, velocity or position only.
+``auto``
+    Both when SIDBE can run; each is fitted without the last excitation
+    period and scored by the simulation fit on that held-out period, the
+    better one (ties go to ``joint``, which is unbiased) is refitted on all
+    the data. With fewer than three periods the steady-state part is scored
+    in-sample. On a single-run log ``auto`` is ``joint``, and says so.
+
+Every result is verified by simulation on the whole log
+(:func:`servobench.bench.identify.verify.verify`).
+"""
+
+from __future__ import annotations
+
+from servobench.bench.identify.dataset import Dataset, prepare
+from servobench.bench.identify.estimate import MethodEstimate
+from servobench.bench.identify.joint import identify_joint
+from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
+from servobench.bench.identify.verify import verify
+from servobench.bench.logio import ExperimentLog
+from servobench.bench.model import IdentificationResult
+from servobench.errors import IdentificationError, UsageError
+
+#: Methods :func:`identify` accepts.
+METHODS = ("auto", "sidbe", "joint")
+#: Held-out fits closer than this [percentage points] count as a tie (joint wins ties).
+TIE_PERCENT = 1e-3
+
+
+def identify(
+    log: ExperimentLog,
+    method: str = "auto",
+    *,
+    resonance: bool = False,
+    velocity_cutoff_hz: float | None = None,
+    derivative_method: str = "butter",
+) -> IdentificationResult:
+    """Identify ``M``, ``B`` and Coulomb friction per direction from a log.
+
+    Parameters
+    ----------
+    log : ExperimentLog
+        From :func:`servobench.bench.logio.read_log` (or built in memory).
+    method : {"auto", "sidbe", "joint"}
+    resonance : bool
+        Let SIDBE fit the series resonance of the paper's eq. (2)-(3).
+    velocity_cutoff_hz : float, optional
+        Cut-off of the zero-phase position filter for logs without velocity [Hz].
+    derivative_method : {"butter", "savgol"}
+        How velocity is derived from position.
+
+    Returns
+    -------
+    IdentificationResult
+
+    Raises
+    ------
+    IdentificationError
+        The data cannot yield a model (no motion, too short, SIDBE on one run ...).
+    UsageError
+        Unknown method.
+    """
+    if method not in METHODS:
+        raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
+    return identify_data(data, method, resonance=resonance)
+
+
+def identify_data(
+    data: Dataset, method: str = "auto", *, resonance: bool = False
+) -> IdentificationResult:
+    """:func:`identify` on a prepared :class:`~servobench.bench.identify.dataset.Dataset`."""
+    frf = None
+    validation: dict[str, float] = {}
+    if method == "sidbe":
+        est = identify_sidbe(data, resonance=resonance)
+        selection = "sidbe: requested"
+    elif method == "joint":
+        est = identify_joint(data)
+        selection = "joint: requested"
+    elif method == "auto":
+        est, selection, validation, frf = _auto(data, resonance)
+    else:
+        raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    ver = verify(est.model, data, est.noise_std)
+    return IdentificationResult(
+        model=est.model,
+        method=est.method,
+        fit_percent=ver.fit_percent,
+        std=dict(est.std),
+        selection=selection,
+        estimator=est.estimator,
+        noise_std=est.noise_std,
+        validation=validation,
+        notes=est.notes,
+        frf=est.frf if est.frf is not None else frf,
+        verification=ver,
+    )
+
+
+def _auto(data: Dataset, resonance: bool) -> tuple[MethodEstimate, str, dict[str, float], object]:
+    reason = sidbe_applicable(data)
+    if reason:
+        est = identify_joint(data)
+        return est, f"auto: joint, because sidbe cannot run on this log: {reason}", {}, None
+    assert data.design is not None
+    n = data.design.samples_per_period
+    periods = data.periodic_periods()
+    if periods >= 3:
+        fit_data = data.first_periods(periods - 1)
+        window = ((periods - 1) * n, periods * n)
+        where = "on the held-out last period"
+    else:
+        fit_data = data
+        window = (n, None)
+        where = "in-sample on the steady-state period (too few periods to hold one out)"
+    candidates: dict[str, MethodEstimate] = {}
+    validation: dict[str, float] = {}
+    failures: dict[str, str] = {}
+    for name, run in (
+        ("sidbe", lambda d: identify_sidbe(d, resonance=resonance)),
+        ("joint", identify_joint),
+    ):
+        try:
+            est = run(fit_data)
+            score = verify(est.model, data, est.noise_std, window).fit_percent
+        except IdentificationError as err:
+            failures[name] = str(err)
+            continue
+        candidates[name] = est
+        validation[name] = score
+    if not candidates:
+        raise IdentificationError("; ".join(f"{k}: {v}" for k, v in failures.items()))
+    winner = max(candidates, key=lambda k: validation[k] + (TIE_PERCENT if k == "joint" else 0.0))
+    others = [k for k in candidates if k != winner]
+    if others:
+        loser = others[0]
+        why = (
+            f"auto: {winner}, validation fit {validation[winner]:.3f} % vs {loser} "
+            f"{validation[loser]:.3f} % {where}"
+        )
+    else:
+        failed = next(iter(failures))
+        why = f"auto: {winner} (validation fit {validation[winner]:.3f} % {where}); {failed} failed: {failures[failed]}"
+    final = candidates[winner]
+    if fit_data is not data:
+        if winner == "sidbe":
+            final = identify_sidbe(data, resonance=resonance)
+        else:
+            final = identify_joint(data, start=final)
+    # the measured FRF (for the plot) from the held-out comparison is good enough
+    frf = candidates["sidbe"].frf if "sidbe" in candidates else None
+    return final, why, validation, frf

@@ -1,0 +1,211 @@
+"""The friction-aware joint estimator: ``M``, ``B`` and Coulomb friction per direction at once.
+
+Works on any log -- one run or two, any excitation, open or closed loop:
+
+1. Exact sampled-data regression (:mod:`servobench.bench.identify.regression`) on the sample
+   pairs that keep one strict velocity sign. For noise-free data this is
+   exact at every amplitude and the estimate is final.
+2. With sensor noise (judged from the regression residual): the pairs are
+   re-chosen on the simulated, noise-free velocity of the current estimate
+   (so the choice does not depend on the noise) and solved by instrumental
+   variables with the simulated velocity as instrument, then
+3. refined by output-error minimisation on the exact simulator
+   (:mod:`servobench.bench.identify.output_error`) -- on the averaged steady-state period of
+   periodic logs, or on a window of raw samples otherwise.
+
+Logs with position only go to the inverse-dynamic estimator
+(:mod:`servobench.bench.identify.idim`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.estimate import MethodEstimate
+from servobench.bench.identify.frequency import steady_average
+from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
+from servobench.bench.identify.regression import (
+    ZohFit,
+    fit_pairs,
+    fit_pairs_irregular,
+    noise_std_from_residual,
+    select_pairs,
+)
+from servobench.bench.identify.simulation import simulate_run
+from servobench.bench.identify.verify import initial_velocity
+from servobench.bench.model import ServoModel
+from servobench.errors import IdentificationError
+
+#: Noise below this fraction of the rms velocity counts as none (log rounding is ~1e-10).
+EXACT_RTOL = 1e-7
+#: Pairs closer to zero velocity than this many noise sigmas are not trusted.
+NOISE_SIGMAS = 3.0
+#: Instrumental-variable passes.
+IV_PASSES = 2
+#: Fewest samples (as a fraction) that must move clearly above the noise.
+MIN_MOVING_FRACTION = 0.01
+#: From this many steady-state periods on, the transient period is left out of the
+#: output-error refinement (it adds little information and costs a period of simulation).
+MANY_PERIODS = 8
+#: Most sample pairs in one regression of noisy data (evenly thinned beyond; the
+#: regressions only start the output-error refinement, which sees all the data).
+MAX_PAIRS = 100_000
+
+
+def identify_joint(
+    data: Dataset, *, refine_oe: bool = True, start: MethodEstimate | None = None
+) -> MethodEstimate:
+    """Identify ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` from ``data`` (see module docstring).
+
+    Parameters
+    ----------
+    data : Dataset
+    refine_oe : bool
+        Run the output-error refinement when the data are noisy.
+    start : MethodEstimate, optional
+        A joint estimate of (part of) the same data: its model and noise level
+        start the output-error refinement directly (used by ``auto`` to refit
+        on all data after the held-out comparison).
+    """
+    if data.derived:
+        from servobench.bench.identify.idim import identify_idim
+
+        return identify_idim(data, refine_oe=refine_oe)
+    dt = data.dt_s
+    vs = [s.v for s in data.segments]
+    us = [s.u for s in data.segments]
+    ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in data.segments]
+    notes: list[str] = list(data.notes)
+    v_all = np.concatenate(vs)
+
+    if start is not None and start.estimator == "output-error" and refine_oe:
+        sigma = start.noise_std
+        return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
+
+    fit = _solve(select_pairs(vs, us, ints, max_pairs=MAX_PAIRS), data, None)
+    sigma = noise_std_from_residual(fit.residual, fit.theta[0])
+    v_rms = math.sqrt(float(np.mean(v_all**2)))
+    if sigma <= EXACT_RTOL * v_rms:
+        model = _model(fit)
+        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-ls", 0.0, tuple(notes))
+
+    threshold = NOISE_SIGMAS * sigma
+    moving = np.mean(np.abs(v_all) > 2 * threshold)
+    if moving < MIN_MOVING_FRACTION:
+        raise IdentificationError(
+            f"no motion above the sensor noise (sigma {sigma:.3g}); raise the amplitude"
+        )
+    fit = _solve(select_pairs(vs, us, ints, threshold=threshold, max_pairs=MAX_PAIRS), data, fit)
+    model = _model(fit)
+    # the instruments need simulations; on long non-periodic logs use the refinement window
+    iv = _iv_data(data)
+    iv_vs = [s.v for s in iv.segments]
+    iv_us = [s.u for s in iv.segments]
+    iv_ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in iv.segments]
+    iv_v = np.concatenate(iv_vs)
+    for _ in range(IV_PASSES):
+        sims = [
+            simulate_run(
+                model,
+                s.u,
+                dt if s.dt_s is None else s.dt_s,
+                initial_velocity(s, sigma),
+                _period(iv),
+            )
+            for s in iv.segments
+        ]
+        mismatch2 = float(np.mean((iv_v - np.concatenate(sims)) ** 2)) - sigma**2
+        margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
+        pairs = select_pairs(
+            iv_vs, iv_us, iv_ints, references=sims, threshold=margin, max_pairs=MAX_PAIRS
+        )
+        try:
+            fit = _solve(pairs, iv, fit, instrumental=True)
+            model = _model(fit)
+        except IdentificationError:
+            break
+    if not refine_oe:
+        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-iv", sigma, tuple(notes))
+    return _refine(data, model, sigma, threshold, v_all, notes)
+
+
+def _refine(
+    data: Dataset,
+    model: ServoModel,
+    sigma: float,
+    threshold: float,
+    v_all: np.ndarray,
+    notes: list[str],
+) -> MethodEstimate:
+    chunks, note = oe_chunks(data, sigma)
+    if note:
+        notes.append(note)
+    free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
+    oe = refine(model, chunks, free)
+    return MethodEstimate(oe.model, "joint", oe.std, "output-error", oe.sigma, tuple(notes))
+
+
+def _iv_data(data: Dataset) -> Dataset:
+    """``data``, or for long non-periodic logs the window the output-error refinement uses."""
+    periodic = data.design is not None and not data.jittered and data.periodic_periods() >= 2
+    per_run = max(1, MAX_RAW_SAMPLES // len(data.segments))
+    if periodic or all(len(s) <= per_run for s in data.segments):
+        return data
+    return replace(data, segments=tuple(s.head(per_run) for s in data.segments))
+
+
+def _period(data: Dataset) -> int:
+    return data.design.samples_per_period if data.design is not None else 0
+
+
+def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = False) -> ZohFit:
+    if not data.jittered:
+        return fit_pairs(pairs, data.dt_s, instrumental=instrumental)
+    if previous is None:
+        previous = fit_pairs(pairs, float(np.mean(pairs.dt)))
+    return fit_pairs_irregular(pairs, (previous.M, previous.B, previous.fc_pos, previous.fc_neg))
+
+
+def _model(fit: ZohFit) -> ServoModel:
+    return ServoModel(fit.M, fit.B, max(fit.fc_pos, 0.0), max(fit.fc_neg, 0.0))
+
+
+def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
+    """The data for the output-error refinement.
+
+    Periodic logs: each run's first period from rest (when it starts at rest and
+    has fewer than ``MANY_PERIODS`` steady periods) and the average of its
+    steady-state periods; otherwise a raw window.
+    """
+    design = data.design
+    if design is not None and not data.jittered and data.periodic_periods() >= 2:
+        n = design.samples_per_period
+        chunks = []
+        for s in data.segments:
+            periods = len(s) // n - 1
+            v_bar = steady_average(s.v, n, 1)
+            if periods < MANY_PERIODS and initial_velocity(s, sigma) == 0.0:
+                # from rest: the transient period as logged, then the averaged steady one
+                weight = np.concatenate((np.ones(n), np.full(n, float(periods))))
+                chunks.append(
+                    Chunk(s.u[: 2 * n], np.concatenate((s.v[:n], v_bar)), data.dt_s, weight=weight)
+                )
+            else:
+                chunks.append(
+                    Chunk(s.u[n : 2 * n], v_bar, data.dt_s, periodic=True, weight=float(periods))
+                )
+        return chunks, ""
+    per_run = max(1, MAX_RAW_SAMPLES // len(data.segments))
+    note = ""
+    chunks = []
+    for s in data.segments:
+        seg = s.head(per_run) if len(s) > per_run else s
+        if len(s) > per_run:
+            note = f"output-error refinement on the first {per_run} samples of each run"
+        v0 = initial_velocity(seg, sigma)
+        chunks.append(Chunk(seg.u, seg.v, data.dt_s if seg.dt_s is None else seg.dt_s, v0))
+    return chunks, note

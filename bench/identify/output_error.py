@@ -1,0 +1,246 @@
+"""Output-error refinement and the Cramér-Rao bound, on the exact stick-slip simulator.
+
+The parameters ``(M, B, coulomb_pos, coulomb_neg)`` minimise the squared
+difference between the measured velocity and the velocity the model
+simulates from the logged command. With white velocity noise this is the
+maximum-likelihood estimate; it is unbiased at every amplitude, including
+where the axis sticks. Periodic SIDBE runs are first averaged over their
+steady-state periods (a sufficient statistic for white noise), so each
+evaluation simulates one period per run, whatever the log length.
+
+The covariance of the estimate is ``sigma^2 (J^T J)^-1`` with ``J`` the
+sensitivity of the simulated velocity to the parameters; evaluated at the
+true parameters with the true noise this is the Cramér-Rao bound.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from servobench.bench.identify.derivative import DerivedMotion, differentiate_position
+from servobench.bench.identify.simulation import simulate_steady_period, simulate_velocity
+from servobench.bench.model import STD_KEYS, ServoModel
+from servobench.errors import IdentificationError
+from servobench.sim_backend.physics.plant import PlantState, simulate_coulomb
+
+#: Largest number of raw samples used by the refinement of a non-periodic log.
+MAX_RAW_SAMPLES = 60_000
+#: Relative finite-difference step of the sensitivities.
+DIFF_STEP = 1e-6
+#: Most cost evaluations of one refinement.
+MAX_NFEV = 40
+#: Free Coulomb levels start at least this fraction of the rms command above zero.
+FRICTION_FLOOR = 1e-3
+#: Restart level (fraction of the rms command) when a search ends on the zero bound.
+RESTART_FRACTION = 0.01
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """A piece of data the model must reproduce.
+
+    Attributes
+    ----------
+    u : ndarray, shape (n,)
+        Command [command units].
+    v : ndarray, shape (n,)
+        Measured velocity [units/s] (for ``periodic`` chunks: the average period).
+    dt_s : float or ndarray
+        Sample interval [s] (per interval for irregular sampling).
+    v0 : float
+        Initial velocity [units/s] (ignored for periodic chunks).
+    periodic : bool
+        ``u`` is one period of a periodic command and ``v`` its steady state.
+    skip : int
+        Leading samples left out of the comparison (initial transient of unknown state).
+    weight : float or ndarray
+        Number of raw samples each compared sample stands for (periods averaged),
+        one value or one per compared sample.
+    derive : DerivedMotion or None
+        Set when ``v`` was derived from position: the simulated position then goes
+        through the same filter and derivative, so both sides are filtered alike.
+    x0 : float
+        Initial position [units] (derived chunks).
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    dt_s: float | np.ndarray
+    v0: float = 0.0
+    periodic: bool = False
+    skip: int = 0
+    weight: float | np.ndarray = 1.0
+    derive: DerivedMotion | None = None
+    x0: float = 0.0
+
+
+def simulate_chunk(model: ServoModel, chunk: Chunk) -> np.ndarray:
+    """Simulated velocity of ``chunk`` (compared samples only)."""
+    if chunk.periodic:
+        v = simulate_steady_period(model, chunk.u, float(chunk.dt_s))
+    elif chunk.derive is not None:
+        dt = float(np.mean(chunk.dt_s))
+        _, x, _ = simulate_coulomb(
+            chunk.u, dt, model.to_plant_params(), PlantState(chunk.v0, chunk.x0)
+        )
+        d = chunk.derive
+        v = differentiate_position(x, 1.0 / dt, d.cutoff_hz, d.method).v
+    else:
+        v = simulate_velocity(model, chunk.u, chunk.dt_s, chunk.v0)
+    end = len(v) - chunk.skip if chunk.derive is not None else len(v)
+    return v[chunk.skip : end]
+
+
+def measured_chunk(chunk: Chunk) -> np.ndarray:
+    """The measured samples ``simulate_chunk`` is compared with."""
+    end = len(chunk.v) - chunk.skip if chunk.derive is not None else len(chunk.v)
+    return chunk.v[chunk.skip : end]
+
+
+def _model(p: np.ndarray, base: ServoModel) -> ServoModel:
+    return ServoModel(
+        math.exp(p[0]), math.exp(p[1]), max(float(p[2]), 0.0), max(float(p[3]), 0.0), base.resonance
+    )
+
+
+@dataclass(frozen=True)
+class OutputErrorFit:
+    """Refined model, 1-sigma stds, residual noise sigma [units/s] of a raw sample, evaluations."""
+
+    model: ServoModel
+    std: dict[str, float]
+    sigma: float
+    nfev: int
+    cost: float = math.nan
+
+
+def refine(
+    model0: ServoModel,
+    chunks: Sequence[Chunk],
+    free: Sequence[bool] = (True,) * 4,
+    friction_scale: float | None = None,
+) -> OutputErrorFit:
+    """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``.
+
+    ``free`` fixes parameters the data cannot see (e.g. friction in a direction
+    never travelled) at their starting value. Zero friction is a kink of the
+    cost (no sticking at all), where a bounded search can stall: free Coulomb
+    levels start at least ``FRICTION_FLOOR * friction_scale`` (default scale:
+    the rms command) above it, and a search that ends on the bound is
+    restarted from ``RESTART_FRACTION * friction_scale``; the lower cost wins.
+    """
+    if friction_scale is None:
+        friction_scale = math.sqrt(float(np.mean(np.concatenate([c.u for c in chunks]) ** 2)))
+    floor = FRICTION_FLOOR * friction_scale
+    fp = max(model0.coulomb_pos, floor) if free[2] else model0.coulomb_pos
+    fn = max(model0.coulomb_neg, floor) if free[3] else model0.coulomb_neg
+    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free)
+    on_bound = (free[2] and best.model.coulomb_pos <= floor * 1e-3) or (
+        free[3] and best.model.coulomb_neg <= floor * 1e-3
+    )
+    if on_bound:
+        level = RESTART_FRACTION * friction_scale
+        again = _refine_once(
+            replace(
+                best.model,
+                coulomb_pos=level if free[2] else best.model.coulomb_pos,
+                coulomb_neg=level if free[3] else best.model.coulomb_neg,
+            ),
+            chunks,
+            free,
+        )
+        if again.cost < best.cost:
+            best = again
+    return best
+
+
+def _refine_once(
+    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool]
+) -> OutputErrorFit:
+    from scipy.optimize import least_squares
+
+    free_idx = [i for i in range(4) if free[i]]
+    p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg])
+    weights = [np.sqrt(c.weight) for c in chunks]
+
+    def full(q: np.ndarray) -> np.ndarray:
+        p = p0.copy()
+        p[free_idx] = q
+        return p
+
+    def residual(q: np.ndarray) -> np.ndarray:
+        m = _model(full(q), model0)
+        return np.concatenate(
+            [
+                w * (simulate_chunk(m, c) - measured_chunk(c))
+                for c, w in zip(chunks, weights, strict=True)
+            ]
+        )
+
+    lower = np.array([-np.inf, -np.inf, 0.0, 0.0])[free_idx]
+    upper = np.full(len(free_idx), np.inf)
+    q0 = np.clip(p0[free_idx], lower, upper)
+    step = np.full(len(free_idx), DIFF_STEP)
+    try:
+        sol = least_squares(
+            residual,
+            q0,
+            bounds=(lower, upper),
+            x_scale="jac",
+            diff_step=step,
+            xtol=1e-8,
+            ftol=1e-10,
+            gtol=1e-10,
+            max_nfev=MAX_NFEV,
+        )
+    except (ValueError, FloatingPointError) as err:
+        raise IdentificationError(f"output-error refinement failed: {err}") from None
+    p = full(sol.x)
+    model = _model(p, model0)
+    sigma2 = 2.0 * sol.cost / max(1, sol.fun.size - len(free_idx))
+    # an averaged chunk's residual has variance sigma^2 / weight; the weighting undoes that
+    std = _std_from_jacobian(sol.jac, sigma2, p, free_idx)
+    return OutputErrorFit(model, std, math.sqrt(sigma2), int(sol.nfev), float(sol.cost))
+
+
+def _std_from_jacobian(
+    jac: np.ndarray, sigma2: float, p: np.ndarray, free_idx: list[int]
+) -> dict[str, float]:
+    scale = np.array([math.exp(p[0]), math.exp(p[1]), 1.0, 1.0])[free_idx]
+    Jn = np.asarray(jac) / scale  # d r / d natural parameter
+    try:
+        cov = sigma2 * np.linalg.inv(Jn.T @ Jn)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(free_idx), len(free_idx)), np.nan)
+    sd = np.full(4, np.nan)
+    sd[free_idx] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return dict(zip(STD_KEYS, (float(x) for x in sd), strict=True))
+
+
+def sensitivity(model: ServoModel, chunks: Sequence[Chunk]) -> np.ndarray:
+    """``d v_sim / d (M, B, coulomb_pos, coulomb_neg)`` by central differences, rows weighted by ``sqrt(weight)``."""
+    p = np.array([model.M, model.B, model.coulomb_pos, model.coulomb_neg])
+    cols = []
+    for i in range(4):
+        h = DIFF_STEP * max(abs(p[i]), 1e-3 * max(abs(p[2]), abs(p[3]), 1e-9))
+        sims = []
+        for sign in (1.0, -1.0):
+            q = p.copy()
+            q[i] += sign * h
+            m = ServoModel(q[0], q[1], max(q[2], 0.0), max(q[3], 0.0), model.resonance)
+            sims.append(np.concatenate([np.sqrt(c.weight) * simulate_chunk(m, c) for c in chunks]))
+        cols.append((sims[0] - sims[1]) / (2 * h))
+    return np.column_stack(cols)
+
+
+def cramer_rao(model: ServoModel, chunks: Sequence[Chunk], noise_std: float) -> dict[str, float]:
+    """Cramér-Rao bound (1-sigma) of ``M, B, coulomb_pos, coulomb_neg`` for white velocity noise ``noise_std``."""
+    J = sensitivity(model, chunks)
+    cov = noise_std**2 * np.linalg.inv(J.T @ J)
+    return dict(
+        zip(STD_KEYS, (float(x) for x in np.sqrt(np.clip(np.diag(cov), 0.0, None))), strict=True)
+    )

@@ -1,0 +1,258 @@
+"""The exact sampled-data regression of the servo with Coulomb friction.
+
+Between two samples in which the velocity keeps one strict sign (no zero
+crossing, no sticking inside the interval) the friction force is constant
+and the zero-order-hold solution is exact::
+
+    v[k+1] = a v[k] + b u[k] - b fc_pos      (v > 0)
+    v[k+1] = a v[k] + b u[k] + b fc_neg      (v < 0)
+
+with ``a = exp(-B dt/M)`` and ``b = (1 - a)/B``. Stacking such pairs gives
+a linear least-squares problem in ``(a, b, b fc_pos, b fc_neg)`` that is
+exact for noise-free data at any amplitude. With sensor noise the pairs
+are chosen on a noise-free reference (a simulation) and solved with
+instrumental variables; the output-error refinement in
+:mod:`servobench.bench.identify.output_error` then removes what is left.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from servobench.errors import IdentificationError
+
+#: MAD to standard deviation for Gaussian noise.
+MAD_TO_STD = 1.482602218505602
+
+
+@dataclass(frozen=True)
+class Pairs:
+    """Sample pairs ``(k, k+1)`` usable in the exact regression, all runs stacked.
+
+    Attributes
+    ----------
+    v0, v1 : ndarray
+        Measured velocity at ``k`` and ``k+1`` [units/s].
+    u : ndarray
+        Command held over the interval [command units].
+    pos, neg : ndarray of bool
+        Interval in positive / negative motion.
+    dt : ndarray
+        Interval length [s].
+    z0 : ndarray
+        Instrument for ``v0`` (the reference velocity at ``k``; ``v0`` itself for plain LS).
+    """
+
+    v0: np.ndarray
+    v1: np.ndarray
+    u: np.ndarray
+    pos: np.ndarray
+    neg: np.ndarray
+    dt: np.ndarray
+    z0: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.v0.size)
+
+
+def select_pairs(
+    velocities: Sequence[np.ndarray],
+    commands: Sequence[np.ndarray],
+    intervals: Sequence[np.ndarray],
+    references: Sequence[np.ndarray] | None = None,
+    threshold: float = 0.0,
+    max_pairs: int | None = None,
+) -> Pairs:
+    """Pairs whose reference velocity keeps one strict sign with ``|v| > threshold`` at both ends.
+
+    Parameters
+    ----------
+    velocities, commands : sequences of ndarray, one per run
+        Measured velocity [units/s] and command [command units].
+    intervals : sequence of ndarray, shape ``(n - 1,)`` each
+        Sample intervals [s].
+    references : sequence of ndarray, optional
+        Noise-free velocities used to choose the pairs and as instruments.
+    threshold : float
+        Smallest ``|reference|`` accepted at both ends [units/s].
+    max_pairs : int, optional
+        Consider only every ``ceil(n / max_pairs)``-th interval (even thinning).
+    """
+    refs = velocities if references is None else references
+    total = sum(len(v) - 1 for v in velocities)
+    step = 1 if max_pairs is None or total <= max_pairs else -(-total // max_pairs)
+    parts: list[list[np.ndarray]] = [[] for _ in range(7)]
+    for v, u, dt, r in zip(velocities, commands, intervals, refs, strict=True):
+        k = np.arange(0, len(v) - 1, step) if step > 1 else slice(0, len(v) - 1)
+        k1 = k + 1 if step > 1 else slice(1, len(v))
+        r0, r1 = r[k], r[k1]
+        pos = (r0 > threshold) & (r1 > threshold)
+        neg = (r0 < -threshold) & (r1 < -threshold)
+        keep = pos | neg
+        for i, arr in enumerate((v[k], v[k1], u[k], pos, neg, dt[k], r0)):
+            parts[i].append(arr[keep])
+    v0, v1, u, pos, neg, dt, z0 = (np.concatenate(p) for p in parts)
+    return Pairs(v0, v1, u, pos, neg, dt, z0)
+
+
+@dataclass(frozen=True)
+class ZohFit:
+    """Physical parameters from the regression, their covariance and the residual.
+
+    ``theta`` is ``(a, b, b*fc_pos, b*fc_neg)``; ``cov`` its covariance.
+    """
+
+    M: float
+    B: float
+    fc_pos: float
+    fc_neg: float
+    theta: np.ndarray
+    cov: np.ndarray
+    residual: np.ndarray
+    pairs: int
+
+    def physical_std(self, dt_s: float) -> dict[str, float]:
+        """1-sigma of ``M``, ``B``, ``coulomb_pos``, ``coulomb_neg`` by the delta method."""
+        J = physical_jacobian(self.theta, dt_s)
+        cov = J @ self.cov @ J.T
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {
+            "M": float(sd[0]),
+            "B": float(sd[1]),
+            "coulomb_pos": float(sd[2]),
+            "coulomb_neg": float(sd[3]),
+        }
+
+
+def to_physical(theta: np.ndarray, dt_s: float) -> tuple[float, float, float, float]:
+    """``(a, b, b fc_pos, b fc_neg)`` -> ``(M, B, fc_pos, fc_neg)``."""
+    a, b, cp, cn = (float(x) for x in theta)
+    if not (0.0 < a < 1.0) or not b > 0.0:
+        raise IdentificationError(
+            f"the regression gives a = {a:.6g}, b = {b:.4g}: not a damped plant driven by u "
+            "(check the sign of u and v, and that the log holds motion)"
+        )
+    B = (1.0 - a) / b
+    M = -B * dt_s / math.log(a)
+    return M, B, cp / b, cn / b
+
+
+def physical_jacobian(theta: np.ndarray, dt_s: float) -> np.ndarray:
+    """Numerical Jacobian of :func:`to_physical` (4 x 4)."""
+    base = np.array(to_physical(theta, dt_s))
+    J = np.zeros((4, 4))
+    for i in range(4):
+        h = 1e-7 * max(abs(theta[i]), 1e-12)
+        tp = np.array(theta, dtype=float)
+        tp[i] += h
+        J[:, i] = (np.array(to_physical(tp, dt_s)) - base) / h
+    return J
+
+
+def fit_pairs(pairs: Pairs, dt_s: float, instrumental: bool = False) -> ZohFit:
+    """Solve the regression by least squares, or by instrumental variables (``z0`` for ``v0``).
+
+    Normal equations on scaled columns with one step of iterative refinement:
+    as accurate as an orthogonal solve for these four well-scaled columns, and
+    fast for millions of pairs.
+    """
+    n = len(pairs)
+    if n < 8:
+        raise IdentificationError(
+            f"only {n} sample pairs with clear motion: the axis barely moved (raise the amplitude)"
+        )
+    if not pairs.pos.any() and not pairs.neg.any():
+        raise IdentificationError("no motion in the data")
+    X = np.empty((n, 4))
+    X[:, 0] = pairs.v0
+    X[:, 1] = pairs.u
+    X[:, 2] = pairs.pos
+    X[:, 2] *= -1.0
+    X[:, 3] = pairs.neg
+    used = [i for i in range(4) if np.any(X[:, i] != 0)]
+    Xu = X if len(used) == 4 else X[:, used]
+    if instrumental:
+        Zu = Xu.copy()
+        Zu[:, 0] = pairs.z0
+    else:
+        Zu = Xu
+    y = pairs.v1
+    scale = np.sqrt(np.einsum("ij,ij->j", Xu, Xu) / n)
+    scale[scale == 0] = 1.0
+    G = (Zu.T @ Xu) / np.outer(scale, scale)
+    try:
+        ths = np.linalg.solve(G, (Zu.T @ y) / scale)
+        th_u = ths / scale
+        r = y - Xu @ th_u
+        th_u = th_u + np.linalg.solve(G, (Zu.T @ r) / scale) / scale
+    except np.linalg.LinAlgError as err:
+        raise IdentificationError(
+            f"the regression is singular ({err}); the data lack excitation"
+        ) from None
+    theta = np.zeros(4)
+    theta[used] = th_u
+    residual = y - Xu @ th_u
+    dof = max(1, n - len(used))
+    s2 = float(residual @ residual) / dof
+    try:
+        inv = np.linalg.inv(G)
+        ZZ = (Zu.T @ Zu) / np.outer(scale, scale)
+        cov_u = s2 * (inv @ ZZ @ inv.T) / np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        cov_u = np.full((len(used), len(used)), np.nan)
+    cov = np.zeros((4, 4))
+    cov[np.ix_(used, used)] = cov_u
+    M, B, fp, fn = to_physical(theta, dt_s)
+    return ZohFit(M, B, fp, fn, theta, cov, residual, n)
+
+
+def noise_std_from_residual(residual: np.ndarray, a: float) -> float:
+    """Velocity noise sigma from the regression residual ``e[k+1] - a e[k]`` (robust, MAD)."""
+    if residual.size == 0:
+        return 0.0
+    r = residual - np.median(residual)
+    return float(MAD_TO_STD * np.median(np.abs(r)) / math.sqrt(1.0 + a * a))
+
+
+def fit_pairs_irregular(pairs: Pairs, start: tuple[float, float, float, float]) -> ZohFit:
+    """The regression with a different interval per pair: nonlinear least squares in ``(M, B, fc_pos, fc_neg)``.
+
+    ``a_k = exp(-B dt_k/M)``, ``b_k = (1 - a_k)/B``; exact for noise-free data.
+    """
+    from scipy.optimize import least_squares
+
+    if len(pairs) < 8:
+        raise IdentificationError(
+            f"only {len(pairs)} sample pairs with clear motion (raise the amplitude)"
+        )
+    pos, neg = pairs.pos.astype(float), pairs.neg.astype(float)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        M, B = math.exp(p[0]), math.exp(p[1])
+        a = np.exp(-B * pairs.dt / M)
+        b = (1.0 - a) / B
+        return pairs.v1 - a * pairs.v0 - b * (pairs.u - p[2] * pos + p[3] * neg)
+
+    M0, B0, fp0, fn0 = start
+    sol = least_squares(
+        residual, [math.log(M0), math.log(B0), fp0, fn0], method="lm", xtol=1e-14, ftol=1e-14
+    )
+    M, B, fp, fn = math.exp(sol.x[0]), math.exp(sol.x[1]), float(sol.x[2]), float(sol.x[3])
+    dt = float(np.mean(pairs.dt))
+    a = math.exp(-B * dt / M)
+    b = (1.0 - a) / B
+    theta = np.array([a, b, b * fp, b * fn])
+    r = sol.fun
+    s2 = float(r @ r) / max(1, r.size - 4)
+    try:
+        cov_p = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
+        # p -> theta through the physical parameters
+        Jt = np.linalg.inv(physical_jacobian(theta, dt)) @ np.diag([M, B, 1.0, 1.0])
+        cov = Jt @ cov_p @ Jt.T
+    except np.linalg.LinAlgError:
+        cov = np.full((4, 4), np.nan)
+    return ZohFit(M, B, fp, fn, theta, cov, r, len(pairs))

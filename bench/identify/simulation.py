@@ -1,0 +1,154 @@
+"""Simulate an identified model on logged commands.
+
+Thin layer over the exact stick-slip integrator
+:func:`servobench.sim_backend.physics.plant.simulate_coulomb`, adding what identification
+needs: irregular sample intervals (an exact per-interval integrator, same
+equations), the optional series resonance, a warm start, and the periodic
+steady state of a periodic command (long periodic logs are then verified
+by simulating a few periods and tiling, which is exact once the transient
+has died out -- the plant with Coulomb friction is contractive).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from servobench.bench.model import ServoModel
+from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+
+#: Time constants of pre-roll that make the periodic steady state exact to ~3e-7.
+PREROLL_TIME_CONSTANTS = 15.0
+
+
+def simulate_velocity(
+    model: ServoModel,
+    u: np.ndarray,
+    dt_s: float | np.ndarray,
+    v0: float = 0.0,
+) -> np.ndarray:
+    """Noise-free velocity [units/s] at each sample, ``u`` held per interval.
+
+    Parameters
+    ----------
+    model : ServoModel
+    u : ndarray, shape (n,)
+        Command [command units].
+    dt_s : float or ndarray of shape (n - 1,)
+        Sample interval [s], one value or one per interval.
+    v0 : float
+        Velocity at the first sample [units/s].
+    """
+    u = np.asarray(u, dtype=float)
+    params = model.to_plant_params()
+    if np.ndim(dt_s) == 0:
+        dt = float(dt_s)
+        v, _, _ = simulate_coulomb(u, dt, params, PlantState(v0, 0.0))
+    else:
+        dts = np.asarray(dt_s, dtype=float)
+        dt = float(np.mean(dts)) if dts.size else 1.0
+        v = simulate_variable_dt(u, dts, params, v0)
+    if model.resonance is not None:
+        v = model.resonance.filter_velocity(v, dt)
+    return v
+
+
+def simulate_variable_dt(
+    u: np.ndarray, dt_s: np.ndarray, params: PlantParams, v0: float = 0.0
+) -> np.ndarray:
+    """Exact stick-slip velocity with a different interval ``dt_s[k]`` after each sample.
+
+    The same piecewise-exponential solution as
+    :func:`~servobench.sim_backend.physics.plant.simulate_coulomb`, with ``exp(-dt_k/tau)`` per step.
+    """
+    M, B = params.M, params.B
+    fcp, fcn = params.fc_pos, params.fc_neg
+    bkp, bkn = params.breakaway_pos, params.breakaway_neg
+    tau = M / B
+    exp, log = math.exp, math.log
+    out = np.empty(len(u))
+    v = float(v0)
+    dts = list(np.asarray(dt_s, dtype=float).tolist()) + [0.0]
+    for k, (uk, dt) in enumerate(zip(np.asarray(u, dtype=float).tolist(), dts, strict=False)):
+        out[k] = v
+        if v > 0.0:
+            f = fcp
+        elif v < 0.0:
+            f = -fcn
+        elif uk > bkp:
+            f = fcp
+        elif uk < -bkn:
+            f = -fcn
+        else:
+            continue
+        vinf = (uk - f) / B
+        vn = vinf + (v - vinf) * exp(-dt / tau)
+        forward = v > 0.0 or (v == 0.0 and uk > bkp)
+        if (vn > 0.0) == forward and vn != 0.0:
+            v = vn
+            continue
+        tc = tau * log((v - vinf) / -vinf)
+        if -bkn <= uk <= bkp:
+            v = 0.0
+            continue
+        f2 = fcp if uk > bkp else -fcn
+        v = (uk - f2) / B * (1.0 - exp(-(dt - tc) / tau))
+    return out
+
+
+def preroll_samples(model: ServoModel, dt_s: float, period: int) -> int:
+    """Samples to simulate before a period so its state is the periodic steady state."""
+    need = int(math.ceil(PREROLL_TIME_CONSTANTS * model.time_constant_s / dt_s))
+    return max(need, 1) if period else 0
+
+
+def simulate_steady_period(model: ServoModel, u_period: np.ndarray, dt_s: float) -> np.ndarray:
+    """Velocity over one period of a periodic command, in periodic steady state.
+
+    The command is applied from rest for :func:`preroll_samples` samples
+    (whole periods and a tail) before the returned period.
+    """
+    u_period = np.asarray(u_period, dtype=float)
+    n = len(u_period)
+    pre = preroll_samples(model, dt_s, n)
+    reps = int(math.ceil(pre / n))
+    lead = np.tile(u_period, reps)[-pre:] if pre else u_period[:0]
+    v = simulate_velocity(model, np.concatenate((lead, u_period)), dt_s)
+    return v[len(lead) :]
+
+
+def simulate_run(
+    model: ServoModel,
+    u: np.ndarray,
+    dt_s: float | np.ndarray,
+    v0: float = 0.0,
+    period: int = 0,
+) -> np.ndarray:
+    """Velocity over a whole run; with ``period`` (samples) long periodic runs are tiled.
+
+    For a periodic command, periods after the transient equal the steady-state
+    period; the run is simulated for its first periods until two consecutive
+    periods agree, and the rest is tiled from the last of them. Falls back to
+    the full simulation when the command is not periodic or does not settle.
+    """
+    u = np.asarray(u, dtype=float)
+    n = len(u)
+    if period <= 0 or np.ndim(dt_s) != 0 or model.resonance is not None or n < 6 * period:
+        return simulate_velocity(model, u, dt_s, v0)
+    whole = n // period
+    tail = n - whole * period
+    if not (
+        np.array_equal(u[: (whole - 1) * period], u[period : whole * period])
+        and np.array_equal(u[whole * period :], u[:tail])
+    ):
+        return simulate_velocity(model, u, dt_s, v0)
+    settle = 1 + int(math.ceil(preroll_samples(model, float(dt_s), period) / period))
+    head = min(whole, settle + 2)
+    v_head = simulate_velocity(model, u[: head * period], dt_s, v0)
+    last, before = v_head[(head - 1) * period :], v_head[(head - 2) * period : (head - 1) * period]
+    scale = max(float(np.max(np.abs(last))), 1e-300)
+    if float(np.max(np.abs(last - before))) > 1e-9 * scale:
+        return simulate_velocity(model, u, dt_s, v0)
+    reps = whole - head
+    return np.concatenate((v_head, np.tile(last, reps), last[:tail]))

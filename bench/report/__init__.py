@@ -1,0 +1,1 @@
+"""What the user reads: terminal summaries, plots, diagnose and commissioning reports."""

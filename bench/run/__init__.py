@@ -1,0 +1,1 @@
+"""Streaming excitation runs to a drive and logging them as the samples arrive."""

@@ -1,0 +1,124 @@
+"""Start ``servobench serve-sim`` in a child process and get its drive URL.
+
+Used by the tests, the benchmarks and demos: the served simulated drive runs
+in its own process, as a real drive is a separate machine, and the host side
+talks to it over the real protocol stack.
+
+Examples
+--------
+>>> with ServedSim("modbus-tcp", "sim://?M=0.1&B=1") as served:   # doctest: +SKIP
+...     print(served.url)
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from servobench.errors import DriveConnectionError, DriveTimeoutError
+
+#: Longest wait for the server's first stdout line [s].
+START_TIMEOUT_S = 30.0
+#: Longest wait for a clean exit after SIGINT [s].
+STOP_TIMEOUT_S = 10.0
+
+
+class ServedSim:
+    """A ``servobench serve-sim`` child process.
+
+    Parameters
+    ----------
+    transport : str
+        ``canopen``, ``modbus-tcp``, ``modbus-rtu`` or ``serial``.
+    sim_url : str
+        The plant as a ``sim://`` URL.
+    extra_args : sequence of str
+        More ``serve-sim`` options (``--node 3``, ``--fault ...``).
+    """
+
+    def __init__(
+        self,
+        transport: str,
+        sim_url: str = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4",
+        extra_args: Sequence[str] = (),
+    ) -> None:
+        self.transport = transport
+        self.sim_url = sim_url
+        self.extra_args = list(extra_args)
+        self.proc: subprocess.Popen[str] | None = None
+        self.url = ""
+        self.returncode: int | None = None
+        self.stderr = ""
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> str:
+        cmd = [
+            sys.executable, "-m", "servobench", "serve-sim",
+            "--transport", self.transport, "--sim", self.sim_url, *self.extra_args,
+        ]  # fmt: skip
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        assert self.proc.stdout is not None
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout_s
+        try:
+            while time.monotonic() < deadline:
+                if sel.select(timeout=0.1):
+                    line = self.proc.stdout.readline()
+                    if line.strip():
+                        self.url = line.strip()
+                        return self.url
+                    if self.proc.poll() is not None:
+                        break
+                elif self.proc.poll() is not None:
+                    break
+        finally:
+            sel.close()
+        err = self._drain_stderr()
+        self.stop()
+        if self.returncode is not None:
+            raise DriveConnectionError(
+                f"serve-sim --transport {self.transport} exited ({self.returncode}): {err.strip()[-500:]}"
+            )
+        raise DriveTimeoutError(
+            f"serve-sim --transport {self.transport} printed no URL in {timeout_s} s"
+        )
+
+    def _drain_stderr(self) -> str:
+        if self.proc is None or self.proc.stderr is None or self.proc.poll() is None:
+            return ""
+        self.stderr += self.proc.stderr.read() or ""
+        return self.stderr
+
+    def stop(self, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
+        """SIGINT, wait for a clean exit, kill if it hangs; return the exit status."""
+        if self.proc is None:
+            return self.returncode
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.returncode = self.proc.returncode
+        self._drain_stderr()
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+        self.proc = None
+        return self.returncode
+
+    def __enter__(self) -> ServedSim:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

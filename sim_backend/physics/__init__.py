@@ -1,0 +1,1 @@
+"""The simulated plant: the DC servo with friction, its effects and integrators."""

@@ -1,0 +1,132 @@
+"""``cogging`` -- a force periodic in position (magnet cogging, screw pitch errors).
+
+Model: a force ``amp * sin(2 pi x / period + phase)`` [command units] opposes
+the command at motor position ``x`` [units]; ``period`` [units] > 0, ``phase``
+[rad]. It also holds or releases the axis at rest: the body stays at rest
+while ``|u - F_cog(x)|`` is within breakaway. Sub-stepped.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from servobench.sim_backend.physics.effects.spec import (
+    EffectSpec,
+    ParamSpec,
+    Screening,
+    ScreenInput,
+    Terms,
+    base_columns,
+    base_fit,
+    explained,
+    regress,
+    target,
+)
+
+EFFECT = EffectSpec(
+    name="cogging",
+    summary="position-periodic force",
+    params=(
+        ParamSpec(
+            "amp", "cog_amp", "command units", "amplitude of the periodic force", 0.0, default=None
+        ),
+        ParamSpec(
+            "period", "cog_period", "units", "spatial period", 0.0, open_lower=True, default=None
+        ),
+        ParamSpec("phase", "cog_phase", "rad", "phase at x = 0", -100.0, 100.0, default=0.0),
+    ),
+    signature="the residual plotted against position repeats with a fixed spatial period, "
+    "whatever the speed (a line in the periodogram of the force residual over position)",
+    fit="periodogram of the equation error over position, sin/cos regression at the best "
+    "period, then simulation error on amplitude, period and phase",
+)
+
+
+#: Spatial frequencies and samples of the screening periodogram (at most).
+MAX_FREQUENCIES = 2000
+PERIODOGRAM_SAMPLES = 6000
+#: Frequencies of the refinement between two grid lines.
+REFINE = 41
+#: Divisors of the strongest spatial frequency also tried as the fundamental.
+SUBHARMONICS = (2, 3)
+#: Fewest periods over the travel searched, and accepted for a fundamental.
+MIN_PERIODS = 3.0
+MIN_PERIODS_FUNDAMENTAL = 1.5
+
+
+def contribute(p, plant, terms: Terms) -> None:
+    amp, phase = float(p["amp"]), float(p["phase"])
+    k = 2.0 * math.pi / float(p["period"])
+    sin = math.sin
+    terms.position_forces.append(lambda x: amp * sin(k * x + phase))
+
+
+def _peak(ks: np.ndarray, x: np.ndarray, e: np.ndarray) -> float:
+    """Spatial frequency [rad/unit] among ``ks`` where ``e`` has the most sin/cos power over ``x``."""
+    power = np.empty(ks.size)
+    for i in range(0, ks.size, 200):
+        kk = ks[i : i + 200, None] * x[None, :]
+        s, c = np.sin(kk), np.cos(kk)
+        ss, cc = np.einsum("ij,ij->i", s, s), np.einsum("ij,ij->i", c, c)
+        power[i : i + 200] = (s @ e) ** 2 / ss + (c @ e) ** 2 / cc
+    return float(ks[int(np.argmax(power))])
+
+
+def screen(ctx: ScreenInput) -> Screening:
+    m = ctx.moving
+    x = ctx.cat("x")[m]
+    y = target(ctx)
+    cols = base_columns(ctx)
+    coef0, sse0 = base_fit(ctx)
+    e = y - np.column_stack(cols) @ coef0
+    span = float(np.ptp(x)) if x.size else 0.0
+    step = float(np.percentile(np.abs(np.diff(ctx.cat("x"))), 90)) if x.size > 1 else 0.0
+    bounds0 = {"amp": (0.0, 1.0), "period": (1e-9, 1.0), "phase": (-4 * math.pi, 4 * math.pi)}
+    if span <= 0 or step <= 0:
+        return Screening(0.0, {"amp": 0.0, "period": 1.0, "phase": 0.0}, bounds0, "no travel")
+    # Spatial frequencies from MIN_PERIODS periods over the travel to 6 samples per period.
+    k_lo, k_hi = 2 * math.pi * MIN_PERIODS / span, 2 * math.pi / (6 * step)
+    if k_hi <= k_lo:
+        return Screening(
+            0.0, {"amp": 0.0, "period": span, "phase": 0.0}, bounds0, "travel too short"
+        )
+    nk = int(min(MAX_FREQUENCIES, max(50, 4 * (k_hi - k_lo) * span / (2 * math.pi))))
+    ks = np.linspace(k_lo, k_hi, nk)
+    # The periodogram needs no more than a few thousand samples; the regression below uses all.
+    pick = slice(None, None, max(1, x.size // PERIODOGRAM_SAMPLES))
+    x_p, e_p = x[pick], e[pick]
+    k = _peak(ks, x_p, e_p)
+    # Refine on all samples between the neighbouring grid lines: a period off by a fraction of
+    # a percent already drifts by a good part of a period over a long travel.
+    step_k = ks[1] - ks[0]
+    k = _peak(np.linspace(k - step_k, k + step_k, REFINE), x, e)
+
+    def fit_at(k: float) -> tuple[dict[str, float], np.ndarray, float]:
+        coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
+        amp, phase = float(math.hypot(coef[4], coef[5])), float(math.atan2(coef[5], coef[4]))
+        return {"amp": amp, "period": 2 * math.pi / k, "phase": phase}, coef, sse
+
+    guess, coef, sse = fit_at(k)
+    # Stick-slip puts harmonics into the residual: the strongest line may be the second or
+    # third of the true period. Those fundamentals go to the quick simulation as alternatives.
+    others = []
+    for m in SUBHARMONICS:
+        if k / m >= 2 * math.pi * MIN_PERIODS_FUNDAMENTAL / span:
+            km = _peak(np.linspace(k / m - step_k, k / m + step_k, REFINE), x, e)
+            others.append(fit_at(km)[0])
+    period, amp = guess["period"], guess["amp"]
+    longest = max([period] + [g["period"] for g in others])
+    bounds = {
+        "amp": (0.0, 4 * max([amp] + [g["amp"] for g in others]) + 1e-12),
+        "period": (0.95 * period, 1.05 * longest),
+        "phase": (-3 * math.pi, 3 * math.pi),
+    }
+    evidence = (
+        f"the force residual repeats every {period:.4g} position units "
+        f"(amplitude {amp:.3g}; equation error {100 * (1 - sse / sse0):.0f}% lower)"
+    )
+    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    score = explained(sse0, sse, 3, y.size)
+    return Screening(score, guess, bounds, evidence, base=base, alternatives=tuple(others))

@@ -1,0 +1,141 @@
+"""``stribeck`` -- friction that is higher at low speed than the Coulomb level.
+
+Model: in motion the friction magnitude in direction ``d`` is
+``fc_d + (fs - fc_d) * exp(-(|v| / vs)^2)``; at rest the axis breaks away at
+``fs``. ``fs`` [command units] is the static level (>= both Coulomb levels),
+``vs`` [units/s] the Stribeck velocity. The friction depends on velocity
+inside an interval, so the integrator sub-steps (about ``vs / 4`` of velocity
+change per sub-step).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from servobench.sim_backend.physics.effects.spec import (
+    EffectSpec,
+    ParamSpec,
+    Screening,
+    ScreenInput,
+    Terms,
+    base_columns,
+    base_fit,
+    explained,
+    regress,
+    target,
+)
+
+EFFECT = EffectSpec(
+    name="stribeck",
+    summary="friction rising towards a static level at low speed",
+    params=(
+        ParamSpec("fs", "stribeck_fs", "command units", "static friction level", 0.0, default=None),
+        ParamSpec(
+            "vs", "stribeck_vs", "units/s", "Stribeck velocity", 0.0, open_lower=True, default=None
+        ),
+    ),
+    signature="the residual force is largest just after each start and reversal and decays "
+    "with speed over a characteristic velocity: friction falls from a static to the Coulomb level",
+    fit="equation error with a sign(v)*exp(-(v/vs)^2) regressor over a grid of vs, then "
+    "simulation error on fs and vs together with the base",
+)
+
+
+#: Largest static excess over Coulomb the screening accepts, in Coulomb levels.
+MAX_EXCESS = 5.0
+
+
+def check(p, plant) -> None:
+    from servobench.errors import UsageError
+
+    if p["fs"] < max(plant.fc_pos, plant.fc_neg):
+        raise UsageError(
+            f"stribeck_fs = {p['fs']:g} must be at least the Coulomb levels "
+            f"({plant.fc_pos:g}, {plant.fc_neg:g})"
+        )
+
+
+def contribute(p, plant, terms: Terms) -> None:
+    fs, vs = float(p["fs"]), float(p["vs"])
+    dp, dn = fs - plant.fc_pos, fs - plant.fc_neg
+    inv = 1.0 / vs
+    exp = math.exp
+
+    def excess(speed: float, direction: int) -> float:
+        z = speed * inv
+        return (dp if direction > 0 else dn) * exp(-z * z)
+
+    terms.friction_excess = excess
+    terms.static_pos = max(terms.static_pos, fs)
+    terms.static_neg = max(terms.static_neg, fs)
+    drop = max(dp, dn, 1e-12)
+    terms.substep_s = min(terms.substep_s, 0.25 * plant.M * vs / drop)
+
+
+def _spread(coef0: np.ndarray, scale: float) -> tuple[dict[str, float], ...]:
+    """Static levels and Stribeck velocities for a quick simulation to judge: most of the
+    Stribeck curve lives at speeds the inverse-dynamics equation leaves out."""
+    fc = max(coef0[2], coef0[3], 1e-12)
+    return tuple(
+        {"fs": float(fc * level), "vs": float(scale * speed)}
+        for level in (1.4, 1.8, 2.4)
+        for speed in (0.04, 0.08, 0.16)
+    )
+
+
+def screen(ctx: ScreenInput) -> Screening:
+    m = ctx.moving
+    v = ctx.cat("v_f")[m]
+    y = target(ctx)
+    cols = base_columns(ctx)
+    coef0, sse0 = base_fit(ctx)
+    speed = np.abs(v)
+    scale = float(np.sqrt(np.mean(v * v))) or 1.0
+    # Friction levels beyond a few times the Coulomb level are not a Stribeck curve but a
+    # regressor that vanishes on the moving samples.
+    ceiling = MAX_EXCESS * max(abs(coef0[2]), abs(coef0[3]), 1e-12)
+    slowest = float(np.min(speed)) if speed.size else 0.0
+    best = None
+    for vs in scale * np.geomspace(0.01, 1.0, 40):
+        if vs < 0.5 * slowest:
+            continue
+        col = np.sign(v) * np.exp(-((speed / vs) ** 2))
+        coef, sse = regress([*cols, col], y)
+        if 0 < coef[4] < ceiling and (best is None or sse < best[0]):
+            best = (sse, vs, coef)
+    bounds = {
+        "fs": (0.0, 10.0 * max(abs(coef0[2]), abs(coef0[3]), 1e-9)),
+        "vs": (0.02 * scale, 3 * scale),
+    }
+    if best is None:
+        fc = max(coef0[2], coef0[3], 0.0)
+        guess = {"fs": 1.5 * fc, "vs": 0.1 * scale}
+        return Screening(
+            0.0,
+            guess,
+            bounds,
+            "no friction excess at low speed",
+            alternatives=_spread(coef0, scale),
+        )
+    sse, vs, coef = best
+    fcp, fcn = max(coef[2], 0.0), max(coef[3], 0.0)
+    fs = 0.5 * (fcp + fcn) + coef[4]
+    fs = max(fs, fcp, fcn)
+    bounds["fs"] = (0.0, max(bounds["fs"][1], 3 * fs))
+    evidence = (
+        f"friction rises at low speed: the force residual follows a Stribeck curve with "
+        f"static level {fs:.3g} over vs = {vs:.3g} units/s "
+        f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
+    )
+    base = {"M": coef[0], "B": coef[1], "fc_pos": fcp, "fc_neg": fcn}
+    score = explained(sse0, sse, 2, y.size)
+    return Screening(
+        score, {"fs": fs, "vs": vs}, bounds, evidence, base=base, alternatives=_spread(coef0, scale)
+    )
+
+
+def project(p, base):
+    """Keep the static level at or above both Coulomb levels (for the refit)."""
+    return {**p, "fs": max(p["fs"], base["fc_pos"], base["fc_neg"])}

@@ -1,0 +1,1 @@
+"""Serving the simulated drive over real protocols: CANopen, Modbus, serial."""

@@ -1,0 +1,92 @@
+"""``servobench serve-sim``: serve a simulated drive over a real protocol.
+
+Each transport module ``sim_backend.serve_<name>`` exposes::
+
+    def serve(device, stop, announce, options) -> None
+
+which starts its server around the :class:`~servobench.sim_backend.device.SimulatedDevice`,
+calls ``announce(drive_url)`` exactly once when a client can connect, blocks
+until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
+This module owns what is common: building the device from the ``sim://``
+URL, the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
+the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
+handling and printing the URL as the first line on stdout.
+"""
+
+from __future__ import annotations
+
+import importlib
+import signal
+import sys
+import threading
+from collections.abc import Callable, Mapping
+
+from servobench.errors import DriveConfigError
+from servobench.sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+from servobench.sim_backend.faults.injector import FaultInjector
+from servobench.sim_backend.faults.spec import parse_plan
+from servobench.sim_backend.faults.state import StateReporter
+
+#: ``--transport`` value -> module implementing ``serve``.
+TRANSPORTS: dict[str, str] = {
+    "canopen": "servobench.sim_backend.servers.serve_canopen",
+    "modbus-tcp": "servobench.sim_backend.servers.serve_modbus",
+    "modbus-rtu": "servobench.sim_backend.servers.serve_modbus",
+    "serial": "servobench.sim_backend.servers.serve_serial",
+}
+
+#: ``serve(device, stop, announce, options, injector=None)``.
+ServeFunction = Callable[..., None]
+
+
+def load_transport(name: str) -> ServeFunction:
+    if name not in TRANSPORTS:
+        raise DriveConfigError(
+            f"unknown transport {name!r}; choose one of {', '.join(sorted(TRANSPORTS))}"
+        )
+    module = importlib.import_module(TRANSPORTS[name])
+    return module.serve
+
+
+def run_server(
+    transport: str,
+    sim_url: str,
+    options: Mapping[str, str] | None = None,
+    *,
+    stop: threading.Event | None = None,
+    announce: Callable[[str], None] | None = None,
+    state_file: str | None = None,
+) -> SimulatedDevice:
+    """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device.
+
+    ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
+    """
+    serve = load_transport(transport)
+    device = device_from_url(sim_url)
+    stop = stop or threading.Event()
+    opts = {"transport": transport, **(options or {})}
+    injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))
+    reporter = StateReporter(device, injector, state_file) if state_file else None
+
+    def _announce(url: str) -> None:
+        print(url, flush=True)
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    watchdog = WatchdogThread(device)
+    watchdog.start()
+    if reporter is not None:
+        reporter.start()
+    try:
+        serve(device, stop, announce or _announce, opts, injector=injector)
+    finally:
+        watchdog.stop()
+        if reporter is not None:
+            reporter.finish()  # before the clean-up below: what the host and the faults left
+        device.disable()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        sys.stdout.flush()
+    return device
