@@ -7,19 +7,14 @@
 
 from __future__ import annotations
 
-import sys
+import math
 from pathlib import Path
 
 from servobench.drivers.url import DriveURL, parse_drive_url
 from servobench.errors import DriveConfigError, UsageError
 from servobench.sim_backend.physics import effects
 from servobench.sim_backend.physics.plant import PlantParams
-from servobench.tomlfile import read_toml
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
+from servobench.tomlfile import TomlTable, read_toml
 
 #: Base physics keys of ``sim://`` (see :class:`~servobench.sim_backend.physics.plant.PlantParams`).
 PLANT_KEYS = frozenset(
@@ -34,23 +29,45 @@ def sim_query_keys() -> frozenset[str]:
     return PLANT_KEYS | DEVICE_KEYS | effects.query_keys()
 
 
-def _number(key: str, value: object) -> float:
+def _number(value: object) -> float:
+    """``value`` (a number, or its text) as a finite float; ``ValueError`` saying why not."""
     try:
         out = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise DriveConfigError(f"sim plant key {key}={value!r} is not a number") from None
-    if out != out or abs(out) == float("inf"):
-        raise DriveConfigError(f"sim plant key {key}={value!r} is not finite")
+        raise ValueError("is not a number") from None
+    if not math.isfinite(out):
+        raise ValueError("is not finite")
     return out
 
 
-def load_plant_file(path: str | Path) -> dict[str, object]:
-    """The ``[plant]`` table of a TOML plant file (or the whole file if it has none)."""
-    data = read_toml(path, "plant file")
-    table = data.get("plant", data)
-    if not isinstance(table, dict):
-        raise DriveConfigError(f"plant file {path}: [plant] must be a table")
-    return table
+def _query_number(key: str, value: object) -> float:
+    try:
+        return _number(value)
+    except ValueError as err:
+        raise DriveConfigError(f"sim plant key {key}={value!r} {err}") from None
+
+
+def load_plant_file(path: str | Path) -> dict[str, float]:
+    """The plant keys of a TOML plant file: its ``[plant]`` table, or the whole file if it has none.
+
+    The values are what the URL query takes (numbers, or their text); errors
+    name the file, the table and the key.
+    """
+    from servobench.drivers.base import COMMON_QUERY_KEYS
+
+    top = TomlTable(read_toml(path, "plant file"), f"plant file {path}")
+    table = top.table("plant") if "plant" in top else top
+    values = {}
+    # The drive's common keys (max_u ...) have always been accepted here and dropped: only
+    # the URL sets them. The file contract keeps it so.
+    for key in table.allow(PLANT_KEYS | effects.query_keys() | COMMON_QUERY_KEYS):
+        if key not in COMMON_QUERY_KEYS:
+            value = table.get(key, object)
+            try:
+                values[key] = _number(value)
+            except ValueError as err:
+                raise table.error(key, f"{value!r} {err}") from None
+    return values
 
 
 def plant_from_url(url: DriveURL | str) -> PlantParams:
@@ -67,8 +84,8 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     unknown = set(values) - PLANT_KEYS - effects.query_keys()
     if unknown:
         raise DriveConfigError(f"unknown sim plant key(s): {', '.join(sorted(unknown))}")
-    base = {k: _number(k, values[k]) for k in PLANT_KEYS & set(values)}
-    effect_values = {k: _number(k, values[k]) for k in set(values) - PLANT_KEYS}
+    base = {k: _query_number(k, values[k]) for k in PLANT_KEYS & set(values)}
+    effect_values = {k: _query_number(k, values[k]) for k in set(values) - PLANT_KEYS}
     seed = url.get_int("seed")
     if seed is not None and seed < 0:
         raise DriveConfigError(f"sim seed must be a non-negative integer, got {seed}")
