@@ -61,6 +61,11 @@ def read_toml(
 class Wording:
     """How a file format words the checks of :class:`TomlTable` (``str.format`` templates).
 
+    Register maps and plant files put the key first (:data:`KEYED`); dialects
+    and ``bench.toml`` write a sentence about the table (:data:`SENTENCE`).
+    Both wordings are kept because users and tests match on them; the checks
+    behind them are one.
+
     The templates see ``where`` (the table, from ``table`` or ``top``),
     ``key``, ``value`` (its repr), ``kind`` (``"int"``, ``"list of numbers"``
     ...), ``options``, ``what`` (``"key 'x'"`` or ``"table [x]"``), ``keys``,
