@@ -144,7 +144,9 @@ class Drive(ABC):
     ``_write_command`` and ``_read_feedback``; they may override ``_exchange``
     (one atomic cycle, e.g. SYNC + PDOs or Modbus FC23), ``_exchange_block``,
     ``_quick_stop``, ``_configure_watchdog``, ``_set_cycle``, ``_fault_code``,
-    ``_reset_fault`` and ``_info``.
+    ``_reset_fault`` and ``_info``. Optional capabilities are declared here
+    with their defaults (:attr:`realtime`, :attr:`supports_block`,
+    :meth:`link_recoveries`, :meth:`record_traffic`), never probed.
 
     Parameters
     ----------
@@ -158,8 +160,12 @@ class Drive(ABC):
     query_keys: ClassVar[frozenset[str]] = frozenset()
     #: True when ``Feedback.t_s`` is the drive's own sample clock (not host reception time).
     drive_clock: ClassVar[bool] = False
+    #: True when the drive runs in wall-clock time, as hardware does; False for a
+    #: lock-step simulation that advances one cycle per exchange (the runner then
+    #: streams it as fast as it answers unless the URL says ``pace=real``).
+    realtime: bool = True
     #: True when :meth:`exchange_block` is faster than per-cycle exchange.
-    supports_block: ClassVar[bool] = False
+    supports_block: bool = False
     #: Human-readable units of command, velocity and position.
     units: ClassVar[Mapping[str, str]] = {"u": "", "v": "", "x": ""}
 
@@ -336,6 +342,16 @@ class Drive(ABC):
         """Identity, firmware and state as far as the protocol tells."""
         self._require_open()
         return self._info()
+
+    def link_recoveries(self) -> Mapping[str, int]:
+        """Transport-level recoveries counted since the drive was created, by kind.
+
+        ``{"retries": n}`` for a link that re-sent a request the drive answered
+        busy, ``{"duplicates": n}`` for one that dropped repeated replies; empty
+        (the default) for links that count none. The runner writes the non-zero
+        counts into the log trailer as ``link_<kind>``.
+        """
+        return {}
 
     def record_traffic(self, path: str) -> None:
         """Record the raw bus traffic to ``path`` until :meth:`close`.

@@ -42,6 +42,7 @@ import numpy as np
 from servobench.bench.logio import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
+from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError, LimitExceededError, UsageError
 
@@ -97,18 +98,8 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 def default_pace(drive: Drive) -> str:
-    """``"fast"`` for drives that say they are not real-time (``realtime = False``), else ``"real"``."""
-    return "fast" if getattr(drive, "realtime", True) is False else "real"
-
-
-def sleep_until(deadline: float) -> None:
-    """Sleep coarsely, then spin for the last half millisecond (jitter << 1 ms)."""
-    while True:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return
-        if left > 6e-4:
-            time.sleep(left - 5e-4)
+    """``"fast"`` for a lock-step drive (``Drive.realtime`` False), else ``"real"``."""
+    return "real" if drive.realtime else "fast"
 
 
 def stream_runs(
@@ -144,7 +135,7 @@ def stream_runs(
         Extra ``# key = value`` header lines (``fs`` is always written).
     pace : {"real", "fast"}, optional
         Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose
-        ``realtime`` attribute is False (``sim://``), else ``"real"``.
+        ``realtime`` is False (``sim://``), else ``"real"``.
     settle_s : float
         Longest rest with zero command between runs [s].
     progress : callable(done, total), optional
@@ -183,7 +174,7 @@ def stream_runs(
                 check = FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock, dt)
                 run = _Run(number, writer, check, progress, done, total)
                 try:
-                    if pace == "fast" and getattr(drive, "supports_block", False):
+                    if pace == "fast" and drive.supports_block:
                         _stream_blocks(drive, u, run)
                     else:
                         _stream_samples(drive, u, dt, pace, run)
@@ -218,9 +209,8 @@ def _stop_quietly(drive: Drive) -> None:
 
 def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
     extra: dict[str, object] = {k: v for s in timing for k, v in s.as_metadata().items()}
-    for name in ("retries", "duplicates"):  # transport-level recoveries, when a driver counts them
-        count = getattr(drive, name, 0)
-        if isinstance(count, int) and count:
+    for name, count in drive.link_recoveries().items():
+        if count:
             extra[f"link_{name}"] = count
     return extra
 
