@@ -150,53 +150,84 @@ def stream_runs(
     -------
     RunResult
     """
-    if not (math.isfinite(fs_hz) and fs_hz > 0):
-        raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
-    if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
-        raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
-    pace = pace or drive.url.get_str("pace", "") or default_pace(drive)
-    if pace not in ("real", "fast"):
-        raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
-    dt = 1.0 / fs_hz
-    total = int(sum(len(u) for _, u in runs))
-    meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": pace, **(metadata or {})}
+    plan = _Plan.make(drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway)
+    meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace, **(metadata or {})}
     writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
     timing: list[TimingStats] = []
-    done = 0
     try:
         with _sigterm_as_interrupt():
-            drive.set_cycle(dt)
-            drive.enable()
-            for index, (number, u) in enumerate(runs):
-                u = np.asarray(u, dtype=float)
-                if index:
-                    _settle(drive, dt, settle_s, pace)
-                check = FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock, dt)
-                run = _Run(number, writer, check, progress, done, total)
-                try:
-                    if pace == "fast" and drive.supports_block:
-                        _stream_blocks(drive, u, run)
-                    else:
-                        _stream_samples(drive, u, dt, pace, run)
-                finally:
-                    timing.append(_stats(number, run.host, run.clock))
-                done += len(u)
-            drive.stop()
-            drive.disable()
+            _stream_all(drive, runs, plan, writer, timing)
     except BaseException as err:
         try:
             _stop_quietly(drive)
         finally:
-            reason = str(err)
-            if isinstance(err, KeyboardInterrupt) and not isinstance(err, TerminatedError):
-                reason = "interrupted (Ctrl-C)"
             writer.finish(
-                "incomplete", reason=reason or type(err).__name__, samples=writer.rows,
-                **_trailer(drive, timing),
-            )  # fmt: skip
+                "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
+            )
         raise
     writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The checked options of one streaming session."""
+
+    dt: float  # cycle period [s]
+    pace: str  # "real" or "fast"
+    settle_s: float
+    progress: ProgressCallback | None
+    frozen_cycles: int
+    breakaway: float | None
+    total: int  # samples of all runs
+
+    @classmethod
+    def make(cls, drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway) -> _Plan:
+        if not (math.isfinite(fs_hz) and fs_hz > 0):
+            raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
+        if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
+            raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
+        pace = pace or drive.url.get_str("pace", "") or default_pace(drive)
+        if pace not in ("real", "fast"):
+            raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
+        total = int(sum(len(u) for _, u in runs))
+        return cls(1.0 / fs_hz, pace, settle_s, progress, frozen_cycles, breakaway, total)
+
+
+def _stream_all(
+    drive: Drive,
+    runs: Sequence[tuple[int, np.ndarray]],
+    plan: _Plan,
+    writer: LogWriter,
+    timing: list[TimingStats],
+) -> None:
+    """Enable, stream every run (resting between them), then stop and disable."""
+    drive.set_cycle(plan.dt)
+    drive.enable()
+    done = 0
+    for index, (number, u) in enumerate(runs):
+        u = np.asarray(u, dtype=float)
+        if index:
+            _settle(drive, plan.dt, plan.settle_s, plan.pace)
+        check = FeedbackCheck(plan.frozen_cycles, plan.breakaway, drive.drive_clock, plan.dt)
+        run = _Run(number, writer, check, plan.progress, done, plan.total)
+        try:
+            if plan.pace == "fast" and drive.supports_block:
+                _stream_blocks(drive, u, run)
+            else:
+                _stream_samples(drive, u, plan.dt, plan.pace, run)
+        finally:
+            timing.append(_stats(number, run.host, run.clock))
+        done += len(u)
+    drive.stop()
+    drive.disable()
+
+
+def _reason(err: BaseException) -> str:
+    """The one-line reason an interrupted session gives in its log trailer."""
+    if isinstance(err, KeyboardInterrupt) and not isinstance(err, TerminatedError):
+        return "interrupted (Ctrl-C)"
+    return str(err) or type(err).__name__
 
 
 def _stop_quietly(drive: Drive) -> None:
