@@ -151,7 +151,10 @@ def stream_runs(
     RunResult
     """
     plan = _Plan.make(drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway)
-    meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace, **(metadata or {})}
+    meta = {
+        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace,
+        **drive.log_metadata(), **(metadata or {}),
+    }  # fmt: skip
     writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
     timing: list[TimingStats] = []
     try:
