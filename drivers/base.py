@@ -152,7 +152,7 @@ class Drive(ABC):
     ``_quick_stop``, ``_configure_watchdog``, ``_set_cycle``, ``_fault_code``,
     ``_reset_fault`` and ``_info``. Optional capabilities are declared here
     with their defaults (:attr:`realtime`, :attr:`supports_block`,
-    :attr:`supports_drive_hold`, :meth:`log_metadata`, :meth:`link_recoveries`,
+    :attr:`supports_drive_hold`, :meth:`max_rate_hz`, :meth:`log_metadata`, :meth:`link_recoveries`,
     :meth:`record_traffic`), never probed.
 
     Parameters
@@ -394,6 +394,16 @@ class Drive(ABC):
         """Identity, firmware and state as far as the protocol tells."""
         self._require_open()
         return self._info()
+
+    def max_rate_hz(self) -> float:
+        """Highest cycle rate [Hz] this link and drive sustain, one exchange per cycle.
+
+        From the link's wire budget (:mod:`servobench.drivers.link_budget`) and
+        the drive's own limits; ``inf`` when nothing bounds it (the default,
+        and the in-process simulated drive). The runner picks its default
+        sample rate within it and refuses an explicit rate beyond it.
+        """
+        return math.inf
 
     def log_metadata(self) -> dict[str, str]:
         """``# key = value`` lines this drive contributes to every log streamed from it.
