@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.sim_backend.physics.effects import build_model
 from servobench.sim_backend.physics.plant import Plant, PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.rich_plant import build_model
 
 DT = 1e-3
 BASE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)

@@ -1,9 +1,9 @@
 """Step 1: the base model, a linear block plus Coulomb friction per direction.
 
 :func:`initial_base` is the one place that chooses where the starting values
-come from: ``servobench.bench.identify.auto.identify`` when that module is present (and the
-log is open loop), else -- or when the identifier gives up on the log -- an
-equation-error (inverse-dynamics) least-squares fit on the moving samples.
+come from: :func:`servobench.bench.identify.auto.identify` for open-loop logs,
+else -- or when the identifier gives up on the log -- an equation-error
+(inverse-dynamics) least-squares fit on the moving samples.
 Either is only a start:
 :func:`fit_base` refits it on simulation error like every candidate.
 """
@@ -16,6 +16,7 @@ from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.refit import FitResult, refit
 from servobench.bench.diagnose.screening import screen_input
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.identify.auto import identify
 from servobench.bench.logio import ExperimentLog
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.effects.spec import base_fit
@@ -40,11 +41,7 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
 
 
 def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
-    """Starting base model: the project's identifier when available, else equation error."""
-    try:
-        from servobench.bench.identify.auto import identify
-    except ImportError:
-        return equation_error_base(data)
+    """Starting base model: the project's identifier on open-loop logs, else equation error."""
     if data.horizon_s is not None:  # closed loop: the identifier assumes open-loop runs
         return equation_error_base(data)
     try:

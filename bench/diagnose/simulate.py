@@ -2,7 +2,7 @@
 
 A :class:`Candidate` is the base model (``M, B, fc_pos, fc_neg``) plus an
 ordered set of effects; it runs on the same simulator the ``sim://`` drive
-uses (:mod:`servobench.sim_backend.physics.plant` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
+uses (:mod:`servobench.sim_backend.physics.coulomb` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
 with effects), so what diagnose names can be simulated back.
 """
 
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData, initial_velocity
-from servobench.sim_backend.physics.effects import build_model
-from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.rich_plant import build_model
 
 BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
 

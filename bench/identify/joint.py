@@ -27,6 +27,7 @@ import numpy as np
 from servobench.bench.identify.dataset import Dataset
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
+from servobench.bench.identify.idim import identify_idim
 from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
 from servobench.bench.identify.regression import (
     ZohFit,
@@ -72,8 +73,6 @@ def identify_joint(
         on all data after the held-out comparison).
     """
     if data.derived:
-        from servobench.bench.identify.idim import identify_idim
-
         return identify_idim(data, refine_oe=refine_oe)
     dt = data.dt_s
     vs = [s.v for s in data.segments]

@@ -1,6 +1,6 @@
 """The servo plant with extra physical effects, integrated in sub-steps with exact stick handling.
 
-The base physics is that of :mod:`servobench.sim_backend.physics.plant`; the effects of
+The base physics is that of :mod:`servobench.sim_backend.physics.coulomb`; the effects of
 :mod:`servobench.sim_backend.physics.effects` contribute :class:`~servobench.sim_backend.physics.effects.spec.Terms`:
 
 * command transforms (quantization, saturation, dead zone, offset) and a
@@ -29,9 +29,10 @@ import numpy as np
 
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.bodies import Propagator, consts, slider
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState
 from servobench.sim_backend.physics.coupling import CouplingMixin
+from servobench.sim_backend.physics.effects import collect_terms
 from servobench.sim_backend.physics.effects.spec import Terms
-from servobench.sim_backend.physics.plant import PlantParams, PlantState
 
 #: Sub-steps per interval for terms that are not exact under constant force.
 DEFAULT_SUBSTEPS = 2
@@ -202,3 +203,8 @@ class RichModel(CouplingMixin):
                 v, x = step(v, x, f)
         self._hidden = (v, x, v, x, 0)
         return vs, xs
+
+
+def build_model(params: PlantParams) -> RichModel:
+    """The simulation model of a plant with effects: their terms collected, then integrated."""
+    return RichModel(params, collect_terms(params))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     Coupling,
     EffectSpec,
@@ -52,8 +53,6 @@ EFFECT = EffectSpec(
 
 def contribute(p, plant, terms: Terms) -> None:
     if terms.coupling is not None:
-        from servobench.errors import UsageError
-
         raise UsageError("backlash cannot be combined with another coupling (resonance)")
     terms.coupling = Coupling("gap", float(p["ratio"]), gap=float(p["gap"]), measured="motor")
 

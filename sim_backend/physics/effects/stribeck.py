@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     EffectSpec,
     ParamSpec,
@@ -48,8 +49,6 @@ MAX_EXCESS = 5.0
 
 
 def check(p, plant) -> None:
-    from servobench.errors import UsageError
-
     if p["fs"] < max(plant.fc_pos, plant.fc_neg):
         raise UsageError(
             f"stribeck_fs = {p['fs']:g} must be at least the Coulomb levels "
