@@ -128,7 +128,11 @@ class ServoModel:
         """
         try:
             return PlantParams(
-                M=self.M, B=self.B, fc_pos=self.coulomb_pos, fc_neg=self.coulomb_neg, **extra
+                M=self.M,
+                B=self.B,
+                coulomb_pos=self.coulomb_pos,
+                coulomb_neg=self.coulomb_neg,
+                **extra,
             )
         except UsageError as err:
             raise IdentificationError(f"model cannot be simulated: {err}") from None

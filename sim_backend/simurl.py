@@ -21,10 +21,22 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     pass
 
-#: Base physics keys of ``sim://`` (see :class:`~servobench.sim_backend.physics.plant.PlantParams`).
-PLANT_KEYS = frozenset(
-    {"M", "B", "fc_pos", "fc_neg", "brk_pos", "brk_neg", "noise", "noise_x", "res_x", "res_v"}
-)
+#: Base physics keys of ``sim://`` and plant files (a contract), each with the
+#: :class:`~servobench.sim_backend.physics.coulomb.PlantParams` field it sets. The one place
+#: where key and field differ: ``fc_pos``/``fc_neg`` set ``coulomb_pos``/``coulomb_neg``.
+PLANT_FIELDS: dict[str, str] = {
+    "M": "M",
+    "B": "B",
+    "fc_pos": "coulomb_pos",
+    "fc_neg": "coulomb_neg",
+    "brk_pos": "brk_pos",
+    "brk_neg": "brk_neg",
+    "noise": "noise",
+    "noise_x": "noise_x",
+    "res_x": "res_x",
+    "res_v": "res_v",
+}
+PLANT_KEYS = frozenset(PLANT_FIELDS)
 #: Keys that configure the simulated drive rather than the physics.
 DEVICE_KEYS = frozenset({"seed", "pace", "plant"})  # "pace" is also a common key
 
@@ -67,7 +79,7 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     unknown = set(values) - PLANT_KEYS - effects.query_keys()
     if unknown:
         raise DriveConfigError(f"unknown sim plant key(s): {', '.join(sorted(unknown))}")
-    base = {k: _number(k, values[k]) for k in PLANT_KEYS & set(values)}
+    base = {PLANT_FIELDS[k]: _number(k, values[k]) for k in PLANT_KEYS & set(values)}
     effect_values = {k: _number(k, values[k]) for k in set(values) - PLANT_KEYS}
     seed = url.get_int("seed")
     if seed is not None and seed < 0:
@@ -76,3 +88,17 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
         return PlantParams(**base, seed=seed, effects=effects.effects_from_query(effect_values))
     except UsageError as err:
         raise DriveConfigError(f"bad sim plant: {err}") from None
+
+
+def plant_query(params: PlantParams) -> dict[str, float]:
+    """The ``sim://`` query of a plant: its base keys (breakaway only when set) and effect keys.
+
+    The inverse of :func:`plant_from_url` for everything but the seed.
+    """
+    query = {}
+    for key, name in PLANT_FIELDS.items():
+        value = getattr(params, name)
+        if value is not None:
+            query[key] = float(value)
+    query.update(effects.to_query(params.effects))
+    return query

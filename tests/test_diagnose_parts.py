@@ -102,18 +102,18 @@ def test_noise_floor_estimates_white_sensor_noise():
 def test_the_true_base_model_leaves_only_the_noise():
     params = PlantParams(noise=0.01)
     data = prepare(plant_log(params))
-    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    truth = Candidate({"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4})
     gap = gap_percent(data, simulate(data, truth))
     assert gap == pytest.approx(noise_floor_percent(data), rel=0.15)
 
 
 def test_refit_recovers_the_base_model_from_a_poor_start():
     data = prepare(plant_log(PlantParams(noise=0.005)))
-    start = Candidate({"M": 0.07, "B": 1.4, "fc_pos": 0.3, "fc_neg": 0.6})
+    start = Candidate({"M": 0.07, "B": 1.4, "coulomb_pos": 0.3, "coulomb_neg": 0.6})
     fit = refit(data, start, bounds={})
     b = fit.candidate.base
     assert b["M"] == pytest.approx(0.1, rel=0.02) and b["B"] == pytest.approx(1.0, rel=0.02)
-    assert b["fc_pos"] == pytest.approx(0.5, rel=0.05) and b["fc_neg"] == pytest.approx(
+    assert b["coulomb_pos"] == pytest.approx(0.5, rel=0.05) and b["coulomb_neg"] == pytest.approx(
         0.4, rel=0.05
     )
 
@@ -133,7 +133,7 @@ def test_signatures_locate_a_position_periodic_residual():
 
 def test_signatures_of_a_perfect_model_with_white_noise_are_white():
     data = prepare(plant_log(PlantParams(noise=0.02)))
-    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    truth = Candidate({"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4})
     sig = compute_signatures(data, simulate(data, truth))
     assert sig.acf_max < 2 * sig.band95
     assert abs(sig.xcorr_peak) < 3 * sig.band95

@@ -23,10 +23,13 @@ from servobench.sim_backend.physics.effects.spec import base_fit
 
 
 def equation_error_base(data: DiagnosisData) -> dict[str, float]:
-    """``M, B, fc_pos, fc_neg`` from ``u = M a + B v + fc_pos [v>0] - fc_neg [v<0]``."""
+    """``M, B, coulomb_pos, coulomb_neg`` by equation error.
+
+    ``u = M a + B v + coulomb_pos [v>0] - coulomb_neg [v<0]`` on the moving samples.
+    """
     ctx = screen_input(
         data,
-        Candidate({"M": 1.0, "B": 1.0, "fc_pos": 0.0, "fc_neg": 0.0}),
+        Candidate({"M": 1.0, "B": 1.0, "coulomb_pos": 0.0, "coulomb_neg": 0.0}),
         [r.v for r in data.runs],
     )
     if int(ctx.moving.sum()) < 10:
@@ -37,7 +40,7 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
         raise IdentificationError(
             f"the base fit is not physical (M = {M:.3g}, B = {B:.3g}): too little excitation?"
         )
-    return {"M": M, "B": B, "fc_pos": max(fcp, 0.0), "fc_neg": max(fcn, 0.0)}
+    return {"M": M, "B": B, "coulomb_pos": max(fcp, 0.0), "coulomb_neg": max(fcn, 0.0)}
 
 
 def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
@@ -51,8 +54,8 @@ def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
     base = {
         "M": float(model.M),
         "B": float(model.B),
-        "fc_pos": max(float(model.coulomb_pos), 0.0),
-        "fc_neg": max(float(model.coulomb_neg), 0.0),
+        "coulomb_pos": max(float(model.coulomb_pos), 0.0),
+        "coulomb_neg": max(float(model.coulomb_neg), 0.0),
     }
     if not (base["M"] > 0 and base["B"] > 0):
         return equation_error_base(data)

@@ -33,7 +33,7 @@ DIFF_STEP = 1e-3
 MAX_NFEV = 12
 #: Key of the base parameters in coordinate searches, and which of them are searched.
 BASE = "base"
-BASE_SCAN = ("fc_pos", "fc_neg", "M")
+BASE_SCAN = ("coulomb_pos", "coulomb_neg", "M")
 #: Gradient fits restarted (fresh trust region) while each gains this share of the cost.
 RESTARTS = 3
 RESTART_GAIN = 0.02
@@ -98,7 +98,7 @@ class _Layout:
         #: (effect, parameter, scale, low, high) of each fitted effect parameter.
         self.slots: list[tuple[str, str, float, float, float]] = []
         b = cand.base
-        fscale = max(abs(b["fc_pos"]), abs(b["fc_neg"]), 1e-3 * b["B"], 1e-12)
+        fscale = max(abs(b["coulomb_pos"]), abs(b["coulomb_neg"]), 1e-3 * b["B"], 1e-12)
         self.fscale = fscale
         for name, values in cand.effects.items():
             for pname, value in values.items():
@@ -110,7 +110,7 @@ class _Layout:
 
     def start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         b = self.cand.base
-        z = [0.0, 0.0, b["fc_pos"] / self.fscale, b["fc_neg"] / self.fscale]
+        z = [0.0, 0.0, b["coulomb_pos"] / self.fscale, b["coulomb_neg"] / self.fscale]
         lo = [-math.log(100.0), -math.log(100.0), 0.0, 0.0]
         hi = [math.log(100.0), math.log(100.0), np.inf, np.inf]
         for name, pname, scale, plo, phi in self.slots:
@@ -126,8 +126,8 @@ class _Layout:
         base = {
             "M": b["M"] * math.exp(z[0]),
             "B": b["B"] * math.exp(z[1]),
-            "fc_pos": z[2] * self.fscale,
-            "fc_neg": z[3] * self.fscale,
+            "coulomb_pos": z[2] * self.fscale,
+            "coulomb_neg": z[3] * self.fscale,
         }
         effects = {name: dict(values) for name, values in self.cand.effects.items()}
         for (name, pname, scale, _, _), value in zip(self.slots, z[4:], strict=True):

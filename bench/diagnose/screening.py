@@ -92,7 +92,11 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
     if s.base is not None and all(np.isfinite(list(s.base.values()))):
         b = dict(s.base)
         if b["M"] > 0 and b["B"] > 0:
-            b = {**b, "fc_pos": max(b["fc_pos"], 0.0), "fc_neg": max(b["fc_neg"], 0.0)}
+            b = {
+                **b,
+                "coulomb_pos": max(b["coulomb_pos"], 0.0),
+                "coulomb_neg": max(b["coulomb_neg"], 0.0),
+            }
             trials.append((b, dict(s.guess), True))
     trials += [(dict(current.base), dict(g), False) for g in s.alternatives]
     mod = library.module(name)

@@ -1,6 +1,6 @@
 """Simulate a candidate model on the log and measure the gap.
 
-A :class:`Candidate` is the base model (``M, B, fc_pos, fc_neg``) plus an
+A :class:`Candidate` is the base model (``M, B, coulomb_pos, coulomb_neg``) plus an
 ordered set of effects; it runs on the same simulator the ``sim://`` drive
 uses (:mod:`servobench.sim_backend.physics.coulomb` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
 with effects), so what diagnose names can be simulated back.
@@ -17,7 +17,7 @@ from servobench.bench.diagnose.data import DiagnosisData, initial_velocity
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 from servobench.sim_backend.physics.rich_plant import build_model
 
-BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
+BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
 
 
 @dataclass(frozen=True)
@@ -32,8 +32,8 @@ class Candidate:
         return PlantParams(
             M=float(b["M"]),
             B=float(b["B"]),
-            fc_pos=max(float(b["fc_pos"]), 0.0),  # a fit may step below zero
-            fc_neg=max(float(b["fc_neg"]), 0.0),
+            coulomb_pos=max(float(b["coulomb_pos"]), 0.0),  # a fit may step below zero
+            coulomb_neg=max(float(b["coulomb_neg"]), 0.0),
             effects={k: dict(v) for k, v in self.effects.items()},
         )
 

@@ -166,11 +166,13 @@ def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = F
         return fit_pairs(pairs, data.dt_s, instrumental=instrumental)
     if previous is None:
         previous = fit_pairs(pairs, float(np.mean(pairs.dt)))
-    return fit_pairs_irregular(pairs, (previous.M, previous.B, previous.fc_pos, previous.fc_neg))
+    return fit_pairs_irregular(
+        pairs, (previous.M, previous.B, previous.coulomb_pos, previous.coulomb_neg)
+    )
 
 
 def _model(fit: ZohFit) -> ServoModel:
-    return ServoModel(fit.M, fit.B, max(fit.fc_pos, 0.0), max(fit.fc_neg, 0.0))
+    return ServoModel(fit.M, fit.B, max(fit.coulomb_pos, 0.0), max(fit.coulomb_neg, 0.0))
 
 
 def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:

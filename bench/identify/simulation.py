@@ -63,7 +63,7 @@ def simulate_variable_dt(
     :func:`~servobench.sim_backend.physics.coulomb.simulate_coulomb`, with ``exp(-dt_k/tau)`` per step.
     """
     M, B = params.M, params.B
-    fcp, fcn = params.fc_pos, params.fc_neg
+    fcp, fcn = params.coulomb_pos, params.coulomb_neg
     bkp, bkn = params.breakaway_pos, params.breakaway_neg
     tau = M / B
     exp, log = math.exp, math.log

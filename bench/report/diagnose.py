@@ -178,8 +178,8 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     base = d.steps[0].fit.candidate.base
     lines += [
         "",
-        f"Base model: M = {base['M']:.4g}, B = {base['B']:.4g}, fc_pos = {base['fc_pos']:.4g}, "
-        f"fc_neg = {base['fc_neg']:.4g}; sensor-noise floor {d.trace.noise_floor:.3g}%.",
+        f"Base model: M = {base['M']:.4g}, B = {base['B']:.4g}, coulomb_pos = {base['coulomb_pos']:.4g}, "
+        f"coulomb_neg = {base['coulomb_neg']:.4g}; sensor-noise floor {d.trace.noise_floor:.3g}%.",
         "",
         "## Where the base model disagrees",
         "",

@@ -4,13 +4,14 @@ Model (SI-like, command units ``u``)::
 
     M dv/dt + B v = u(t) - F_f(v, u)
 
-    F_f =  fc_pos                       v > 0
-    F_f = -fc_neg                       v < 0
+    F_f =  coulomb_pos                  v > 0
+    F_f = -coulomb_neg                  v < 0
     F_f =  u   (stuck, v stays 0)       v = 0 and -brk_neg <= u <= brk_pos
 
-``fc_pos``, ``fc_neg`` are the Coulomb levels (magnitudes >= 0) for positive
-and negative motion, ``brk_pos`` >= ``fc_pos`` and ``brk_neg`` >= ``fc_neg``
-the breakaway (static) levels. With ``u`` held constant over a sample
+``coulomb_pos``, ``coulomb_neg`` are the Coulomb levels (magnitudes >= 0) for
+positive and negative motion (``sim://`` keys ``fc_pos``, ``fc_neg``, see
+:mod:`servobench.sim_backend.simurl`), ``brk_pos`` >= ``coulomb_pos`` and
+``brk_neg`` >= ``coulomb_neg`` the breakaway (static) levels. With ``u`` held constant over a sample
 interval the solution is an exponential towards ``(u - F_f)/B`` in each
 regime; the integrator finds the zero crossing inside the interval
 analytically and then either sticks (command within breakaway) or continues
@@ -46,8 +47,9 @@ class PlantParams:
         Inertia/mass [command units * s^2 / position unit]; > 0.
     B : float
         Viscous coefficient [command units * s / position unit]; > 0. Pole -B/M [1/s], DC gain 1/B.
-    fc_pos, fc_neg : float
-        Coulomb friction magnitude in positive / negative motion [command units].
+    coulomb_pos, coulomb_neg : float
+        Coulomb friction magnitude in positive / negative motion [command units]
+        (``sim://`` keys ``fc_pos``, ``fc_neg``).
     brk_pos, brk_neg : float or None
         Breakaway (static) friction magnitude; ``None`` means equal to the Coulomb level.
     noise : float
@@ -66,8 +68,8 @@ class PlantParams:
 
     M: float = 0.1
     B: float = 1.0
-    fc_pos: float = 0.5
-    fc_neg: float = 0.4
+    coulomb_pos: float = 0.5
+    coulomb_neg: float = 0.4
     brk_pos: float | None = None
     brk_neg: float | None = None
     noise: float = 0.0
@@ -82,20 +84,20 @@ class PlantParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise UsageError(f"plant {name} must be a finite number > 0, got {value!r}")
-        for name in ("fc_pos", "fc_neg", "noise", "noise_x", "res_x", "res_v"):
+        for name in ("coulomb_pos", "coulomb_neg", "noise", "noise_x", "res_x", "res_v"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise UsageError(f"plant {name} must be a finite number >= 0, got {value!r}")
-        if self.breakaway_pos < self.fc_pos or self.breakaway_neg < self.fc_neg:
+        if self.breakaway_pos < self.coulomb_pos or self.breakaway_neg < self.coulomb_neg:
             raise UsageError("breakaway friction must be >= the Coulomb level")
 
     @property
     def breakaway_pos(self) -> float:
-        return self.fc_pos if self.brk_pos is None else self.brk_pos
+        return self.coulomb_pos if self.brk_pos is None else self.brk_pos
 
     @property
     def breakaway_neg(self) -> float:
-        return self.fc_neg if self.brk_neg is None else self.brk_neg
+        return self.coulomb_neg if self.brk_neg is None else self.brk_neg
 
     def with_changes(self, **changes: object) -> PlantParams:
         return replace(self, **changes)
@@ -139,7 +141,7 @@ def simulate_coulomb(
         raise UsageError("sample interval must be > 0 s")
     st = PlantState() if state is None else PlantState(state.v, state.x)
     M, B = params.M, params.B
-    fcp, fcn = params.fc_pos, params.fc_neg
+    fcp, fcn = params.coulomb_pos, params.coulomb_neg
     bkp, bkn = params.breakaway_pos, params.breakaway_neg
     tau = M / B
     a = math.exp(-dt_s / tau)

@@ -72,8 +72,8 @@ class RichModel(CouplingMixin):
         if not (self.B_pos > 0 and self.B_neg > 0):
             raise UsageError(f"viscous asymmetry |dB| = {abs(dB):g} must stay below B = {B:g}")
         self.friction = (
-            params.fc_pos,
-            params.fc_neg,
+            params.coulomb_pos,
+            params.coulomb_neg,
             max(params.breakaway_pos, terms.static_pos),
             max(params.breakaway_neg, terms.static_neg),
             terms.friction_excess,

@@ -96,7 +96,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the apparent inertia drops to {100 * (1 - ratio):.0f}% until the axis has moved "
         f"{gap:.3g} units after a reversal: a play (equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0] + coef[4], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0] + coef[4], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     guess = {"gap": gap, "ratio": ratio}
     score = explained(sse0, sse, 2, y.size)
     # The load coasts while the play is open, which the play operator ignores: let a quick

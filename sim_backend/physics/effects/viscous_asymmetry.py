@@ -67,7 +67,7 @@ def screen(ctx: ScreenInput) -> Screening:
         if sse0 > 0
         else "no equation error to explain"
     )
-    base = {"M": coef[0], "B": B, "fc_pos": coef[3], "fc_neg": coef[4]}
+    base = {"M": coef[0], "B": B, "coulomb_pos": coef[3], "coulomb_neg": coef[4]}
     dB = max(-0.9 * lim, min(0.9 * lim, dB))
     return Screening(score, {"dB": dB}, {"dB": (-lim, lim)}, evidence, base=base)
 
