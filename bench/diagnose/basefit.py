@@ -1,11 +1,12 @@
 """Step 1: the base model, a linear block plus Coulomb friction per direction.
 
 :func:`initial_base` is the one place that chooses where the starting values
-come from: :func:`servobench.bench.identify.auto.identify` for open-loop logs,
-else -- or when the identifier gives up on the log -- an equation-error
-(inverse-dynamics) least-squares fit on the moving samples.
-Either is only a start:
-:func:`fit_base` refits it on simulation error like every candidate.
+come from: the project's identifier
+(:func:`servobench.bench.identify.auto.identify_data`, on the same prepared
+log) for open-loop logs, else -- or when the identifier gives up on the log --
+an equation-error (inverse-dynamics) least-squares fit on the moving samples.
+Either is only a start: :func:`fit_base` refits it on simulation error like
+every candidate.
 """
 
 from __future__ import annotations
@@ -16,8 +17,7 @@ from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.refit import FitResult, refit
 from servobench.bench.diagnose.screening import screen_input
 from servobench.bench.diagnose.simulate import Candidate
-from servobench.bench.identify.auto import identify
-from servobench.bench.logio import ExperimentLog
+from servobench.bench.identify.auto import identify_data
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.effects.spec import base_fit
 
@@ -30,7 +30,7 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
     ctx = screen_input(
         data,
         Candidate({"M": 1.0, "B": 1.0, "coulomb_pos": 0.0, "coulomb_neg": 0.0}),
-        [r.v for r in data.runs],
+        [r.v for r in data.segments],
     )
     if int(ctx.moving.sum()) < 10:
         raise IdentificationError("too few samples in motion to identify the base model")
@@ -43,12 +43,12 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
     return {"M": M, "B": B, "coulomb_pos": max(fcp, 0.0), "coulomb_neg": max(fcn, 0.0)}
 
 
-def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
+def initial_base(data: DiagnosisData) -> dict[str, float]:
     """Starting base model: the project's identifier on open-loop logs, else equation error."""
     if data.horizon_s is not None:  # closed loop: the identifier assumes open-loop runs
         return equation_error_base(data)
     try:
-        model = identify(log).model
+        model = identify_data(data.prepared).model
     except ValueError:  # IdentificationError, or a plant the identifier could not simulate
         return equation_error_base(data)
     base = {
@@ -62,6 +62,6 @@ def initial_base(log: ExperimentLog, data: DiagnosisData) -> dict[str, float]:
     return base
 
 
-def fit_base(log: ExperimentLog, data: DiagnosisData) -> FitResult:
+def fit_base(data: DiagnosisData) -> FitResult:
     """The base model refitted on simulation error (training samples)."""
-    return refit(data, Candidate(initial_base(log, data)), bounds={})
+    return refit(data, Candidate(initial_base(data)), bounds={})

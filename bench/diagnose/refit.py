@@ -79,7 +79,7 @@ def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitR
 
 def training_windows(data: DiagnosisData) -> list[Window]:
     """Windows that carry training samples, thinned to about :data:`REFIT_MAX_SAMPLES`."""
-    chosen = [w for w in windows(data) if not data.runs[w[0]].held_out[w[1] : w[2]].all()]
+    chosen = [w for w in windows(data) if not data.held_out[w[0]][w[1] : w[2]].all()]
     total = sum(e - s for _, s, e in chosen)
     if total > REFIT_MAX_SAMPLES and len(chosen) > 1:
         keep = max(1, int(len(chosen) * REFIT_MAX_SAMPLES / total))
@@ -190,9 +190,9 @@ def refit(
     fixed = dict(fixed or {})
     which = training_windows(data)
     scale = float(np.std(data.cat("v")))
-    masks = [~data.runs[i].held_out[s:e] for i, s, e in which]
+    masks = [~data.held_out[i][s:e] for i, s, e in which]
     meas = np.concatenate(
-        [data.runs[i].v[s:e][m] for (i, s, e), m in zip(which, masks, strict=True)]
+        [data.segments[i].v[s:e][m] for (i, s, e), m in zip(which, masks, strict=True)]
     )
     count = [0]
 

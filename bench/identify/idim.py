@@ -21,16 +21,15 @@ import math
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.derivative import (
     differentiate_position,
+    filter_command,
     lowpass,
     settle_samples,
-    zoh_centered,
 )
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
-from servobench.bench.identify.verify import initial_velocity
 from servobench.bench.model import ServoModel
 from servobench.errors import IdentificationError
 
@@ -69,7 +68,7 @@ def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
         keep = ~near_still
         keep[:edge] = False
         keep[-edge:] = False
-        uf = lowpass(zoh_centered(s.u), fs, cutoff)
+        uf = filter_command(s.u, fs, cutoff)
         hp = lowpass(pos, fs, cutoff)
         hn = lowpass(neg, fs, cutoff)
         rows.append(np.column_stack((a, v, hp, -hn))[keep])

@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
 from servobench.bench.identify.idim import identify_idim
@@ -37,7 +37,6 @@ from servobench.bench.identify.regression import (
     select_pairs,
 )
 from servobench.bench.identify.simulation import simulate_run
-from servobench.bench.identify.verify import initial_velocity
 from servobench.bench.model import ServoModel
 from servobench.errors import IdentificationError
 
