@@ -1,8 +1,9 @@
 """The ``servobench`` command line.
 
 Each subcommand lives in ``servobench.bench.commands.<module>`` and exposes
-``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only
-when their subcommand runs. Any :class:`~servobench.errors.ServobenchError`
+``add_arguments(parser)`` and ``run(args) -> int``; a module is imported only
+when its subcommand runs (``servobench --help`` imports none). With no
+arguments, ``servobench`` prints its usage. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
 """
@@ -14,6 +15,8 @@ import importlib
 import sys
 
 from servobench.errors import ServobenchError
+
+DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -32,15 +35,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"servobench: error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="servobench", description=__doc__.splitlines()[0])
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``servobench`` parser; only ``command``'s module is imported (all when None).
+
+    The other subcommands are listed with their one-line help, so that
+    ``servobench --help`` loads no subcommand at all (``command=""``).
+    """
     from servobench import __version__
 
+    parser = _Parser(prog="servobench", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"servobench {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name, (module_name, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
+        if command is not None and name != command:
+            continue
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as err:
@@ -52,8 +62,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_of(argv: list[str]) -> str:
+    """The subcommand ``argv`` names (its first word that is not an option), or ``""``."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else ""
+    return ""
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_of(argv))
+    if not argv:
+        parser.print_help()
+        return 0
     args = parser.parse_args(argv)
     module = getattr(args, "_module", None)
     if module is None:

@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from servobench.bench.run.runner import sleep_until
 from servobench.bench.testing.served import ServedSim
+from servobench.clock import sleep_until
 from servobench.drivers.link_budget import (
     canopen_cycle_s,
     modbus_rtu_cycle_s,

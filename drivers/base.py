@@ -104,12 +104,18 @@ class Feedback:
         Position [position units].
     fault_code : int
         Drive fault code, 0 when the drive is healthy.
+    applied : float
+        The command the drive reports it applied over the previous cycle
+        [command units] (CiA 402 torque actual value 0x6077), NaN when the
+        transport does not report one. Under a drive-side position hold it is
+        the total of the drive's loop and the host's offset.
     """
 
     t_s: float
     velocity: float
     position: float
     fault_code: int = 0
+    applied: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -144,7 +150,10 @@ class Drive(ABC):
     ``_write_command`` and ``_read_feedback``; they may override ``_exchange``
     (one atomic cycle, e.g. SYNC + PDOs or Modbus FC23), ``_exchange_block``,
     ``_quick_stop``, ``_configure_watchdog``, ``_set_cycle``, ``_fault_code``,
-    ``_reset_fault`` and ``_info``.
+    ``_reset_fault`` and ``_info``. Optional capabilities are declared here
+    with their defaults (:attr:`realtime`, :attr:`supports_block`,
+    :attr:`supports_drive_hold`, :meth:`max_rate_hz`, :meth:`log_metadata`, :meth:`link_recoveries`,
+    :meth:`record_traffic`), never probed.
 
     Parameters
     ----------
@@ -158,10 +167,21 @@ class Drive(ABC):
     query_keys: ClassVar[frozenset[str]] = frozenset()
     #: True when ``Feedback.t_s`` is the drive's own sample clock (not host reception time).
     drive_clock: ClassVar[bool] = False
+    #: True when the drive runs in wall-clock time, as hardware does; False for a
+    #: lock-step simulation that advances one cycle per exchange (the runner then
+    #: streams it as fast as it answers unless the URL says ``pace=real``).
+    realtime: bool = True
     #: True when :meth:`exchange_block` is faster than per-cycle exchange.
-    supports_block: ClassVar[bool] = False
-    #: Human-readable units of command, velocity and position.
-    units: ClassVar[Mapping[str, str]] = {"u": "", "v": "", "x": ""}
+    supports_block: bool = False
+    #: True when the drive can hold a position with its own loop while the host's
+    #: command is added as a torque offset (CiA 402 cyclic synchronous position
+    #: with 0x60B2); see :meth:`hold_position`.
+    supports_drive_hold: bool = False
+    #: Units of command, velocity and position, keys ``u``, ``v``, ``x``: SI as
+    #: ``"N m"``, ``"N"``, ``"A"``, ``"rad/s"``, ``"m/s"``, ``"rad"``, ``"m"``, else
+    #: the drive's own unit named as such (``"rpm"``, ``"inc"``); ``""`` when
+    #: unknown. A backend may refine them at :meth:`open` from what the drive reports.
+    units: Mapping[str, str] = {"u": "", "v": "", "x": ""}
 
     def __init__(self, url: DriveURL | str) -> None:
         self.url = parse_drive_url(url) if isinstance(url, str) else url
@@ -178,6 +198,7 @@ class Drive(ABC):
         self.cycle_s: float | None = None
         self._is_open = False
         self._enabled = False
+        self._holding = False
 
     # ----------------------------------------------------------------- lifecycle
     @property
@@ -252,12 +273,49 @@ class Drive(ABC):
             pass  # disabling is what matters; the command path may be the broken part
         finally:
             self._enabled = False
+            self._holding = False
             self._disable()
 
     def stop(self) -> None:
         """Quick stop: zero command and the drive's own stop ramp where it has one."""
         self._require_open()
         self._quick_stop()
+
+    @property
+    def holding(self) -> bool:
+        """True while the drive's own loop holds a position (:meth:`hold_position`)."""
+        return self._holding
+
+    def hold_position(self, x_ref: float) -> None:
+        """Let the drive's own position loop hold ``x_ref`` [position units].
+
+        From then on :meth:`exchange` adds its command to the output of the
+        drive's loop as a torque offset (still clamped to ``max_u``), and
+        ``Feedback.applied`` reports the total command the drive applied. The
+        hold ends with :meth:`release_hold`, :meth:`disable` or :meth:`close`.
+
+        Raises
+        ------
+        DriveUnavailableError
+            The drive has no such mode (:attr:`supports_drive_hold` is False).
+        """
+        self._require_open()
+        if not self.supports_drive_hold:
+            raise DriveUnavailableError(
+                f"{self.url.scheme}:// cannot hold a position with its own loop; "
+                "use the host-side hold loop"
+            )
+        self._hold_position(float(x_ref))
+        self._holding = True
+
+    def release_hold(self) -> None:
+        """Leave the drive-side hold: back to plain command mode with zero command."""
+        self._require_open()
+        if self._holding:
+            try:
+                self._release_hold()
+            finally:
+                self._holding = False
 
     def set_cycle(self, period_s: float) -> None:
         """Tell the drive the control cycle period [s] the host will stream at."""
@@ -337,6 +395,36 @@ class Drive(ABC):
         self._require_open()
         return self._info()
 
+    def max_rate_hz(self) -> float:
+        """Highest cycle rate [Hz] this link and drive sustain, one exchange per cycle.
+
+        From the link's wire budget (:mod:`servobench.drivers.link_budget`) and
+        the drive's own limits; ``inf`` when nothing bounds it (the default,
+        and the in-process simulated drive). The runner picks its default
+        sample rate within it and refuses an explicit rate beyond it.
+        """
+        return math.inf
+
+    def log_metadata(self) -> dict[str, str]:
+        """``# key = value`` lines this drive contributes to every log streamed from it.
+
+        The base gives the signal units ``unit_u``, ``unit_v``, ``unit_x`` (from
+        :attr:`units`; unknown ones are left out). Backends add what a reader
+        of the log must know, such as where each scale factor came from or what
+        the drive clock is.
+        """
+        return {f"unit_{k}": v for k, v in self.units.items() if k in ("u", "v", "x") and v}
+
+    def link_recoveries(self) -> Mapping[str, int]:
+        """Transport-level recoveries counted since the drive was created, by kind.
+
+        ``{"retries": n}`` for a link that re-sent a request the drive answered
+        busy, ``{"duplicates": n}`` for one that dropped repeated replies; empty
+        (the default) for links that count none. The runner writes the non-zero
+        counts into the log trailer as ``link_<kind>``.
+        """
+        return {}
+
     def record_traffic(self, path: str) -> None:
         """Record the raw bus traffic to ``path`` until :meth:`close`.
 
@@ -382,6 +470,12 @@ class Drive(ABC):
 
     def _quick_stop(self) -> None:
         self._write_command(0.0)
+
+    def _hold_position(self, x_ref: float) -> None:
+        raise NotImplementedError(f"{type(self).__name__} declares a drive-side hold but has none")
+
+    def _release_hold(self) -> None:
+        raise NotImplementedError(f"{type(self).__name__} declares a drive-side hold but has none")
 
     def _configure_watchdog(self, timeout_s: float) -> None:
         raise NotImplementedError(f"{type(self).__name__} has no drive-side watchdog")

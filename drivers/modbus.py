@@ -192,6 +192,9 @@ class ModbusDrive(Drive):
         #: Requests re-sent after a "busy" answer since the drive was created.
         self.retries = 0
 
+    def link_recoveries(self) -> dict[str, int]:
+        return {"retries": self.retries}
+
     # ------------------------------------------------------------- transport
     def _open(self) -> None:
         if self.rtu:

@@ -282,6 +282,9 @@ class SerialAsciiDrive(Drive):
         self._out_of_step = False
 
     # ------------------------------------------------------------ lifecycle
+    def link_recoveries(self) -> dict[str, int]:
+        return {"duplicates": self.duplicates}
+
     def _open(self) -> None:
         try:
             self._serial = serial.Serial(

@@ -258,3 +258,39 @@ def test_device_listeners_see_every_state_change_with_its_fault_code():
         (PowerState.QUICK_STOP, 0),
         (PowerState.DISABLED, 0),
     ]
+
+
+# ------------------------------------------------------------ declared capabilities
+def test_optional_capabilities_are_declared_on_the_base_with_defaults():
+    for name, default in (("realtime", True), ("supports_block", False), ("supports_drive_hold", False)):
+        assert getattr(Drive, name) is default, name
+    with open_drive("sim://?pace=real") as real, open_drive("sim://") as fast:
+        assert (real.realtime, real.supports_block) == (True, False)
+        assert (fast.realtime, fast.supports_block) == (False, True)
+        assert real.link_recoveries() == {} == fast.link_recoveries()
+
+
+def test_a_drive_without_a_drive_side_loop_refuses_to_hold():
+    with open_drive("sim://") as drive:
+        drive.enable()
+        with pytest.raises(DriveUnavailableError, match="host-side hold loop"):
+            drive.hold_position(0.0)
+        assert not drive.holding
+        drive.release_hold()  # nothing to release: no error
+
+
+def test_log_metadata_carries_the_known_units_only():
+    with open_drive("sim://") as drive:
+        meta = drive.log_metadata()
+        assert {k: meta[k] for k in ("unit_u", "unit_v", "unit_x")} == {
+            f"unit_{k}": v for k, v in drive.units.items()
+        }
+    class Bare(type(drive)):
+        units = {"u": "N m", "v": "", "x": "rad"}
+
+    assert Bare("sim://").log_metadata() == {"unit_u": "N m", "unit_x": "rad"}
+
+
+def test_feedback_applied_defaults_to_not_reported():
+    fb = Feedback(0.0, 1.0, 2.0)
+    assert math.isnan(fb.applied)

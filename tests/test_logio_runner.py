@@ -115,6 +115,9 @@ def test_runner_logs_every_sample_of_both_runs(tmp_path, pace):
     assert_allclose(np.diff(log.run(2).t), 1e-3, rtol=1e-6)
     assert "run1_host_jitter_std_s" in log.metadata
     assert read_log(path).runs[0].extra["t_host"].shape == (400,)
+    for key, unit in drive.log_metadata().items():  # the drive's own lines reach the header
+        assert log.metadata[key] == unit
+    assert {"unit_u", "unit_v", "unit_x"} <= set(log.metadata)
 
 
 def test_runner_rejects_zero_sample_rate(tmp_path):

@@ -10,7 +10,6 @@ USB ids they match and which of those devices are plugged in.
 from __future__ import annotations
 
 import argparse
-import grp
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -92,6 +91,8 @@ def _install(args: argparse.Namespace) -> int:
     )
     if args.root.resolve() == Path("/"):
         try:
+            import grp  # POSIX only: imported here so that the CLI loads everywhere
+
             grp.getgrnam(options.group)
         except KeyError:
             print(

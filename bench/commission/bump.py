@@ -29,7 +29,8 @@ from servobench.bench.commission.config import BumpSettings
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.limits import ConfirmedLimits
 from servobench.bench.logio import LogWriter
-from servobench.bench.run.runner import LOG_COLUMNS, sleep_until
+from servobench.bench.run.runner import LOG_COLUMNS
+from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError
 

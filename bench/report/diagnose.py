@@ -14,6 +14,7 @@ import numpy as np
 
 from servobench.bench.diagnose.signatures import compute_signatures
 from servobench.bench.diagnose.workflow import Diagnosis
+from servobench.bench.report.figure import new_figure, save_png
 
 
 def _clean(value):
@@ -76,18 +77,14 @@ def write_comparison_csv(d: Diagnosis, path: str | Path) -> Path:
 
 
 def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     data = d.data
     before, after = d.steps[0].fit.v_sim, d.steps[-1].fit.v_sim
     sig_b = d.signatures
     sig_a = compute_signatures(data, after)
     figs: list[tuple[str, str]] = []
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig = new_figure(3.6, 10)
+    axes = fig.subplots(1, 2)
     for ax, attr, label in (
         (axes[0], "vs_velocity", "velocity"),
         (axes[1], "vs_position", "position"),
@@ -100,19 +97,21 @@ def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
         ax.set_ylabel("mean residual [units/s]")
         ax.legend(fontsize=8)
     fig.suptitle("Residual (measured - simulated velocity) against velocity and position")
-    figs.append(_save(fig, out / "residual_vs_state.png", plt))
+    figs.append(_save(fig, out / "residual_vs_state.png"))
 
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    fig = new_figure(3.6, 7)
+    ax = fig.subplots()
     ax.semilogy(sig_b.spectrum_hz[1:], sig_b.spectrum[1:], label="base model")
     ax.semilogy(sig_a.spectrum_hz[1:], sig_a.spectrum[1:], label="final model")
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("residual PSD [(units/s)^2/Hz]")
     ax.legend()
     ax.set_title("Residual spectrum")
-    figs.append(_save(fig, out / "residual_spectrum.png", plt))
+    figs.append(_save(fig, out / "residual_spectrum.png"))
 
     n = len(data.segments)
-    fig, axes = plt.subplots(n, 1, figsize=(10, 2.8 * n), squeeze=False)
+    fig = new_figure(2.8 * n, 10)
+    axes = fig.subplots(n, 1, squeeze=False)
     for ax, r, vb, va in zip(axes[:, 0], data.segments, before, after, strict=True):
         ax.plot(r.t, r.v, color="0.2", lw=0.8, label="measured")
         ax.plot(r.t, vb, lw=0.8, label=f"base model ({d.gap_before:.2f}%)")
@@ -121,9 +120,10 @@ def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
         ax.legend(fontsize=8, loc="upper right")
     axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle("Measured velocity against the simulated models")
-    figs.append(_save(fig, out / "overlay.png", plt))
+    figs.append(_save(fig, out / "overlay.png"))
 
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    fig = new_figure(3.6, 7)
+    ax = fig.subplots()
     labels = ["base"] + ["+" + "+".join(s.added) for s in d.steps[1:]]
     gaps = [s.fit.gap for s in d.steps]
     held = [s.fit.gap_held_out for s in d.steps]
@@ -136,14 +136,12 @@ def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
     ax.set_ylabel("velocity gap [% NRMSE]")
     ax.legend()
     ax.set_title("Gap at each step")
-    figs.append(_save(fig, out / "gap_steps.png", plt))
+    figs.append(_save(fig, out / "gap_steps.png"))
     return figs
 
 
-def _save(fig, path: Path, plt) -> tuple[str, str]:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _save(fig, path: Path) -> tuple[str, str]:
+    save_png(fig, path, dpi=110)
     return path.name, path.stem.replace("_", " ")
 
 

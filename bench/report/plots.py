@@ -17,18 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.model import IdentificationResult
+from servobench.bench.report.figure import new_figure, save_png
 
 #: Most points drawn per scatter/line (the rest are thinned out evenly).
 MAX_POINTS = 20_000
-
-
-def _figure(rows: int = 1, height: float = 3.2):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(8.0, height * rows), dpi=100, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
 
 
 def _thin(*arrays: np.ndarray) -> list[np.ndarray]:
@@ -45,7 +37,7 @@ def plot_frf(result: IdentificationResult, path: str | Path) -> Path | None:
     f = frf.f_hz
     grid = np.geomspace(f.min() / 2, min(f.max() * 2, 0.499 / frf.dt_s), 400)
     g_model = result.model.frequency_response(grid, frf.dt_s)
-    fig = _figure(2)
+    fig = new_figure(2 * 3.2)
     ax_m, ax_p = fig.subplots(2, 1, sharex=True)
     ax_m.loglog(f, np.abs(frf.G), "o", label="measured (V1-V2)/(U1-U2)")
     ax_m.loglog(grid, np.abs(g_model), "-", label=f"model ({result.method})")
@@ -60,7 +52,7 @@ def plot_frf(result: IdentificationResult, path: str | Path) -> Path | None:
     fig.suptitle(
         f"Differential FRF, pole {result.model.pole:.4g} 1/s, DC gain {result.model.dc_gain:.4g}"
     )
-    fig.savefig(path)
+    save_png(fig, path)
     return Path(path)
 
 
@@ -69,7 +61,7 @@ def plot_time(result: IdentificationResult, path: str | Path) -> Path | None:
     ver = result.verification
     if ver is None:
         return None
-    fig = _figure(len(ver.runs), 2.6)
+    fig = new_figure(len(ver.runs) * 2.6)
     axes = np.atleast_1d(fig.subplots(len(ver.runs), 1, squeeze=False)[:, 0])
     for ax, run in zip(axes, ver.runs, strict=True):
         t, v, vs = _thin(run.t, run.v, run.v_sim)
@@ -81,7 +73,7 @@ def plot_time(result: IdentificationResult, path: str | Path) -> Path | None:
     axes[0].legend(loc="upper right")
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"Verification by simulation: fit {result.fit_percent:.2f} %")
-    fig.savefig(path)
+    save_png(fig, path)
     return Path(path)
 
 
@@ -111,7 +103,7 @@ def plot_friction(result: IdentificationResult, path: str | Path) -> Path | None
         return None
     v, f = _thin(v, f)
     m = result.model
-    fig = _figure(1, 3.6)
+    fig = new_figure(3.6)
     ax = fig.subplots()
     ax.plot(v, f, ".", ms=1.5, alpha=0.5, zorder=3, label="u - M dv/dt - B v")
     vmax = float(np.max(np.abs(v)))
@@ -141,7 +133,7 @@ def plot_friction(result: IdentificationResult, path: str | Path) -> Path | None
     ax.grid(True, alpha=0.3)
     ax.legend(loc="upper left", fontsize=8)
     ax.set_title("Friction map")
-    fig.savefig(path)
+    save_png(fig, path)
     return Path(path)
 
 

@@ -42,6 +42,7 @@ import numpy as np
 from servobench.bench.logio import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
+from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError, LimitExceededError, UsageError
 
@@ -97,18 +98,8 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 def default_pace(drive: Drive) -> str:
-    """``"fast"`` for drives that say they are not real-time (``realtime = False``), else ``"real"``."""
-    return "fast" if getattr(drive, "realtime", True) is False else "real"
-
-
-def sleep_until(deadline: float) -> None:
-    """Sleep coarsely, then spin for the last half millisecond (jitter << 1 ms)."""
-    while True:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return
-        if left > 6e-4:
-            time.sleep(left - 5e-4)
+    """``"fast"`` for a lock-step drive (``Drive.realtime`` False), else ``"real"``."""
+    return "real" if drive.realtime else "fast"
 
 
 def stream_runs(
@@ -144,7 +135,7 @@ def stream_runs(
         Extra ``# key = value`` header lines (``fs`` is always written).
     pace : {"real", "fast"}, optional
         Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose
-        ``realtime`` attribute is False (``sim://``), else ``"real"``.
+        ``realtime`` is False (``sim://``), else ``"real"``.
     settle_s : float
         Longest rest with zero command between runs [s].
     progress : callable(done, total), optional
@@ -159,53 +150,87 @@ def stream_runs(
     -------
     RunResult
     """
-    if not (math.isfinite(fs_hz) and fs_hz > 0):
-        raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
-    if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
-        raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
-    pace = pace or drive.url.get_str("pace", "") or default_pace(drive)
-    if pace not in ("real", "fast"):
-        raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
-    dt = 1.0 / fs_hz
-    total = int(sum(len(u) for _, u in runs))
-    meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": pace, **(metadata or {})}
+    plan = _Plan.make(drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway)
+    meta = {
+        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace,
+        **drive.log_metadata(), **(metadata or {}),
+    }  # fmt: skip
     writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
     timing: list[TimingStats] = []
-    done = 0
     try:
         with _sigterm_as_interrupt():
-            drive.set_cycle(dt)
-            drive.enable()
-            for index, (number, u) in enumerate(runs):
-                u = np.asarray(u, dtype=float)
-                if index:
-                    _settle(drive, dt, settle_s, pace)
-                check = FeedbackCheck(frozen_cycles, breakaway, drive.drive_clock, dt)
-                run = _Run(number, writer, check, progress, done, total)
-                try:
-                    if pace == "fast" and getattr(drive, "supports_block", False):
-                        _stream_blocks(drive, u, run)
-                    else:
-                        _stream_samples(drive, u, dt, pace, run)
-                finally:
-                    timing.append(_stats(number, run.host, run.clock))
-                done += len(u)
-            drive.stop()
-            drive.disable()
+            _stream_all(drive, runs, plan, writer, timing)
     except BaseException as err:
         try:
             _stop_quietly(drive)
         finally:
-            reason = str(err)
-            if isinstance(err, KeyboardInterrupt) and not isinstance(err, TerminatedError):
-                reason = "interrupted (Ctrl-C)"
             writer.finish(
-                "incomplete", reason=reason or type(err).__name__, samples=writer.rows,
-                **_trailer(drive, timing),
-            )  # fmt: skip
+                "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
+            )
         raise
     writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The checked options of one streaming session."""
+
+    dt: float  # cycle period [s]
+    pace: str  # "real" or "fast"
+    settle_s: float
+    progress: ProgressCallback | None
+    frozen_cycles: int
+    breakaway: float | None
+    total: int  # samples of all runs
+
+    @classmethod
+    def make(cls, drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway) -> _Plan:
+        if not (math.isfinite(fs_hz) and fs_hz > 0):
+            raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
+        if frozen_cycles < 0 or (breakaway is not None and not breakaway > 0):
+            raise UsageError("frozen_cycles must be >= 0 and breakaway > 0")
+        pace = pace or drive.url.get_str("pace", "") or default_pace(drive)
+        if pace not in ("real", "fast"):
+            raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
+        total = int(sum(len(u) for _, u in runs))
+        return cls(1.0 / fs_hz, pace, settle_s, progress, frozen_cycles, breakaway, total)
+
+
+def _stream_all(
+    drive: Drive,
+    runs: Sequence[tuple[int, np.ndarray]],
+    plan: _Plan,
+    writer: LogWriter,
+    timing: list[TimingStats],
+) -> None:
+    """Enable, stream every run (resting between them), then stop and disable."""
+    drive.set_cycle(plan.dt)
+    drive.enable()
+    done = 0
+    for index, (number, u) in enumerate(runs):
+        u = np.asarray(u, dtype=float)
+        if index:
+            _settle(drive, plan.dt, plan.settle_s, plan.pace)
+        check = FeedbackCheck(plan.frozen_cycles, plan.breakaway, drive.drive_clock, plan.dt)
+        run = _Run(number, writer, check, plan.progress, done, plan.total)
+        try:
+            if plan.pace == "fast" and drive.supports_block:
+                _stream_blocks(drive, u, run)
+            else:
+                _stream_samples(drive, u, plan.dt, plan.pace, run)
+        finally:
+            timing.append(_stats(number, run.host, run.clock))
+        done += len(u)
+    drive.stop()
+    drive.disable()
+
+
+def _reason(err: BaseException) -> str:
+    """The one-line reason an interrupted session gives in its log trailer."""
+    if isinstance(err, KeyboardInterrupt) and not isinstance(err, TerminatedError):
+        return "interrupted (Ctrl-C)"
+    return str(err) or type(err).__name__
 
 
 def _stop_quietly(drive: Drive) -> None:
@@ -218,9 +243,8 @@ def _stop_quietly(drive: Drive) -> None:
 
 def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
     extra: dict[str, object] = {k: v for s in timing for k, v in s.as_metadata().items()}
-    for name in ("retries", "duplicates"):  # transport-level recoveries, when a driver counts them
-        count = getattr(drive, name, 0)
-        if isinstance(count, int) and count:
+    for name, count in drive.link_recoveries().items():
+        if count:
             extra[f"link_{name}"] = count
     return extra
 

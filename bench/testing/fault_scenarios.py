@@ -29,6 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from servobench.bench.logio import read_log
+from servobench.bench.run.runner import stream_runs
+from servobench.bench.testing.served import ServedSim
+from servobench.drivers.registry import open_drive
+from servobench.errors import DriveError
 from servobench.sim_backend.faults.spec import KINDS, TRANSPORTS
 
 #: The plant every scenario serves.
@@ -220,7 +225,6 @@ class ServerPool:
     """
 
     def __init__(self, cases: Sequence[Case | None], transport: str, workdir: Path) -> None:
-        from servobench.bench.testing.served import ServedSim
 
         workdir.mkdir(parents=True, exist_ok=True)
         self.workdir = workdir
@@ -284,10 +288,6 @@ def run_case(
     pool : ServerPool, optional
         Take the server from here (started beforehand) instead of starting one.
     """
-    from servobench.bench.run.runner import stream_runs
-    from servobench.bench.testing.served import ServedSim
-    from servobench.drivers.registry import open_drive
-    from servobench.errors import DriveError
 
     workdir.mkdir(parents=True, exist_ok=True)
     name, args = _serve_args(case, transport, workdir)
@@ -319,7 +319,6 @@ def run_case(
 
 def _rows(log_path: Path) -> np.ndarray:
     """``run,t,u,v,x`` rows of a log, as written (t_host dropped)."""
-    from servobench.bench.logio import read_log
 
     log = read_log(log_path)
     parts = [np.column_stack([np.full(len(r), r.run), r.t, r.u, r.v, r.x]) for r in log.runs]
@@ -336,7 +335,6 @@ def intact_rows(outcome: Outcome, reference: Outcome) -> int:
 
 def judge(outcome: Outcome, reference: Outcome) -> list[str]:
     """What is wrong with ``outcome`` (empty when the host behaved as the case demands)."""
-    from servobench.bench.logio import read_log
 
     case, problems = outcome.case, []
     log = read_log(outcome.log_path)

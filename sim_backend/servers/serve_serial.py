@@ -51,6 +51,7 @@ import tty
 from collections.abc import Callable, Mapping
 from urllib.parse import quote
 
+from servobench.clock import sleep_until
 from servobench.drivers.ascii_line import decode_request, encode_line
 from servobench.drivers.dialect import DEFAULT_DIALECT, Dialect, load_dialect
 from servobench.errors import DriveConfigError, DriveFaultError
@@ -256,15 +257,6 @@ class UartClock:
         return self._tx_free
 
 
-def sleep_until(deadline: float) -> None:
-    """Wait until ``time.monotonic() >= deadline``: sleep, then spin the last :data:`SPIN_S`."""
-    remaining = deadline - time.monotonic()
-    if remaining > SPIN_S:
-        time.sleep(remaining - SPIN_S)
-    while time.monotonic() < deadline:
-        pass
-
-
 class PtyPort:
     """A pseudo-terminal pair in raw mode: the server uses :attr:`master`, clients open :attr:`path`.
 
@@ -324,10 +316,10 @@ def pump(fd: int, server: AsciiDriveServer, clock: UartClock, stop: threading.Ev
             if dropping or len(line) > MAX_LINE_BYTES:
                 dropping = False
                 continue
-            sleep_until(start + (k + 1) * clock.char_s)
+            sleep_until(start + (k + 1) * clock.char_s, SPIN_S)
             reply = server.handle(line)
             if reply:
-                sleep_until(clock.transmit(len(reply), time.monotonic()))
+                sleep_until(clock.transmit(len(reply), time.monotonic()), SPIN_S)
                 with contextlib.suppress(BlockingIOError):  # nobody reads: bytes are lost
                     os.write(fd, reply)
 
