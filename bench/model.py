@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from servobench.bench.identify.frequency import model_frf
 from servobench.errors import IdentificationError, UsageError
-from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 
 #: Keys of :attr:`IdentificationResult.std`.
 STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
@@ -121,21 +122,23 @@ class ServoModel:
         return self.M / self.B
 
     def to_plant_params(self, **extra: Any) -> PlantParams:
-        """The rigid-body part as :class:`~servobench.sim_backend.physics.plant.PlantParams` (the resonance is not carried).
+        """The rigid-body part as :class:`~servobench.sim_backend.physics.coulomb.PlantParams` (the resonance is not carried).
 
         ``extra`` sets other plant fields (``noise``, ``seed``, ...).
         """
         try:
             return PlantParams(
-                M=self.M, B=self.B, fc_pos=self.coulomb_pos, fc_neg=self.coulomb_neg, **extra
+                M=self.M,
+                B=self.B,
+                coulomb_pos=self.coulomb_pos,
+                coulomb_neg=self.coulomb_neg,
+                **extra,
             )
         except UsageError as err:
             raise IdentificationError(f"model cannot be simulated: {err}") from None
 
     def frequency_response(self, f_hz: np.ndarray, dt_s: float | None = None) -> np.ndarray:
         """Linear-block response at ``f_hz`` [Hz]; with ``dt_s`` the exact ZOH-sampled one."""
-        from servobench.bench.identify.frequency import model_frf
-
         return model_frf(self, np.asarray(f_hz, dtype=float), dt_s)
 
     def simulate(self, u: np.ndarray, fs_hz: float, v0: float = 0.0) -> ModelResponse:

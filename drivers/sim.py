@@ -110,7 +110,7 @@ class SimDrive(Drive):
             state=self.device.state.value,
             fault_code=self.device.fault_code,
             units=dict(self.units),
-            extra={"M": p.M, "B": p.B, "fc_pos": p.fc_pos, "fc_neg": p.fc_neg},
+            extra={"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg},
         )
 
     @property

@@ -10,16 +10,29 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from servobench.drivers.base import COMMON_QUERY_KEYS
 from servobench.drivers.url import DriveURL, parse_drive_url
 from servobench.errors import DriveConfigError, UsageError
 from servobench.sim_backend.physics import effects
 from servobench.sim_backend.physics.plant import PlantParams
 from servobench.tomlfile import TomlTable, read_toml
 
-#: Base physics keys of ``sim://`` (see :class:`~servobench.sim_backend.physics.plant.PlantParams`).
-PLANT_KEYS = frozenset(
-    {"M", "B", "fc_pos", "fc_neg", "brk_pos", "brk_neg", "noise", "noise_x", "res_x", "res_v"}
-)
+#: Base physics keys of ``sim://`` and plant files (a contract), each with the
+#: :class:`~servobench.sim_backend.physics.coulomb.PlantParams` field it sets. The one place
+#: where key and field differ: ``fc_pos``/``fc_neg`` set ``coulomb_pos``/``coulomb_neg``.
+PLANT_FIELDS: dict[str, str] = {
+    "M": "M",
+    "B": "B",
+    "fc_pos": "coulomb_pos",
+    "fc_neg": "coulomb_neg",
+    "brk_pos": "brk_pos",
+    "brk_neg": "brk_neg",
+    "noise": "noise",
+    "noise_x": "noise_x",
+    "res_x": "res_x",
+    "res_v": "res_v",
+}
+PLANT_KEYS = frozenset(PLANT_FIELDS)
 #: Keys that configure the simulated drive rather than the physics.
 DEVICE_KEYS = frozenset({"seed", "pace", "plant"})  # "pace" is also a common key
 
@@ -53,20 +66,18 @@ def load_plant_file(path: str | Path) -> dict[str, float]:
     The values are what the URL query takes (numbers, or their text); errors
     name the file, the table and the key.
     """
-    from servobench.drivers.base import COMMON_QUERY_KEYS
-
     top = TomlTable(read_toml(path, "plant file"), f"plant file {path}")
     table = top.table("plant") if "plant" in top else top
+    drive_keys = sorted(COMMON_QUERY_KEYS & set(table.data))
+    if drive_keys:  # limits and pacing are the drive's, not the plant's: never dropped silently
+        raise table.error(drive_keys[0], "is a drive URL key, not a plant key: put it in the URL")
     values = {}
-    # The drive's common keys (max_u ...) have always been accepted here and dropped: only
-    # the URL sets them. The file contract keeps it so.
-    for key in table.allow(PLANT_KEYS | effects.query_keys() | COMMON_QUERY_KEYS):
-        if key not in COMMON_QUERY_KEYS:
-            value = table.get(key, object)
-            try:
-                values[key] = _number(value)
-            except ValueError as err:
-                raise table.error(key, f"{value!r} {err}") from None
+    for key in table.allow(PLANT_KEYS | effects.query_keys()):
+        value = table.get(key, object)
+        try:
+            values[key] = _number(value)
+        except ValueError as err:
+            raise table.error(key, f"{value!r} {err}") from None
     return values
 
 
@@ -77,14 +88,12 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
     if "plant" in url.query:
         values.update(load_plant_file(url.query["plant"]))
     values.update({k: v for k, v in url.query.items() if k not in DEVICE_KEYS})
-    from servobench.drivers.base import COMMON_QUERY_KEYS
-
     for key in COMMON_QUERY_KEYS:
         values.pop(key, None)
     unknown = set(values) - PLANT_KEYS - effects.query_keys()
     if unknown:
         raise DriveConfigError(f"unknown sim plant key(s): {', '.join(sorted(unknown))}")
-    base = {k: _query_number(k, values[k]) for k in PLANT_KEYS & set(values)}
+    base = {PLANT_FIELDS[k]: _query_number(k, values[k]) for k in PLANT_KEYS & set(values)}
     effect_values = {k: _query_number(k, values[k]) for k in set(values) - PLANT_KEYS}
     seed = url.get_int("seed")
     if seed is not None and seed < 0:
@@ -93,3 +102,17 @@ def plant_from_url(url: DriveURL | str) -> PlantParams:
         return PlantParams(**base, seed=seed, effects=effects.effects_from_query(effect_values))
     except UsageError as err:
         raise DriveConfigError(f"bad sim plant: {err}") from None
+
+
+def plant_query(params: PlantParams) -> dict[str, float]:
+    """The ``sim://`` query of a plant: its base keys (breakaway only when set) and effect keys.
+
+    The inverse of :func:`plant_from_url` for everything but the seed.
+    """
+    query = {}
+    for key, name in PLANT_FIELDS.items():
+        value = getattr(params, name)
+        if value is not None:
+            query[key] = float(value)
+    query.update(effects.to_query(params.effects))
+    return query

@@ -171,3 +171,16 @@ def test_read_toml_errors_name_the_file(tmp_path):
     good = tmp_path / "good.toml"
     good.write_text("[map]\nname = 'm'\n")
     assert read_toml(good, "register map file") == {"map": {"name": "m"}}
+
+
+def test_a_plant_file_refuses_drive_url_keys(tmp_path):
+    """Limits in a plant file would be dropped (only the URL sets them): an error, not silence."""
+    from servobench.errors import DriveConfigError
+    from servobench.sim_backend.simurl import plant_from_url
+
+    path = tmp_path / "plant.toml"
+    path.write_text("[plant]\nM = 0.2\nmax_u = 3\n")
+    with pytest.raises(DriveConfigError, match=r"\[plant\] max_u: is a drive URL key"):
+        plant_from_url(f"sim://?plant={path}")
+    path.write_text("[plant]\nM = 0.2\n")
+    assert plant_from_url(f"sim://?plant={path}&max_u=3").M == 0.2
