@@ -22,6 +22,7 @@ LIBRARY = (
     "backlash",
     "deadzone",
     "quantization",
+    "position_friction",
 )
 
 

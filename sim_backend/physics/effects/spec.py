@@ -118,6 +118,9 @@ class Terms:
         Viscous asymmetry: ``B_pos = B + dB``, ``B_neg = B - dB``.
     friction_excess : callable(speed, direction) -> float, optional
         Friction magnitude added to the Coulomb level of that direction at ``|v| = speed``.
+    friction_at : callable(x) -> float, optional
+        Friction magnitude added to both Coulomb levels and both breakaway levels at motor
+        position ``x`` [command units]; held over each integration sub-step.
     static_pos, static_neg : float
         Breakaway levels at rest (the larger of these and the plant's breakaway applies).
     position_forces : list of callable(x) -> float
@@ -131,6 +134,7 @@ class Terms:
     delay_s: float = 0.0
     dB: float = 0.0
     friction_excess: Callable[[float, int], float] | None = None
+    friction_at: Callable[[float], float] | None = None
     static_pos: float = 0.0
     static_neg: float = 0.0
     position_forces: list[Callable[[float], float]] = field(default_factory=list)
@@ -175,6 +179,9 @@ class ScreenInput:
         Samples (all runs concatenated) where the inverse-dynamics equation holds.
     command_filter : callable
         What made ``u_f`` from one run's command: ZOH centring and the zero-phase low-pass.
+    held_out : ndarray of bool
+        Samples (all runs concatenated) kept out of every fit, for choices made on held-out
+        data (all False when the caller holds nothing out).
     """
 
     runs: tuple[RunSignals, ...]
@@ -183,6 +190,11 @@ class ScreenInput:
     effects: Mapping[str, Mapping[str, float]]
     moving: np.ndarray
     command_filter: Callable[[np.ndarray], np.ndarray]
+    held_out: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.held_out is None:
+            object.__setattr__(self, "held_out", np.zeros(self.moving.size, dtype=bool))
 
     def cat(self, name: str) -> np.ndarray:
         """Signal ``name`` of all runs, concatenated."""
