@@ -124,8 +124,7 @@ def screen(ctx: ScreenInput) -> Screening:
     fs = max(fs, fcp, fcn)
     bounds["fs"] = (0.0, max(bounds["fs"][1], 3 * fs))
     evidence = (
-        f"friction rises at low speed: the force residual follows a Stribeck curve with "
-        f"static level {fs:.3g} over vs = {vs:.3g} units/s "
+        f"friction rises at low speed: the force residual follows a Stribeck curve "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp, "coulomb_neg": fcn}

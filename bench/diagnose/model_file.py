@@ -1,0 +1,134 @@
+"""``model.json`` of a diagnosis: the diagnosed plant, loadable and simulable.
+
+``servobench diagnose LOG --out DIR`` writes ``DIR/model.json``, one JSON object:
+
+* the keys of ``servobench identify --json`` for the base model, as refitted
+  together with the effects: ``M``, ``B``, ``pole`` (-B/M [1/s]), ``dc_gain``
+  (1/B), ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``
+  (``100 (1 - ||v - v_sim|| / ||v - mean v||)`` of the final model over the
+  diagnosis' comparison, equal to ``100 - gap_percent``) and ``method``
+  (``"diagnose"``);
+* ``effects``: ``{effect name: {parameter: value}}`` in the order they were
+  added, with the library's parameter names (:mod:`servobench.sim_backend.physics.effects`,
+  e.g. ``{"stribeck": {"fs": 1.25, "vs": 0.3}}``); empty when none was named;
+* ``sim_url``: the same plant as a ``sim://`` URL (base keys ``M``, ``B``,
+  ``fc_pos``, ``fc_neg`` and the effects' keys; noise-free -- add
+  ``noise=...`` to simulate the sensor), which ``servobench serve-sim`` and
+  every simulated drive accept;
+* ``units``: the unit of every parameter above (base and effects, as
+  ``"effect.parameter"``) and of ``u``, ``v``, ``x``, from the log's
+  ``unit_u``/``unit_v``/``unit_x`` metadata;
+* ``gap_percent``, ``noise_floor_percent``, ``verdict``, ``comparison`` (how
+  the gap was measured) and ``source`` (the log).
+
+:func:`candidate_from_record` and :func:`plant_from_record` read it back
+(``effects`` wins over ``sim_url`` when both are present; either alone is
+enough beside the base keys).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from servobench.bench.diagnose.simulate import Candidate
+from servobench.errors import UsageError
+from servobench.sim_backend.physics import effects as library
+from servobench.sim_backend.physics.plant import PlantParams
+from servobench.units import SignalUnits
+
+#: Base keys, as ``servobench identify --json`` names them.
+BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
+METHOD = "diagnose"
+
+
+def sim_url(cand: Candidate) -> str:
+    """The ``sim://`` URL of a candidate model (noise-free)."""
+    from servobench.sim_backend.simurl import plant_query
+
+    query = plant_query(cand.plant())
+    query.pop("noise", None)
+    query.pop("noise_x", None)
+    query.pop("res_x", None)
+    query.pop("res_v", None)
+    return "sim://?" + "&".join(f"{k}={v:.10g}" for k, v in query.items())
+
+
+def effect_unit(unit: str, units: SignalUnits) -> str:
+    """A library parameter's unit (``"command units"``, ``"units/s"`` ...) in the log's units."""
+    table = {
+        "command units": units.of("u"),
+        "units/s": units.of("v"),
+        "units": units.of("x"),
+        "command units*s/unit": units.parameters()["B"],
+    }
+    return table.get(unit, unit)
+
+
+def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
+    """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
+    out = dict(units.parameters())
+    for name in cand.effects:
+        for p in library.spec(name).params:
+            out[f"{name}.{p.name}"] = effect_unit(p.unit, units)
+    return out
+
+
+def model_record(
+    cand: Candidate,
+    units: SignalUnits,
+    gap_percent: float,
+    *,
+    noise_floor_percent: float,
+    verdict: str,
+    comparison: str,
+    source: str,
+) -> dict[str, Any]:
+    """The content of ``model.json``; see the module docstring."""
+    b = {k: float(cand.base[k]) for k in BASE_KEYS}
+    record: dict[str, Any] = {
+        "M": b["M"],
+        "B": b["B"],
+        "pole": -b["B"] / b["M"],
+        "dc_gain": 1.0 / b["B"],
+        "coulomb_pos": b["coulomb_pos"],
+        "coulomb_neg": b["coulomb_neg"],
+        "fit_percent": 100.0 - gap_percent,
+        "method": METHOD,
+        "effects": {n: {k: float(v) for k, v in p.items()} for n, p in cand.effects.items()},
+        "sim_url": sim_url(cand),
+        "units": parameter_units(cand, units),
+        "gap_percent": gap_percent,
+        "noise_floor_percent": noise_floor_percent,
+        "verdict": verdict,
+        "comparison": comparison,
+        "source": Path(source).name,
+    }
+    return record
+
+
+def candidate_from_record(record: Mapping[str, Any]) -> Candidate:
+    """The model of a ``model.json`` object (this format, or any with the identify keys).
+
+    Raises
+    ------
+    UsageError
+        A base key missing, or effects the library does not know or rejects.
+    """
+    missing = [k for k in BASE_KEYS if k not in record]
+    if missing:
+        raise UsageError(f"model lacks {', '.join(missing)}")
+    base = {k: float(record[k]) for k in BASE_KEYS}
+    effects = record.get("effects")
+    if effects is None and "sim_url" in record:
+        from servobench.sim_backend.simurl import plant_from_url
+
+        effects = plant_from_url(str(record["sim_url"])).effects
+    effects = {n: library.validate(n, dict(p)) for n, p in dict(effects or {}).items()}
+    return Candidate(base, effects)
+
+
+def plant_from_record(record: Mapping[str, Any]) -> PlantParams:
+    """:class:`PlantParams` of a ``model.json`` object, ready to simulate."""
+    return candidate_from_record(record).plant()
