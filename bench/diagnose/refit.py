@@ -72,8 +72,15 @@ class FitResult:
 
 
 def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitResult:
-    """Simulate a candidate on all windows and measure its gaps."""
-    v = tuple(simulate(data, cand))
+    """Simulate a candidate on all windows and measure its gaps (infinite for parameters the
+    simulator rejects)."""
+    try:
+        v = tuple(simulate(data, cand))
+    except UsageError:
+        inf = float("inf")
+        return FitResult(
+            cand, tuple(np.full(len(r), np.nan) for r in data.segments), inf, inf, inf, evaluations
+        )
     return FitResult(
         cand,
         v,

@@ -221,10 +221,18 @@ def screen(ctx: ScreenInput) -> Screening:
 
 
 def project(p, base):
-    """Keep the friction at the knots above zero in both directions (for the refit)."""
+    """Keep the friction above zero along the whole travel in both directions (for the refit):
+    the curve's variation is scaled down until its lowest point clears the lower Coulomb level,
+    and knots beyond the count stay at zero."""
     floor = -0.95 * min(base["coulomb_pos"], base["coulomb_neg"])
-    n = int(p["knots"])
-    return {**p, **{f"f{i}": max(float(p[f"f{i}"]), floor) for i in range(n)}}
+    n = knot_count(p)
+    p = {**p, **{f"f{i}": 0.0 for i in range(n, MAX_KNOTS)}}  # knots beyond the count are unused
+    _, _, table = curve(p)
+    lowest = float(table.min())
+    if lowest >= floor:
+        return dict(p)
+    scale = floor / lowest if lowest < 0 else 0.0
+    return {**p, **{f"f{i}": float(p[f"f{i}"]) * scale for i in range(n)}}
 
 
 def describe(p) -> str:
