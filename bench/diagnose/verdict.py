@@ -64,8 +64,13 @@ LAGS = (0, 1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45)
 RIDGE = 1e-4
 #: A place predicting this share of the held-out residual energy is where it lives.
 STRONG = 0.25
-#: A residual whose places together predict less than this share is noise-like.
+#: A residual whose places together predict less than this share is noise-like ...
 STRUCTURED = 0.3
+#: ... and its unpredictable part raises the floor when it exceeds the sensor noise this much.
+COLOURED = 1.2
+#: Time constants [s, samples] the linear block of the place regressors is held within.
+TAU_MAX_S = 1.0
+TAU_MIN_SAMPLES = 2
 #: Velocity below this fraction of its rms counts as at rest for the direction of motion.
 REST_FRACTION = 0.02
 
@@ -148,9 +153,14 @@ class Verdict:
 
 
 # ------------------------------------------------------------------ regressors
-def hats(s: np.ndarray, knots: int) -> np.ndarray:
-    """Piecewise-linear (hat) basis over ``s`` with knots at its quantiles, shape ``(n, k)``."""
-    nodes = np.unique(np.quantile(s, np.linspace(0.0, 1.0, knots)))
+def nodes_of(s: np.ndarray, knots: int) -> np.ndarray:
+    """``knots`` nodes at the quantiles of ``s`` (duplicates merged)."""
+    return np.unique(np.quantile(s, np.linspace(0.0, 1.0, knots)))
+
+
+def hats(s: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Piecewise-linear (hat) basis over ``s`` with the given nodes, shape ``(n, nodes.size)``
+    (a constant column when there are fewer than two)."""
     if nodes.size < 2:
         return np.ones((s.size, 1))
     eye = np.eye(nodes.size)
@@ -165,35 +175,52 @@ def _since_reversal(d: np.ndarray, dt_s: float) -> np.ndarray:
     return (idx - last) * dt_s
 
 
-def _run_places(data: DiagnosisData, i: int, knots: Mapping[str, int]) -> dict[str, np.ndarray]:
-    """The raw (unfiltered) regressors of run ``i``, per place."""
+def _signals(data: DiagnosisData, i: int) -> dict[str, np.ndarray]:
+    """The signals of run ``i`` the piecewise-linear places are built on."""
     r = data.segments[i]
-    v, x, u = r.v_f, r.position, r.u
-    a = np.gradient(v, data.dt_s)
+    return {
+        "velocity": r.v_f,
+        "position": r.position,
+        "acceleration": np.gradient(r.v_f, data.dt_s),
+        "command": r.u,
+        "time": np.arange(len(r)) / len(r),
+    }
+
+
+def _run_places(
+    data: DiagnosisData, i: int, nodes: Mapping[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """The raw (unfiltered) regressors of run ``i``, per place; ``nodes`` of the piecewise-linear
+    ones are shared by all runs (the columns mean the same in every run)."""
+    r = data.segments[i]
+    sig = _signals(data, i)
+    v, u = r.v_f, r.u
     rms = float(np.sqrt(np.mean(v * v))) or 1.0
     d = np.where(np.abs(v) > REST_FRACTION * rms, np.sign(v), 0.0)
     since = _since_reversal(d, data.dt_s)
     rev = np.column_stack(
         [np.interp(since, REVERSAL_KNOTS_S, row) for row in np.eye(len(REVERSAL_KNOTS_S))]
     )
-    t = np.arange(len(r)) / len(r)
     lagged = np.column_stack([np.concatenate([np.zeros(k), u[: u.size - k]]) for k in LAGS])
-    hx = hats(x, knots["position"])
+    hx = hats(sig["position"], nodes["position"])
     return {
-        "velocity": hats(v, knots["velocity"]),
+        "velocity": hats(sig["velocity"], nodes["velocity"]),
         "position": np.column_stack([hx * d[:, None], hx]),
         "direction": d[:, None],
-        "acceleration": hats(a, knots["acceleration"]),
-        "time": np.column_stack([rev * d[:, None], hats(t, knots["time"])]),
+        "acceleration": hats(sig["acceleration"], nodes["acceleration"]),
+        "time": np.column_stack([rev * d[:, None], hats(sig["time"], nodes["time"])]),
         "frequency": lagged,
-        "command": hats(u, knots["command"]),
+        "command": hats(sig["command"], nodes["command"]),
     }
 
 
 def _through_block(phi: np.ndarray, starts: np.ndarray, M: float, B: float, dt: float):
-    """``phi`` (columns of forces) through ``1/(M s + B)`` under ZOH, restarted at ``starts``."""
+    """``phi`` (columns of forces) through ``1/(M s + B)`` under ZOH, restarted at ``starts``;
+    the time constant ``M/B`` held within [:data:`TAU_MIN_SAMPLES` dt, :data:`TAU_MAX_S`] (a
+    fit with B near zero would integrate the regressors into drifts)."""
     from scipy.signal import lfilter
 
+    B = min(max(B, M / TAU_MAX_S), M / (TAU_MIN_SAMPLES * dt))
     a = math.exp(-dt * B / M)
     b = (1.0 - a) / B
     out = np.empty_like(phi)
@@ -208,9 +235,11 @@ def regressors(
 ) -> dict[str, np.ndarray]:
     """Every place's regressors over all runs (concatenated), through the model's linear block."""
     M, B = float(base["M"]), float(base["B"])
+    signals = [_signals(data, i) for i in range(len(data.segments))]
+    nodes = {k: nodes_of(np.concatenate([s[k] for s in signals]), n) for k, n in knots.items()}
     per_run = []
     for i, starts in enumerate(data.starts):
-        raw = _run_places(data, i, knots)
+        raw = _run_places(data, i, nodes)
         per_run.append({k: _through_block(v, starts, M, B, data.dt_s) for k, v in raw.items()})
     return {k: np.concatenate([p[k] for p in per_run]) for k in PLACES}
 
@@ -329,7 +358,7 @@ def noise_floor(data: DiagnosisData, gap: float, together: float) -> NoiseFloor:
     )
     if together < STRUCTURED:
         upper = min([unpredictable] + ([repeat] if repeat is not None else []))
-        if upper > sensor:
+        if upper > COLOURED * sensor:
             floor = upper
             source = (
                 "the scatter of the velocity from one excitation period to the next"
