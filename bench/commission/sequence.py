@@ -56,7 +56,13 @@ from servobench.bench.report import commission_record as document
 from servobench.bench.report.html import REPORT_FILE, write_report
 from servobench.drivers.base import Drive
 from servobench.drivers.url import parse_drive_url
-from servobench.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
+from servobench.errors import (
+    DriveError,
+    DriveUnavailableError,
+    LimitExceededError,
+    UsageError,
+    add_note,
+)
 
 BUMP_LOG = "bump.csv"
 DIAGNOSE_DIR = "diagnose"
@@ -141,19 +147,24 @@ class Commissioning:
         self._prepare_out_dir()
         try:
             result = self._steps()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             self.progress.status, self.progress.reason = "interrupted", "Ctrl-C"
+            add_note(err, self._kept())
             raise
         except CommissionRefused as err:
             self.progress.status, self.progress.reason = "refused", str(err)
             raise
         except BaseException as err:
             self.progress.status, self.progress.reason = "error", str(err) or type(err).__name__
+            add_note(err, self._kept())
             raise
         finally:
             self._keep_files()
             write_json(self.out / STATUS_FILE, self.progress.as_dict())
         return result
+
+    def _kept(self) -> str:
+        return f"the record so far is kept in {self.out} ({STATUS_FILE} says how far it got)"
 
     def _prepare_out_dir(self) -> None:
         if (self.out / STATUS_FILE).exists():
