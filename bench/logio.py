@@ -55,6 +55,7 @@ from servobench.bench.logmap import (
 )
 from servobench.bench.logtable import parse_table, show
 from servobench.errors import LogFormatError, one_line
+from servobench.units import SignalUnits
 
 __all__ = [
     "REQUIRED", "SIGNALS", "MAX_RUN", "RunData", "ExperimentLog", "LogWriter",
@@ -115,6 +116,11 @@ class ExperimentLog:
     fs_hz: float
     complete: bool = True
     source: str = ""
+
+    @property
+    def units(self) -> SignalUnits:
+        """The units of ``u``, ``v`` and ``x`` its ``unit_*`` metadata states."""
+        return SignalUnits.from_metadata(self.metadata)
 
     def run(self, number: int) -> RunData:
         for r in self.runs:
