@@ -99,6 +99,10 @@ def test_on_its_own_log_validate_gives_identify_s_fit(tmp_path):
     out = run_json("validate", str(model), str(log))
     assert out["fit_percent"] == pytest.approx(ident["fit_percent"], rel=1e-9)
     assert out["loop"] == "open" and "force_error_percent" not in out
+    assert out["units"]["unit_u"] == "N m" and not any("units differ" in n for n in out["notes"])
+    model.write_text(json.dumps({**ident, "units": {**ident["units"], "u": "N", "v": "m/s"}}))
+    notes = run_json("validate", str(model), str(log))["notes"]
+    assert any("units differ" in n and "u: model [N], log [N m]" in n for n in notes), notes
 
 
 def test_a_diagnosed_model_with_its_effects_gives_diagnose_s_gap(tmp_path):

@@ -37,6 +37,11 @@ def run(args: argparse.Namespace) -> int:
     log = read_log_of(args)
     result = validate(saved.model, log, saved.effects, loop=args.loop)
     units = SignalUnits.from_metadata(log.metadata)
+    mismatch = _unit_mismatch(saved.units, units)
+    if mismatch:
+        from dataclasses import replace
+
+        result = replace(result, notes=(*result.notes, mismatch))
     figure = None
     if args.out:
         from servobench.bench.report.validation import write_validation_figure
@@ -60,3 +65,14 @@ def run(args: argparse.Namespace) -> int:
     if figure is not None:
         print(f"figure: {figure}")
     return 0
+
+
+def _unit_mismatch(model_units, log_units) -> str:
+    """A note when the model's signal units (its ``units`` object) differ from the log's."""
+    differ = [
+        f"{k}: model [{model_units[k]}], log [{getattr(log_units, k)}]"
+        for k in ("u", "v", "x")
+        if model_units.get(k) and getattr(log_units, k) and model_units[k] != getattr(log_units, k)
+    ]
+    return ("units differ, the figures compare numbers in different units (" + "; ".join(differ) + ")"
+            if differ else "")  # fmt: skip
