@@ -138,3 +138,11 @@ def test_bad_model_files_are_one_line_errors(tmp_path, capsys, content, match):
     assert main(["validate", str(model), str(log)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0], err
+
+
+def test_a_sidbe_run_folder_validates_against_its_own_log(tmp_path):
+    out = tmp_path / "run"
+    model = run_json("sidbe", "--drive", "sim://?noise=0.01&seed=2", "--out", str(out), "--periods", "3",
+                     "--no-plots", "--max-iterations", "1")  # fmt: skip
+    got = run_json("validate", str(out / "model.json"), str(out / "log.csv"))
+    assert got["fit_percent"] == pytest.approx(model["fit_percent"], rel=1e-9)
