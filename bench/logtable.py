@@ -208,7 +208,7 @@ def _numbers(
         else:
             data = np.loadtxt(io.StringIO(_str(body)), delimiter=delimiter, ndmin=2, comments=None)
             columns = list(np.ascontiguousarray(data.T)) if data.shape[1] == width else None
-    except (ValueError, ArithmeticError):  # pyarrow's errors are ValueErrors too
+    except (ValueError, TypeError, ArithmeticError):  # pyarrow raises ValueError and TypeError kinds
         return None
     if columns is None or not all(np.isfinite(c).all() for c in columns):
         return None
