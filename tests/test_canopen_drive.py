@@ -297,7 +297,7 @@ def test_bad_urls_are_refused(url: str, match: str) -> None:
         (
             "socketcan:can0",
             {"interface": "socketcan", "channel": "can0"},
-            "canopen://can0?interface=socketcan&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://can0?interface=socketcan&node=3",
         ),
         (
             "socketcand://127.0.0.1:29536",
@@ -308,12 +308,12 @@ def test_bad_urls_are_refused(url: str, match: str) -> None:
                 "port": 29536,
                 "tcp_tune": True,
             },
-            "canopen://vcan0?interface=socketcand&host=127.0.0.1&port=29536&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://vcan0?interface=socketcand&host=127.0.0.1&port=29536&node=3",
         ),
         (
             "slcan:/dev/ttyACM0",
             {"interface": "slcan", "channel": "/dev/ttyACM0"},
-            "canopen://?interface=slcan&channel=%2Fdev%2FttyACM0&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://?interface=slcan&channel=%2Fdev%2FttyACM0&node=3",
         ),
     ],
 )
@@ -324,6 +324,7 @@ def test_link_options_and_announced_urls(link: str, kwargs: dict | None, url: st
             kwargs["interface"], kwargs["channel"], 3, kwargs.get("host"), kwargs.get("port")
         )
         assert built == url
+        assert "scale" not in built  # the drive's factor group tells the units
         drive = open_drive(built)  # the driver accepts what the server announces
         assert (drive.interface, drive.channel, drive.node_id) == (
             kwargs["interface"],
