@@ -9,6 +9,7 @@ received frames, under one lock, with the send time and direction.
 from __future__ import annotations
 
 import io
+import os
 import socket
 import threading
 import time
@@ -30,12 +31,25 @@ CONNECT_TIMEOUT_S = 2.0
 HANDSHAKE_TIMEOUT_S = 1.0
 
 
+#: The generic CiA 402 EDS servobench ships (types of the standard objects).
+GENERIC_EDS = "cia402"
+
+
+def shipped_eds() -> list[str]:
+    """Names of the EDS files servobench ships (``cia402``, ``zeroerr-edriver``, ...)."""
+    folder = resources.files("servobench.drivers").joinpath("data")
+    return sorted(p.name[:-4] for p in folder.iterdir() if p.name.endswith(".eds"))
+
+
 def load_eds(node_id: int, path: str | None = None) -> canopen.ObjectDictionary:
-    """The object dictionary of ``path`` (default: the shipped generic CiA 402 EDS)."""
-    if path:
+    """The object dictionary of the EDS file ``path``, or of a shipped EDS named by its
+    stem (``eds=zeroerr-edriver``); default the shipped generic CiA 402 EDS."""
+    name = path or GENERIC_EDS
+    if path and (os.path.exists(path) or name not in shipped_eds()):
         return canopen.import_od(path, node_id)
-    stream = io.StringIO(resources.files("drivers").joinpath("data/cia402.eds").read_text("ascii"))
-    stream.name = "cia402.eds"
+    data = resources.files("servobench.drivers").joinpath(f"data/{name}.eds")
+    stream = io.StringIO(data.read_text("ascii"))
+    stream.name = f"{name}.eds"
     return canopen.import_od(stream, node_id)
 
 
