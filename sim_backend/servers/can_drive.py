@@ -171,8 +171,12 @@ class ServedCiA402Drive:
         var = obj if isinstance(obj, ODVariable) else obj[sub]
         self.node.data_store.setdefault(index, {})[sub] = var.encode_raw(value)
 
-    def _int(self, index: int, fmt: str, sub: int = 0) -> int:
-        return struct.unpack("<" + fmt, self.node.get_data(index, sub))[0]
+    def _int(self, index: int, fmt: str, sub: int = 0, default: int = 0) -> int:
+        """The stored value of ``index:sub``; ``default`` when the EDS gives none and none was written."""
+        try:
+            return struct.unpack("<" + fmt, self.node.get_data(index, sub))[0]
+        except SdoAbortedError:
+            return default
 
     # --------------------------------------------------------------- lifecycle
     def attach(self, network: canopen.Network) -> None:
@@ -340,7 +344,7 @@ class ServedCiA402Drive:
     def _set_interpolation_period(self, subindex: int, value: int) -> None:
         """0x60C2 = value x 10^index s sets the cycle, as on drives without 0x1006."""
         units = value if subindex == 1 else self._int(0x60C2, "B", 1)
-        exponent = value if subindex == 2 else self._int(0x60C2, "b", 2)
+        exponent = value if subindex == 2 else self._int(0x60C2, "b", 2, -3)
         if subindex in (1, 2) and units > 0 and -7 <= exponent <= 0:
             self.device.set_cycle(units * 10.0**exponent)
 

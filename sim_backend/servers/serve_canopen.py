@@ -176,7 +176,10 @@ def drive_url(
     if host is not None:
         url += f"&host={host}&port={port}"
     url += f"&node={node_id}"
-    return url + (f"&eds={quote(str(Path(eds).resolve()), safe='/')}" if eds else "")
+    if not eds:
+        return url
+    where = str(Path(eds).resolve()) if Path(eds).exists() else eds  # a file, or a shipped name
+    return f"{url}&eds={quote(where, safe='/')}"
 
 
 def _connect(
