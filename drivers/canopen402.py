@@ -189,7 +189,7 @@ class CANopen402Drive(Drive):
 
     def _controlword_write(self, controlword: int) -> None:
         self._sdo().write(0x6040, 0, controlword, StateTransitionError)
-        self.session.values[0x6040] = controlword
+        self.session.io.values[0x6040] = controlword
 
     def _goto(self, target: CiA402State) -> None:
         state = self._state()
@@ -221,8 +221,8 @@ class CANopen402Drive(Drive):
     def _enable(self) -> None:
         if self._state() in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             raise self._fault_error("cannot enable; reset the fault first")
-        self.session.emcy = None  # what the drive reported before this enable is not news
-        self.session.set_torque(0.0, holding=self.holding)
+        self.session.io.emcy = None  # what the drive reported before this enable is not news
+        self.session.io.set_torque(0.0, holding=self.holding)
         self._sdo().write(0x6071, 0, 0)
         self._goto(S.OPERATION_ENABLED)
         self._expected = S.OPERATION_ENABLED
@@ -240,7 +240,7 @@ class CANopen402Drive(Drive):
                 self._leave_hold()
 
     def _quick_stop(self) -> None:
-        self.session.set_torque(0.0, holding=self.holding)
+        self.session.io.set_torque(0.0, holding=self.holding)
         if self._state() is S.OPERATION_ENABLED:
             self._goto(S.QUICK_STOP_ACTIVE)
             self._expected = S.QUICK_STOP_ACTIVE
@@ -253,23 +253,23 @@ class CANopen402Drive(Drive):
         self._controlword_write(CW_DISABLE_VOLTAGE)  # bit 7 low: the reset is a rising edge
         self._goto(S.SWITCH_ON_DISABLED)
         self._expected = None
-        self.session.emcy = None
+        self.session.io.emcy = None
 
     def _fault_code(self) -> int:
         return self._sdo().read(0x603F)
 
     # ---------------------------------------------------------------- cycles
     def _write_command(self, u: float) -> None:
-        self.session.set_torque(u, holding=self.holding)
-        self.session.send_rpdos(holding=self.holding, sync=False)
+        self.session.io.set_torque(u, holding=self.holding)
+        self.session.io.send_rpdos(holding=self.holding)
 
     def _exchange(self, u: float) -> Feedback:
-        session = self.session
-        session.set_torque(u, holding=self.holding)
-        cycle = session.cycle(holding=self.holding)
+        io = self.session.io
+        io.set_torque(u, holding=self.holding)
+        cycle = io.cycle(holding=self.holding)
         self._check_state(cycle.statusword)
-        if session.emcy is not None:
-            code, register = session.emcy
+        if io.emcy is not None:
+            code, register = io.emcy
             self._expected = None
             raise DriveFaultError(
                 f"node {self.node_id} sent EMCY 0x{code:04X} (error register 0x{register:02X})",
@@ -292,7 +292,7 @@ class CANopen402Drive(Drive):
     def _read_feedback(self) -> Feedback:
         """One sample over SDO, without a SYNC (the drive is not clocked)."""
         self._check_state(self._sdo().read(0x6041))
-        return self.session.read_feedback()
+        return self.session.io.read_feedback()
 
     def _set_cycle(self, period_s: float) -> None:
         """0x1006 and 0x60C2 are written in NMT PRE-OPERATIONAL, then the node goes back."""
@@ -309,8 +309,8 @@ class CANopen402Drive(Drive):
                 f"x_ref {x_ref:.6g} is outside the allowed travel "
                 f"[{self.limits.min_position:.6g}, {self.limits.max_position:.6g}]"
             )
-        self.session.set_target(x_ref)
-        self.session.set_torque(0.0, holding=True)
+        self.session.io.set_target(x_ref)
+        self.session.io.set_torque(0.0, holding=True)
         set_mode(self._sdo(), MODE_CSP, "cyclic synchronous position")
         self.session.mode = MODE_CSP
 
@@ -318,8 +318,7 @@ class CANopen402Drive(Drive):
         self._leave_hold()
 
     def _leave_hold(self) -> None:
-        self.session.set_torque(0.0, holding=False)
-        self.session.values[0x60B2] = 0
+        self.session.io.set_torque(0.0, holding=False)
         set_mode(self._sdo(), self.options.mode, self.options.mode_name)
         self.session.mode = self.options.mode
 

@@ -12,15 +12,12 @@ from __future__ import annotations
 
 import math
 import os
-import struct
-import threading
 import time
-from dataclasses import dataclass
 
 import can
 import canopen
 
-from servobench.drivers.base import Feedback, Limits
+from servobench.drivers.base import Limits
 from servobench.drivers.canopen_bringup import (
     DRIVE_HEARTBEAT_MS,
     NMT_OPERATIONAL,
@@ -32,8 +29,8 @@ from servobench.drivers.canopen_bringup import (
     set_mode,
     write_cycle,
 )
+from servobench.drivers.canopen_cycle import CycleIO
 from servobench.drivers.canopen_link import (
-    CounterUnwrap,
     HeartbeatProducer,
     TappedNetwork,
     TrafficRecorder,
@@ -48,31 +45,16 @@ from servobench.drivers.cia402_units import derive_scaling
 from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
-    DriveTimeoutError,
     UsageError,
 )
 
 #: Host heartbeat period as a fraction of the drive's consumer time (watchdog).
 HOST_HEARTBEAT_FRACTION = 0.25
-#: Cycle period assumed for the SYNC-count clock until the host or 0x1006 tells one [s].
-DEFAULT_CYCLE_S = 1e-3
 #: Objects the drive-side hold needs mapped: (index, into an RPDO, name).
 HOLD_OBJECTS = ((0x60B2, True, "torque offset"), (0x607A, True, "target position"),
                 (0x6077, False, "torque actual value"))  # fmt: skip
 #: Objects every layout maps; a drive that refuses them cannot be used.
 REQUIRED = (0x6040, 0x6071, 0x6041, 0x606C, 0x6064)
-
-
-@dataclass(frozen=True)
-class Cycle:
-    """What one SYNC brought back: the statusword and the scaled feedback."""
-
-    statusword: int
-    feedback: Feedback
-
-
-def _wrap_i32(value: int) -> int:
-    return (value + 2**31) % 2**32 - 2**31
 
 
 class CanopenSession:
@@ -87,22 +69,13 @@ class CanopenSession:
         self.layout: Layout | None = None
         self.scaling = None
         self.factors = None
+        self.io: CycleIO | None = None  #: the cyclic frames, once connected
         self.hold_reason: str | None = "not open"
         self.mode = options.mode  #: the mode of operation the drive is in (0x6060)
-        self.values = {0x6040: 0, 0x6071: 0, 0x60B2: 0, 0x607A: 0}  #: RPDO contents
-        self.emcy: tuple[int, int] | None = None  #: (error code, error register) pending
-        self.max_lsb = 0x7FFF
         self.notes = {"max_torque": "", "watchdog_action": ""}
         self._nmt = NmtTracker(options.node_id)
         self._heartbeat: HeartbeatProducer | None = None
         self._consumer_armed = False
-        self._rx1: bytes | None = None
-        self._rx2: bytes | None = None
-        self._rx_event = threading.Event()
-        self._last_stamp: int | None = None  # 0x1013 of the last TPDO pair consumed
-        self._position, self._clock = CounterUnwrap(32), CounterUnwrap(32)
-        self._sync_time_s = 0.0  # SYNC count x cycle period, when the drive has no 0x1013
-        self._period_s: float | None = None
         self._cycle_written: float | None = None
         self._recorders: list[TrafficRecorder] = []
 
@@ -164,10 +137,11 @@ class CanopenSession:
         self.network.add_node(self.node)
         self.sdo = SdoAccess(self.node, o.sdo_timeout_s)
         self.objects = DriveObjects(od, from_eds, self.sdo)
+        self.io = io = CycleIO(o, self.network, self.sdo)
         self.node.nmt.add_heartbeat_callback(self._nmt.on_heartbeat)
-        self.network.subscribe(0x180 + n, self._on_tpdo1)
-        self.network.subscribe(0x280 + n, self._on_tpdo2)
-        self.network.subscribe(0x80 + n, self._on_emcy)
+        self.network.subscribe(0x180 + n, io.on_tpdo1)
+        self.network.subscribe(0x280 + n, io.on_tpdo2)
+        self.network.subscribe(0x80 + n, io.on_emcy)
         with self.sdo.translated("NMT pre-operational"):
             self.node.nmt.send_command(NMT_PRE_OPERATIONAL)
         profile = self.sdo.read(0x1000) & 0xFFFF
@@ -177,7 +151,7 @@ class CanopenSession:
             self.sdo.write(0x1017, 0, DRIVE_HEARTBEAT_MS)
         self.nmt(NMT_PRE_OPERATIONAL)
         self.factors = read_factors(self.objects)
-        self.scaling = derive_scaling(self.factors, o.overrides)
+        self.scaling = io.scaling = derive_scaling(self.factors, o.overrides)
         self._torque_limit()
         self._torque_mode()
         self._map()
@@ -186,20 +160,19 @@ class CanopenSession:
         elif o.sync_cob != SYNC_COB_ID:
             raise DriveConfigError(f"node {n} has no 0x1005 to take sync_cob=0x{o.sync_cob:X}")
         cycle_us = self.objects.value(0x1006, 0, 0)
-        self._period_s = cycle_us * 1e-6 if cycle_us else None
+        io.period_s = cycle_us * 1e-6 if cycle_us else None
         self.nmt(NMT_OPERATIONAL)
 
     def _torque_limit(self) -> None:
         """0x6072 (per mille of the rated torque) from ``max_u`` where the drive has it."""
         scale, unit = self.scaling.u.scale, self.scaling.u.unit
         if not self.objects.has(0x6072):
-            self.max_lsb = 0x7FFF
             self.notes["max_torque"] = "host-side clamping only (the drive has no 0x6072)"
             return
         if math.isfinite(self.limits.max_command):
             self.sdo.write(0x6072, 0, min(round(self.limits.max_command / scale), 0xFFFF))
-        self.max_lsb = min(self.sdo.read(0x6072), 0x7FFF)
-        self.notes["max_torque"] = f"0x6072 = {self.max_lsb} ({self.max_lsb * scale:.6g} {unit})"
+        self.io.max_lsb = lsb = min(self.sdo.read(0x6072), 0x7FFF)
+        self.notes["max_torque"] = f"0x6072 = {lsb} ({lsb * scale:.6g} {unit})"
 
     def _torque_mode(self) -> None:
         o = self.options
@@ -233,7 +206,7 @@ class CanopenSession:
         objects, n = self.objects, self.options.node_id
         for _ in range(len(HOLD_OBJECTS) + 2):
             try:
-                self.layout = plan_layout(
+                self.layout = self.io.layout = plan_layout(
                     n, lambda i: objects.mappable(i, receive=True),
                     lambda i: objects.mappable(i, receive=False),
                     hold=self.hold_reason is None, clock=True,
@@ -254,7 +227,7 @@ class CanopenSession:
     # ------------------------------------------------------- cycle & watchdog
     def set_cycle(self, period_s: float) -> None:
         """The cycle for the SYNC-count clock, and 0x1006/0x60C2 written in PRE-OPERATIONAL."""
-        self._period_s = period_s
+        self.io.period_s = period_s
         if self._cycle_written == period_s:
             return
         self.nmt(NMT_PRE_OPERATIONAL)
@@ -277,6 +250,7 @@ class CanopenSession:
             period_s = max(timeout_s * HOST_HEARTBEAT_FRACTION, 0.001)
             self._heartbeat = HeartbeatProducer(self.network, self.options.host_node, period_s)
             self._heartbeat.start()
+            self.io.heartbeat = self._heartbeat
         self.sdo.write(0x1016, 1, self.options.host_node << 16 | time_ms)
         self._consumer_armed = True
         consumer = f"heartbeat consumer 0x1016 ({time_ms} ms)"
@@ -301,99 +275,6 @@ class CanopenSession:
                     self.node.nmt.send_command(NMT_PRE_OPERATIONAL)
         finally:
             self.disconnect()
-
-    # ------------------------------------------------------------ the cycle
-    def _lsb(self, u: float) -> int:
-        return max(-self.max_lsb, min(self.max_lsb, round(u / self.scaling.u.scale)))
-
-    def set_torque(self, u: float, holding: bool) -> None:
-        """The host's command: target torque 0x6071, or the torque offset 0x60B2 in a hold."""
-        raw = self._lsb(u)
-        self.values[0x6071], self.values[0x60B2] = (0, raw) if holding else (raw, 0)
-
-    def set_target(self, x_ref: float) -> None:
-        """Target position 0x607A = ``x_ref`` [position units], by SDO now and by RPDO each cycle."""
-        raw = _wrap_i32(round(x_ref / self.scaling.x.scale))
-        self.values[0x607A] = raw
-        self.sdo.write(0x607A, 0, raw)
-
-    def _frames(self, holding: bool, sync: bool) -> list[tuple[int, bytes]]:
-        pdos = self.layout.rpdos if holding else (self.layout.rpdo_command,)
-        frames = [(p.cob_id, p.pack(self.values)) for p in pdos]
-        return frames + [(self.options.sync_cob, b"")] if sync else frames
-
-    def send_rpdos(self, holding: bool, sync: bool) -> None:
-        with self.sdo.translated("RPDO"):
-            self.network.send_messages(self._frames(holding, sync))
-
-    def _period(self) -> float:
-        return self._period_s or DEFAULT_CYCLE_S
-
-    def cycle(self, holding: bool) -> Cycle:
-        """RPDOs + SYNC, then this SYNC's TPDOs, decoded and scaled."""
-        if self._heartbeat is not None:
-            self._heartbeat.check()
-        n, timeout_s = self.options.node_id, self.options.pdo_timeout_s
-        self._rx1 = self._rx2 = None
-        self._rx_event.clear()
-        t_sync = self._sync_time_s
-        self._sync_time_s += self._period()
-        with self.sdo.translated("RPDO + SYNC"):
-            self.network.send_messages(self._frames(holding, sync=True))
-        if not self._rx_event.wait(timeout_s):
-            raise DriveTimeoutError(
-                f"no TPDO from node {n} within {timeout_s * 1e3:.0f} ms of SYNC"
-            )
-        rx1, rx2 = self._rx1, self._rx2
-        state = None if rx1 is None else self.layout.tpdo_state.unpack(rx1)
-        motion = None if rx2 is None else self.layout.tpdo_motion.unpack(rx2)
-        if state is None or motion is None:
-            raise DriveTimeoutError(
-                f"incomplete TPDOs from node {n} at this SYNC: {rx1!r}, {rx2!r}"
-            )
-        if self.layout.has_clock:
-            self._last_stamp = state[0x1013]
-            t_s = self._clock(state[0x1013]) * 1e-6
-        else:
-            t_s = t_sync
-        return Cycle(
-            state[0x6041], self._feedback(t_s, motion[0x606C], motion[0x6064], state.get(0x6077))
-        )
-
-    def _feedback(self, t_s: float, velocity: int, position: int, torque: int | None) -> Feedback:
-        s = self.scaling
-        applied = math.nan if torque is None else torque * s.u.scale
-        return Feedback(
-            t_s, velocity * s.v.scale, self._position(position) * s.x.scale, applied=applied
-        )
-
-    def read_feedback(self) -> Feedback:
-        """One sample over SDO (no SYNC: the drive is not clocked)."""
-        if self.layout.has_clock:
-            t_s = self._clock(self.sdo.read(0x1013)) * 1e-6
-        else:
-            t_s = self._sync_time_s
-        torque = self.sdo.read(0x6077) if self.layout.has_torque_actual else None
-        return self._feedback(t_s, self.sdo.read(0x606C), self.sdo.read(0x6064), torque)
-
-    def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self._rx1 = bytes(data)
-
-    def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        rx1, layout = self._rx1, self.layout
-        if rx1 is not None and layout is not None and layout.has_clock:
-            state = layout.tpdo_state.unpack(rx1)
-            if state is not None and state[0x1013] == self._last_stamp:
-                self._rx1 = None  # a duplicate or a late pair of a SYNC already answered
-                return
-        self._rx2 = bytes(data)
-        self._rx_event.set()
-
-    def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) >= 3:
-            code, register = struct.unpack_from("<HB", data)
-            if code:  # 0x0000 is "error reset / no error"
-                self.emcy = (code, register)
 
     # ---------------------------------------------------------------- status
     def optional(self, index: int, sub: int, default):
@@ -430,6 +311,6 @@ class CanopenSession:
         return {
             "rated_torque_Nm": None if f.rated_torque_mNm is None else f.rated_torque_mNm / 1000.0,
             "rated_current_A": None if f.rated_current_mA is None else f.rated_current_mA / 1000.0,
-            "max_torque_permille": self.max_lsb if self.objects.has(0x6072) else None,
+            "max_torque_permille": self.io.max_lsb if self.objects.has(0x6072) else None,
             **self.metadata(),
         }
