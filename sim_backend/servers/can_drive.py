@@ -65,6 +65,7 @@ from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import FaultPlan
 from servobench.sim_backend.servers import can_pdo
 from servobench.sim_backend.servers.can_factor import ServedFactors
+from servobench.sim_backend.servers.can_heartbeat import HeartbeatConsumer
 from servobench.sim_backend.servers.can_position_loop import PositionLoop, gains_from_keys
 from servobench.sim_backend.servers.can_sync import SyncEngine
 
@@ -144,9 +145,7 @@ class ServedCiA402Drive:
         self.nmt = "INITIALISING"
         self.sync = SyncEngine(self)
         self._controlword = 0
-        self._consumer_cob: int | None = None
-        self._consumer_s: float | None = None
-        self.abort_option = 1
+        self.consumer = HeartbeatConsumer(device)
         self._initial_max_command = device.max_command
         node.add_read_callback(self._on_read)
         node.add_write_callback(self._on_write)
@@ -181,7 +180,7 @@ class ServedCiA402Drive:
     # --------------------------------------------------------------- lifecycle
     def attach(self, network: canopen.Network) -> None:
         """Join ``network`` (NMT, SYNC, RPDO and heartbeat subscriptions)."""
-        self.network = network
+        self.network = self.consumer.network = network
         network.add_node(self.node)
         network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
         self._load_settings()
@@ -320,12 +319,11 @@ class ServedCiA402Drive:
             elif index == 0x1013:
                 raise SdoAbortedError(ABORT_READ_ONLY)  # the clock is the plant's
             elif index == 0x1016:
-                self._set_consumer(value)
+                self.consumer.configure(value)
             elif index == 0x6007:
                 if value not in ABORT_OPTIONS:
                     raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
-                self.abort_option = value
-                self._apply_watchdog()
+                self.consumer.set_abort_option(value)
             elif can_pdo.is_mapping_parameter(index):
                 can_pdo.check_mapping_write(self.node, index, subindex, value)
             if can_pdo.is_pdo_parameter(index) or index == 0x1005:
@@ -358,23 +356,6 @@ class ServedCiA402Drive:
         if self.state is S.OPERATION_ENABLED and mode != MODE_CSP:
             self.device.set_command(self._torque_command())
 
-    def _set_consumer(self, value: int) -> None:
-        node_id, time_ms = (value >> 16) & 0x7F, value & 0xFFFF
-        if self.network is not None and self._consumer_cob is not None:
-            self.network.unsubscribe(self._consumer_cob, self._on_host_heartbeat)
-            self._consumer_cob = None
-        if node_id and time_ms:
-            self._consumer_cob = 0x700 + node_id
-            self._consumer_s = time_ms / 1000.0
-            if self.network is not None:
-                self.network.subscribe(self._consumer_cob, self._on_host_heartbeat)
-        else:
-            self._consumer_s = None
-        self._apply_watchdog()
-
-    def _apply_watchdog(self) -> None:
-        self.device.set_watchdog(self._consumer_s if self.abort_option == 1 else None)
-
     def _load_settings(self) -> None:
         """Apply the object dictionary's settings to the device (at start and after a reset)."""
         with self.lock:
@@ -387,11 +368,8 @@ class ServedCiA402Drive:
                 self.device.max_command = self._int(0x6072, "H") * self.lsb
             if self.has(0x1006):  # 0x1006 tells the device's cycle
                 self._store(0x1006, 0, round(self.device.cycle_s * 1e6))
-            self.abort_option = self._int(0x6007, "h") if self.has(0x6007) else 1
-            consumer = self.has(0x1016, 1)
-            self._set_consumer(
-                int.from_bytes(self.node.get_data(0x1016, 1), "little") if consumer else 0
-            )
+            self.consumer.abort_option = self._int(0x6007, "h", 0, 1) if self.has(0x6007) else 1
+            self.consumer.configure(self._int(0x1016, "I", 1) if self.has(0x1016, 1) else 0)
             self.mode = self._int(0x6060, "b")
             self.sync.dirty = True
 
@@ -427,6 +405,3 @@ class ServedCiA402Drive:
         self.node.nmt.send_command(0x81)  # boot-up message
         self.node.nmt.send_command(0x80)
         self.nmt = self.node.nmt.state
-
-    def _on_host_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self.device.feed()

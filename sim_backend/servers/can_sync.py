@@ -117,7 +117,7 @@ class SyncEngine:
             for spec in wire:
                 if spec.kind == "busoff":
                     drive.hook.bus_off(spec)
-                    if drive.abort_option == 1:  # abort connection: fault
+                    if drive.consumer.abort_option == 1:  # abort connection: fault
                         drive.device.fault(BUSOFF_FAULT, f"CAN bus-off (--fault {spec})")
             drive.sync_device()
             self._clock()
