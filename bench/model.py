@@ -24,8 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from servobench.bench.identify.frequency import model_frf
 from servobench.errors import IdentificationError, UsageError
-from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
+from servobench.units import SignalUnits
 
 #: Keys of :attr:`IdentificationResult.std`.
 STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
@@ -121,21 +123,23 @@ class ServoModel:
         return self.M / self.B
 
     def to_plant_params(self, **extra: Any) -> PlantParams:
-        """The rigid-body part as :class:`~servobench.sim_backend.physics.plant.PlantParams` (the resonance is not carried).
+        """The rigid-body part as :class:`~servobench.sim_backend.physics.coulomb.PlantParams` (the resonance is not carried).
 
         ``extra`` sets other plant fields (``noise``, ``seed``, ...).
         """
         try:
             return PlantParams(
-                M=self.M, B=self.B, fc_pos=self.coulomb_pos, fc_neg=self.coulomb_neg, **extra
+                M=self.M,
+                B=self.B,
+                coulomb_pos=self.coulomb_pos,
+                coulomb_neg=self.coulomb_neg,
+                **extra,
             )
         except UsageError as err:
             raise IdentificationError(f"model cannot be simulated: {err}") from None
 
     def frequency_response(self, f_hz: np.ndarray, dt_s: float | None = None) -> np.ndarray:
         """Linear-block response at ``f_hz`` [Hz]; with ``dt_s`` the exact ZOH-sampled one."""
-        from servobench.bench.identify.frequency import model_frf
-
         return model_frf(self, np.asarray(f_hz, dtype=float), dt_s)
 
     def simulate(self, u: np.ndarray, fs_hz: float, v0: float = 0.0) -> ModelResponse:
@@ -210,6 +214,8 @@ class IdentificationResult:
         SIDBE's measured differential FRF (for plots).
     verification : Verification or None
         Measured and simulated velocity per run (for plots).
+    units : SignalUnits
+        Units of the log's signals; :meth:`to_json` gives every parameter's unit.
     """
 
     model: ServoModel
@@ -223,10 +229,12 @@ class IdentificationResult:
     notes: tuple[str, ...] = ()
     frf: Any = None
     verification: Any = None
+    units: SignalUnits = SignalUnits()
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON dict with the contract keys (``M``, ``B``, ``pole``, ``dc_gain``,
-        ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``, ``method``, ``std``, ``selection``)."""
+        ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``, ``method``, ``std``, ``selection``,
+        ``units``: the unit of every parameter and signal, see :mod:`servobench.units`)."""
         out = self.model.as_dict()
         out.update(
             {
@@ -238,6 +246,7 @@ class IdentificationResult:
                 "noise_std": _finite(self.noise_std),
                 "validation": {k: _finite(v) for k, v in self.validation.items()},
                 "notes": list(self.notes),
+                "units": self.units.parameters(),
             }
         )
         return out

@@ -28,7 +28,7 @@ from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402
 from servobench.drivers.registry import open_drive  # noqa: E402
 from servobench.sim_backend.physics.plant import PlantParams, simulate_coulomb  # noqa: E402
 
-TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+TRUE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 
 
 def best_of(repeat: int, fn) -> tuple[float, object]:

@@ -32,7 +32,7 @@ from servobench.sim_backend.physics.plant import PlantParams, simulate_coulomb  
 
 #: The paper's Table I: amplitude -> (pole [1/s], DC gain).
 PAPER = {1.0: (-35.01, 0.1926), 60.0: (-10.2805, 0.96651), 150.0: (-10.0767, 0.98616)}
-TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+TRUE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 TRUE_MODEL = ServoModel(0.1, 1.0, 0.5, 0.4)
 KEYS = ("pole", "dc_gain", "coulomb_pos", "coulomb_neg")
 TRUTH = {"pole": -10.0, "dc_gain": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}

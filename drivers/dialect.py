@@ -17,20 +17,14 @@ line framing and checksums are in :mod:`servobench.drivers.ascii_line`.
 from __future__ import annotations
 
 import re
-import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from servobench.drivers.ascii_line import MalformedReplyError
 from servobench.drivers.line_template import Template
 from servobench.errors import DriveConfigError, DriveError
-from servobench.tomlfile import read_toml
-
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
+from servobench.tomlfile import SENTENCE, TomlTable, read_toml
 
 #: Folder of the shipped dialects (``dialect=NAME`` means ``NAME.toml`` here).
 DIALECT_DIR = Path(__file__).parent / "data" / "dialects"
@@ -101,6 +95,7 @@ _TOP_KEYS = frozenset(
         "info",
     }
 )
+_STATE_KEYS = ("enabled", "disabled")
 _DIALECT_KEYS = frozenset(
     {"name", "protocol", "firmware", "reference", "terminator", "reply_terminator", "checksum",
      "use_checksum", "float_format", "reply_float_format", "axis"}
@@ -237,36 +232,103 @@ def load_dialect(name_or_path: str = DEFAULT_DIALECT) -> Dialect:
     return parse_dialect(read_toml(path, "dialect file"), str(path))
 
 
-def _table(data: Mapping[str, object], key: str, where: str, required: bool = True) -> dict:
-    if key not in data:
-        if required:
-            raise DriveConfigError(f"{where}: missing table [{key}]")
-        return {}
-    value = data[key]
-    if not isinstance(value, dict):
-        raise DriveConfigError(f"{where}: [{key}] must be a table")
-    return value
+def _templates(t: TomlTable, fields: Mapping[str, frozenset[str]]) -> dict[str, Template]:
+    """The templates of table ``t`` by name; ``fields`` maps every allowed name to its fields."""
+    return {
+        name: Template.compile(f"{t.where} {name}", t.get(name, object), fields[name])
+        for name in t.allow(fields)
+    }
 
 
-def _no_unknown(
-    table: Mapping[str, object], allowed: frozenset[str] | set[str], where: str
-) -> None:
-    unknown = sorted(set(table) - set(allowed))
-    if unknown:
-        raise DriveConfigError(
-            f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(allowed))})"
-        )
+def _command_fields(extensions: bool) -> dict[str, frozenset[str]]:
+    """Fields of the commands of ``[extensions]`` (or of ``[commands]``)."""
+    return {
+        n: s.fields for n, s in COMMAND_SPECS.items() if (n in EXTENSION_COMMANDS) == extensions
+    }
 
 
-def _get(table: Mapping[str, object], key: str, kind: type, where: str, default: object = None):
-    if key not in table:
-        if default is None:
-            raise DriveConfigError(f"{where}: missing key {key!r}")
-        return default
-    value = table[key]
-    if kind is int and isinstance(value, bool) or not isinstance(value, kind):
-        raise DriveConfigError(f"{where}: {key} must be a {kind.__name__}, got {value!r}")
-    return value
+def _read_meta(meta: TomlTable) -> dict[str, object]:
+    """The fields of :class:`Dialect` given by the ``[dialect]`` table."""
+    meta.allow(_DIALECT_KEYS)
+    fields: dict[str, object] = {
+        "name": meta.get("name", str),
+        **{k: meta.get(k, str, "") for k in ("protocol", "firmware", "reference")},
+        "checksum": meta.choice("checksum", ("none", "xor"), "none"),
+        "use_checksum": meta.get("use_checksum", bool, False),
+        "axis": meta.get("axis", int, 0),
+    }
+    if fields["use_checksum"] and fields["checksum"] == "none":
+        raise meta.table_error("use_checksum = true needs checksum = 'xor'")
+    for key, default in (("float_format", ".7g"), ("reply_float_format", ".6f")):
+        spec = fields[key] = meta.get(key, str, default)
+        try:
+            format(1.5, spec)
+        except ValueError:
+            raise meta.table_error(f"{key} {spec!r} is not a float format") from None
+    for key, default in (("terminator", "\n"), ("reply_terminator", "\r\n")):
+        fields[key] = meta.choice(key, ("\n", "\r", "\r\n"), default).encode("ascii")
+    return fields
+
+
+def _read_commands(top: TomlTable) -> tuple[dict[str, Template], frozenset[str]]:
+    """Request templates of ``[commands]`` and ``[extensions]``; the names of the extensions."""
+    stock = top.table("commands")
+    ext = top.table("extensions", required=False)
+    commands = {
+        **_templates(stock, _command_fields(False)),
+        **_templates(ext, _command_fields(True)),
+    }
+    stock.require(name for name, spec in COMMAND_SPECS.items() if spec.required)
+    if ("set_cycle" in commands) != ("cycle_readback" in commands):
+        raise ext.table_error("set_cycle and cycle_readback go together")
+    return commands, frozenset(ext.data)
+
+
+def _read_replies(top: TomlTable, commands: Mapping[str, Template]) -> dict[str, Template]:
+    """Reply templates of ``[replies]``: each with all its fields, one for every command."""
+    t = top.table("replies")
+    replies = _templates(t, REPLY_FIELDS)
+    for name, template in replies.items():
+        lacking = REPLY_FIELDS[name] - set(template.fields)
+        if lacking:
+            raise t.error(name, f"must hold field(s) {', '.join(sorted(lacking))}")
+    for name in commands:
+        reply = COMMAND_SPECS[name].reply
+        if reply is not None and reply not in replies:
+            raise t.table_error(f"missing key {reply!r} (reply of {name})")
+    return replies
+
+
+def _read_texts(top: TomlTable, name: str, keys: Sequence[str]) -> dict[str, str]:
+    """The table ``name``: the strings ``keys``, all of them and no other."""
+    t = top.table(name)
+    t.allow(keys)
+    return {k: t.get(k, str) for k in keys}
+
+
+def _read_states(top: TomlTable) -> dict[str, int]:
+    """The state codes of ``[states]``: ``enabled`` and ``disabled``, different."""
+    t = top.table("states")
+    t.allow(_STATE_KEYS)
+    states = {k: t.get(k, int) for k in _STATE_KEYS}
+    if states["enabled"] == states["disabled"]:
+        raise t.table_error("enabled and disabled must differ")
+    return states
+
+
+def _read_errors(top: TomlTable) -> tuple[dict[str, int], int, int]:
+    """Error flags of ``[errors.bits]``; the codes of a watchdog trip and of any other fault."""
+    t = top.table("errors")
+    t.allow(("watchdog", "other", "bits"))
+    flags = t.table("bits")
+    bits = {k: flags.get(k, int) for k in flags.data}
+    codes = []
+    for role in ("watchdog", "other"):
+        flag = t.get(role, str)
+        if flag not in bits or bits[flag] == 0:
+            raise t.table_error(f"{role} = {flag!r} is not a flag in [errors.bits]")
+        codes.append(bits[flag])
+    return bits, codes[0], codes[1]
 
 
 def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dialect:
@@ -279,116 +341,28 @@ def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dial
         unknown key, a wrong type, a template with an unknown field, a reply
         template lacking a field.
     """
-    w = f"dialect {source}"
-    _no_unknown(data, _TOP_KEYS, w)
-    meta = _table(data, "dialect", w)
-    _no_unknown(meta, _DIALECT_KEYS, f"{w} [dialect]")
-    wm = f"{w} [dialect]"
-    checksum = _get(meta, "checksum", str, wm, "none")
-    if checksum not in ("none", "xor"):
-        raise DriveConfigError(f"{wm}: checksum must be 'none' or 'xor', got {checksum!r}")
-    use_checksum = _get(meta, "use_checksum", bool, wm, False)
-    if use_checksum and checksum == "none":
-        raise DriveConfigError(f"{wm}: use_checksum = true needs checksum = 'xor'")
-    float_formats = {}
-    for key, default in (("float_format", ".7g"), ("reply_float_format", ".6f")):
-        spec = _get(meta, key, str, wm, default)
-        try:
-            format(1.5, spec)
-        except ValueError:
-            raise DriveConfigError(f"{wm}: {key} {spec!r} is not a float format") from None
-        float_formats[key] = spec
-    terminators = {}
-    for key, default in (("terminator", "\n"), ("reply_terminator", "\r\n")):
-        term = _get(meta, key, str, wm, default)
-        if term not in ("\n", "\r", "\r\n"):
-            raise DriveConfigError(f"{wm}: {key} must be \\n, \\r or \\r\\n, got {term!r}")
-        terminators[key] = term.encode("ascii")
-    axis = _get(meta, "axis", int, wm, 0)
-
-    units = _table(data, "units", w)
-    _no_unknown(units, {"u", "v", "x"}, f"{w} [units]")
-    units = {k: _get(units, k, str, f"{w} [units]") for k in ("u", "v", "x")}
-
-    raw_commands = _table(data, "commands", w)
-    raw_ext = _table(data, "extensions", w, required=False)
-    _no_unknown(raw_commands, set(COMMAND_SPECS) - EXTENSION_COMMANDS, f"{w} [commands]")
-    _no_unknown(raw_ext, EXTENSION_COMMANDS, f"{w} [extensions]")
-    commands: dict[str, Template] = {}
-    for table_name, table in (("commands", raw_commands), ("extensions", raw_ext)):
-        for name, text in table.items():
-            where = f"{w} [{table_name}] {name}"
-            commands[name] = Template.compile(where, text, COMMAND_SPECS[name].fields)
-    for name, spec in COMMAND_SPECS.items():
-        if spec.required and name not in commands:
-            raise DriveConfigError(f"{w} [commands]: missing key {name!r}")
-    if ("set_cycle" in commands) != ("cycle_readback" in commands):
-        raise DriveConfigError(f"{w} [extensions]: set_cycle and cycle_readback go together")
-
-    raw_replies = _table(data, "replies", w)
-    _no_unknown(raw_replies, set(REPLY_FIELDS), f"{w} [replies]")
-    replies: dict[str, Template] = {}
-    for name, text in raw_replies.items():
-        where = f"{w} [replies] {name}"
-        replies[name] = Template.compile(where, text, REPLY_FIELDS[name])
-        lacking = REPLY_FIELDS[name] - set(replies[name].fields)
-        if lacking:
-            raise DriveConfigError(f"{where}: must hold field(s) {', '.join(sorted(lacking))}")
-    for name in commands:
-        reply = COMMAND_SPECS[name].reply
-        if reply is not None and reply not in replies:
-            raise DriveConfigError(f"{w} [replies]: missing key {reply!r} (reply of {name})")
-
-    info: dict[str, Template] = {}
-    raw_info = _table(data, "info", w, required="info" in commands)
-    _no_unknown(raw_info, INFO_KEYS, f"{w} [info]")
-    for name, text in raw_info.items():
-        info[name] = Template.compile(f"{w} [info] {name}", text, frozenset({"text"}))
-
-    raw_rej = _table(data, "rejections", w)
-    _no_unknown(raw_rej, set(REJECTION_KEYS), f"{w} [rejections]")
-    rejections = {k: _get(raw_rej, k, str, f"{w} [rejections]") for k in REJECTION_KEYS}
-
-    raw_states = _table(data, "states", w)
-    _no_unknown(raw_states, {"enabled", "disabled"}, f"{w} [states]")
-    states = {k: _get(raw_states, k, int, f"{w} [states]") for k in ("enabled", "disabled")}
-    if states["enabled"] == states["disabled"]:
-        raise DriveConfigError(f"{w} [states]: enabled and disabled must differ")
-
-    raw_err = _table(data, "errors", w)
-    _no_unknown(raw_err, {"watchdog", "other", "bits"}, f"{w} [errors]")
-    bits_table = _table(raw_err, "bits", f"{w} [errors]")
-    bits = {k: _get(bits_table, k, int, f"{w} [errors.bits]") for k in bits_table}
-    roles = {}
-    for role in ("watchdog", "other"):
-        flag = _get(raw_err, role, str, f"{w} [errors]")
-        if flag not in bits or bits[flag] == 0:
-            raise DriveConfigError(
-                f"{w} [errors]: {role} = {flag!r} is not a flag in [errors.bits]"
-            )
-        roles[role] = bits[flag]
-
+    top = TomlTable(data, f"dialect {source}", wording=SENTENCE)
+    top.allow(_TOP_KEYS)
+    meta = _read_meta(top.table("dialect"))
+    units = _read_texts(top, "units", ("u", "v", "x"))
+    commands, extensions = _read_commands(top)
+    replies = _read_replies(top, commands)
+    info_table = top.table("info", required="info" in commands)
+    info = _templates(info_table, dict.fromkeys(INFO_KEYS, frozenset({"text"})))
+    rejections = _read_texts(top, "rejections", REJECTION_KEYS)
+    states = _read_states(top)
+    bits, watchdog_error, other_error = _read_errors(top)
     return Dialect(
-        name=_get(meta, "name", str, wm),
         source=source,
-        protocol=_get(meta, "protocol", str, wm, ""),
-        firmware=_get(meta, "firmware", str, wm, ""),
-        reference=_get(meta, "reference", str, wm, ""),
-        terminator=terminators["terminator"],
-        reply_terminator=terminators["reply_terminator"],
-        checksum=checksum,
-        use_checksum=use_checksum,
-        float_format=float_formats["float_format"],
-        reply_float_format=float_formats["reply_float_format"],
-        axis=axis,
         units=units,
         commands=commands,
         replies=replies,
         info=info,
-        extensions=frozenset(raw_ext),
+        extensions=extensions,
         rejections=rejections,
         states=states,
         error_bits=bits,
-        watchdog_error=roles["watchdog"],
-        other_error=roles["other"],
+        watchdog_error=watchdog_error,
+        other_error=other_error,
+        **meta,  # type: ignore[arg-type]
     )

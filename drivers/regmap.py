@@ -30,7 +30,7 @@ from importlib import resources
 from pathlib import Path
 
 from servobench.errors import DriveConfigError, UsageError
-from servobench.tomlfile import read_toml
+from servobench.tomlfile import NO_DEFAULT, TomlTable, read_toml
 
 #: format -> (struct code, registers); "string" takes its count from the map.
 FORMATS: dict[str, tuple[str, int]] = {
@@ -276,51 +276,16 @@ def load_map(name_or_path: str) -> RegisterMap:
     return parse_map(read_toml(path, "register map file"), str(path))
 
 
-class _Table:
-    """A TOML table read key by key; unread keys are reported as unknown."""
-
-    def __init__(self, data: object, where: str, path: str) -> None:
-        if not isinstance(data, dict):
-            raise DriveConfigError(f"{path}: [{where}] must be a table")
-        self.data, self.where, self.path, self.seen = data, where, path, set()
-
-    def error(self, key: str, message: str) -> DriveConfigError:
-        return DriveConfigError(f"{self.path}: [{self.where}] {key}: {message}")
-
-    def get(self, key: str, kind: type | tuple[type, ...], default: object = ...) -> object:
-        self.seen.add(key)
-        if key not in self.data:
-            if default is ...:
-                raise self.error(key, "is required")
-            return default
-        value = self.data[key]
-        if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
-            names = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
-            raise self.error(key, f"expected {names}, got {value!r}")
-        return value
-
-    def choice(self, key: str, options: Sequence[str], default: str) -> str:
-        value = self.get(key, str, default)
-        if value not in options:
-            raise self.error(key, f"{value!r} is not one of {', '.join(options)}")
-        return value
-
-    def words(self, key: str, default: object = ...) -> tuple[int, ...]:
-        value = self.get(key, list, default)
-        if not all(
-            isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 0xFFFF for v in value
-        ):
-            raise self.error(key, f"{value!r} must be a list of 16-bit unsigned integers")
-        return tuple(value)
-
-    def done(self) -> None:
-        unknown = sorted(set(self.data) - self.seen)
-        if unknown:
-            raise self.error(unknown[0], "unknown key")
+def _words(t: TomlTable, key: str, default: object = NO_DEFAULT) -> tuple[int, ...]:
+    """The list ``key`` of 16-bit unsigned words (control values)."""
+    words = t.sequence(key, int, default)
+    if not all(0 <= w <= 0xFFFF for w in words):
+        raise t.error(key, f"{list(words)!r} must be a list of 16-bit unsigned integers")
+    return tuple(words)
 
 
-def _parse_register(name: str, data: object, defaults: _Table, path: str) -> Register:
-    t = _Table(data, f"registers.{name}", path)
+def _parse_register(name: str, t: TomlTable, orders: tuple[str, str]) -> Register:
+    """Register ``name`` from its table; ``orders`` are the map's word and byte order."""
     address = t.get("address", int)
     if not 0 <= address <= 0xFFFF:
         raise t.error("address", f"{address} is outside 0..65535")
@@ -332,7 +297,7 @@ def _parse_register(name: str, data: object, defaults: _Table, path: str) -> Reg
             raise t.error("count", f"{count} is outside 1..{MAX_READ}")
     if address + count > 0x10000:
         raise t.error("address", "register runs past address 65535")
-    scale = t.get("scale", (int, float), 1.0)
+    scale = t.get("scale", float, 1.0)
     if not (math.isfinite(scale) and scale != 0):
         raise t.error("scale", f"{scale!r} must be a finite non-zero number")
     if fmt == "string" and scale != 1.0:
@@ -343,8 +308,8 @@ def _parse_register(name: str, data: object, defaults: _Table, path: str) -> Reg
         format=fmt,
         count=count,
         scale=float(scale),
-        word_order=t.choice("word_order", _ORDERS, defaults.data.get("word_order", "big")),
-        byte_order=t.choice("byte_order", _ORDERS, defaults.data.get("byte_order", "big")),
+        word_order=t.choice("word_order", _ORDERS, orders[0]),
+        byte_order=t.choice("byte_order", _ORDERS, orders[1]),
         kind=t.choice("type", ("holding", "input"), "holding"),
         access=t.choice("access", ("r", "w", "rw"), "r" if name in FEEDBACK + IDENTITY else "rw"),
     )
@@ -387,97 +352,107 @@ def _feedback_blocks(regs: Mapping[str, Register], max_gap: int) -> tuple[Block,
     return tuple(blocks)
 
 
-def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
-    """Validate a parsed TOML document; every malformed entry names file and key."""
-    top = _Table(dict(doc), "top level", path)
-    head = _Table(top.get("map", dict), "map", path)
-    name = head.get("name", str)
-    description = head.get("description", str, "")
-    source = head.get("source", str, "")
-    fc23 = head.get("fc23", bool, False)
-    head.choice("word_order", _ORDERS, "big")
-    head.choice("byte_order", _ORDERS, "big")
-    max_gap = head.get("max_gap", int, 0)
-    if not 0 <= max_gap < MAX_READ:
-        raise head.error("max_gap", f"{max_gap} is outside 0..{MAX_READ - 1}")
-    head.done()
-
-    reg_table = _Table(top.get("registers", dict), "registers", path)
-    regs: dict[str, Register] = {}
-    for reg_name in reg_table.data:
-        if reg_name not in KNOWN_REGISTERS:
-            raise reg_table.error(
-                reg_name, f"unknown register (known: {', '.join(sorted(KNOWN_REGISTERS))})"
-            )
-        regs[reg_name] = _parse_register(reg_name, reg_table.get(reg_name, dict), head, path)
-    for req in REQUIRED:
-        if req not in regs:
-            raise reg_table.error(req, "is required")
+def _parse_registers(top: TomlTable, orders: tuple[str, str]) -> dict[str, Register]:
+    """The ``[registers.NAME]`` tables: known names, the required ones, none overlapping."""
+    table = top.table("registers")
+    regs = {
+        name: _parse_register(name, table.table(name), orders)
+        for name in table.allow(KNOWN_REGISTERS, noun="register")
+    }
+    table.require(REQUIRED)
     ordered = sorted(regs.values(), key=lambda r: (r.kind, r.address))
     for a, b in zip(ordered, ordered[1:], strict=False):
         if a.kind == b.kind and b.address < a.end:
-            raise reg_table.error(
-                b.name, f"overlaps register {a.name!r} at address {b.address:#06x}"
-            )
+            raise table.error(b.name, f"overlaps register {a.name!r} at address {b.address:#06x}")
+    return regs
 
-    ctl = _Table(top.get("control", dict), "control", path)
+
+def _parse_control(top: TomlTable) -> ControlWords:
+    t = top.table("control")
     control = ControlWords(
-        enable=ctl.words("enable"),
-        disable=ctl.words("disable"),
-        quick_stop=ctl.words("quick_stop", []),
-        reset_fault=ctl.words("reset_fault", []),
+        enable=_words(t, "enable"),
+        disable=_words(t, "disable"),
+        quick_stop=_words(t, "quick_stop", []),
+        reset_fault=_words(t, "reset_fault", []),
     )
-    ctl.done()
+    t.done()
     if not control.enable or not control.disable:
-        raise ctl.error("enable" if not control.enable else "disable", "must not be empty")
+        raise t.error("enable" if not control.enable else "disable", "must not be empty")
+    return control
 
-    st = _Table(top.get("status", dict, {}), "status", path)
+
+def _parse_status(top: TomlTable, regs: Mapping[str, Register]) -> StatusBits:
+    t = top.table("status", required=False)
     status = StatusBits(
-        *(st.get(k, int, None) for k in ("enabled_mask", "quick_stop_mask", "fault_mask"))
+        *(t.get(k, int, None) for k in ("enabled_mask", "quick_stop_mask", "fault_mask"))
     )
-    st.done()
-    if (
-        any(m is not None for m in (status.enabled, status.fault, status.quick_stop))
-        and "status" not in regs
-    ):
-        raise st.error("enabled_mask", "status masks need a [registers.status] entry")
+    t.done()
+    masks = (status.enabled, status.quick_stop, status.fault)
+    if any(m is not None for m in masks) and "status" not in regs:
+        raise t.error("enabled_mask", "status masks need a [registers.status] entry")
+    return status
 
-    wd = _Table(top.get("watchdog", dict, {}), "watchdog", path)
-    feed = wd.choice("feed", WATCHDOG_FEEDS, "any_request")
-    wd.done()
+
+def _parse_watchdog(top: TomlTable, regs: Mapping[str, Register]) -> str:
+    t = top.table("watchdog", required=False)
+    feed = t.choice("feed", WATCHDOG_FEEDS, "any_request")
+    t.done()
     if feed == "register" and "watchdog_feed" not in regs:
-        raise wd.error("feed", "'register' needs a [registers.watchdog_feed] entry")
+        raise t.error("feed", "'register' needs a [registers.watchdog_feed] entry")
+    return feed
 
+
+def _parse_setup(top: TomlTable) -> tuple[SetupWrite, ...]:
     setup = []
-    for i, item in enumerate(top.get("setup", list, [])):
-        s = _Table(item, f"setup[{i}]", path)
+    for s in top.tables("setup", []):
         address, value = s.get("address", int), s.get("value", int)
         if not (0 <= address <= 0xFFFF and 0 <= value <= 0xFFFF):
             raise s.error("value", "address and value must be 16-bit unsigned integers")
         setup.append(SetupWrite(address, value, s.get("note", str, "")))
         s.done()
+    return tuple(setup)
 
-    units_table = _Table(top.get("units", dict, {}), "units", path)
-    units = {k: units_table.get(k, str, "") for k in ("u", "v", "x")}
-    units_table.done()
-    top.done()
 
+def _parse_units(top: TomlTable) -> dict[str, str]:
+    t = top.table("units", required=False)
+    units = {k: t.get(k, str, "") for k in ("u", "v", "x")}
+    t.done()
+    return units
+
+
+def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
+    """Validate a parsed TOML document; every malformed entry names file, table and key."""
+    top = TomlTable(doc, path)
+    head = top.table("map")
+    name = head.get("name", str)
+    description = head.get("description", str, "")
+    source = head.get("source", str, "")
+    fc23 = head.get("fc23", bool, False)
+    orders = (head.choice("word_order", _ORDERS, "big"), head.choice("byte_order", _ORDERS, "big"))
+    max_gap = head.get("max_gap", int, 0)
+    if not 0 <= max_gap < MAX_READ:
+        raise head.error("max_gap", f"{max_gap} is outside 0..{MAX_READ - 1}")
+    head.done()
+
+    regs = _parse_registers(top, orders)
     blocks = _feedback_blocks(regs, max_gap)
-    if fc23 and blocks[0].kind != "holding":
-        raise head.error(
-            "fc23", "FC23 reads holding registers; the velocity block is input registers"
-        )
-    return RegisterMap(
+    regmap = RegisterMap(
         name=name,
         path=path,
         registers=regs,
-        control=control,
-        status=status,
+        control=_parse_control(top),
+        status=_parse_status(top, regs),
         fc23=fc23,
-        watchdog_feed=feed,
-        setup=tuple(setup),
-        units=units,
+        watchdog_feed=_parse_watchdog(top, regs),
+        setup=_parse_setup(top),
+        units=_parse_units(top),
         description=description,
         source=source,
         blocks=blocks,
     )
+    top.done()
+    if fc23 and blocks[0].kind != "holding":
+        raise head.error(
+            "fc23", "FC23 reads holding registers; the velocity block is input registers"
+        )
+    return regmap

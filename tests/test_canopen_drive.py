@@ -56,7 +56,7 @@ def test_square_wave_matches_the_plant() -> None:
         drive.set_cycle(0.001)
         drive.enable()
         rows = [drive.exchange(uk)[0] for uk in u]
-    v_ref, x_ref = simulate(u, 1000.0, PlantParams(M=0.1, B=1, fc_pos=0.5, fc_neg=0.4))
+    v_ref, x_ref = simulate(u, 1000.0, PlantParams(M=0.1, B=1, coulomb_pos=0.5, coulomb_neg=0.4))
     np.testing.assert_allclose([r.velocity for r in rows], v_ref, atol=1e-6)
     np.testing.assert_allclose([r.position for r in rows], x_ref, atol=1e-6)
     np.testing.assert_allclose([r.t_s for r in rows], np.arange(400) * 1e-3, atol=1e-6)
@@ -202,7 +202,7 @@ def test_virtual_bus_in_process() -> None:
         with open_drive(url) as drive:
             drive.enable()
             rows = [drive.exchange(uk)[0].velocity for uk in u]
-    v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, fc_pos=0.5, fc_neg=0.4))
+    v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, coulomb_pos=0.5, coulomb_neg=0.4))
     np.testing.assert_allclose(rows, v_ref, atol=1e-6)
 
 
@@ -285,7 +285,7 @@ def test_second_served_drive_joins_the_hub() -> None:
                 drive3.enable()
                 u = square(60, period=20)
                 rows = [drive3.exchange(uk)[0].velocity for uk in u]
-            v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, fc_pos=0.5, fc_neg=0.4))
+            v_ref, _ = simulate(u, 1000.0, PlantParams(M=0.1, B=1, coulomb_pos=0.5, coulomb_neg=0.4))
             np.testing.assert_allclose(rows, v_ref, atol=1e-6)
             assert dev2.state is PowerState.DISABLED  # node 2 was not touched
 

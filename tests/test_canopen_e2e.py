@@ -21,7 +21,7 @@ from servobench.drivers.url import parse_drive_url
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 #: A host that enables, streams and keeps streaming until it is killed.
 STREAMING_HOST = """
 import sys

@@ -16,7 +16,7 @@ from servobench.bench.logio import read_log
 from servobench.drivers.sim import SimDrive
 from servobench.sim_backend.device import PowerState
 
-PLANT = {"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4}
+PLANT = {"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
 #: Limits for --yes, and a short SIDBE (3 periods of 1 s per run): noise-free, it is exact and fast.
 CONFIG = """
 [limits]

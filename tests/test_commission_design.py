@@ -69,7 +69,7 @@ def test_design_rejects_bad_input():
 def test_designed_loop_tracks_a_step_without_friction(M, B):
     pi = design_pi(M, B, 1000.0)
     r = np.full(1500, 1.0)
-    run = simulate_loop(PlantParams(M=M, B=B, fc_pos=0.0, fc_neg=0.0), pi, r, max_u=1e6)
+    run = simulate_loop(PlantParams(M=M, B=B, coulomb_pos=0.0, coulomb_neg=0.0), pi, r, max_u=1e6)
     assert run.v[0] == 0.0 and run.u[0] == 0.0  # one cycle of delay
     overshoot = run.v.max() - 1.0
     assert abs(run.v[-100:] - 1.0).max() < 1e-3  # integral action: no steady-state error
@@ -86,13 +86,13 @@ def test_feed_forward_values_and_band():
         FrictionFeedForward(-1.0, 0.0, 0.0)
 
 
-@pytest.mark.parametrize(("M", "B", "fc_pos", "fc_neg"), [(0.1, 1.0, 0.5, 0.4), (2.0, 0.5, 1.0, 0.5), (0.001, 1.0, 0.3, 0.3)])
-def test_friction_compensation_reduces_tracking_error(M, B, fc_pos, fc_neg):
+@pytest.mark.parametrize(("M", "B", "coulomb_pos", "coulomb_neg"), [(0.1, 1.0, 0.5, 0.4), (2.0, 0.5, 1.0, 0.5), (0.001, 1.0, 0.3, 0.3)])
+def test_friction_compensation_reduces_tracking_error(M, B, coulomb_pos, coulomb_neg):
     pi = design_pi(M, B, 1000.0)
     settings = CompensationSettings()
-    amp = reference_amplitude(M, B, fc_pos, fc_neg, 5.0, 20.0, settings)
-    ff = friction_feed_forward(B, fc_pos, fc_neg, settings.sign_band * amp)
-    chk = check_compensation(M, B, fc_pos, fc_neg, pi, ff, 5.0, 20.0, settings)
+    amp = reference_amplitude(M, B, coulomb_pos, coulomb_neg, 5.0, 20.0, settings)
+    ff = friction_feed_forward(B, coulomb_pos, coulomb_neg, settings.sign_band * amp)
+    chk = check_compensation(M, B, coulomb_pos, coulomb_neg, pi, ff, 5.0, 20.0, settings)
     assert chk.with_ff.rms_error < 0.7 * chk.without_ff.rms_error
     assert chk.with_ff.max_error < chk.without_ff.max_error
     assert np.abs(chk.without_ff.u).max() <= 5.0
@@ -103,7 +103,7 @@ def test_wrong_compensation_does_not_help():
     M, B = 0.1, 1.0
     pi = design_pi(M, B, 1000.0)
     r = 0.9 * np.sin(2 * math.pi * np.arange(2000) / 1000.0)
-    plant = PlantParams(M=M, B=B, fc_pos=0.5, fc_neg=0.4)
+    plant = PlantParams(M=M, B=B, coulomb_pos=0.5, coulomb_neg=0.4)
     good = simulate_loop(plant, pi, r, 5.0, FrictionFeedForward(0.5, 0.4, B))
     none = simulate_loop(plant, pi, r, 5.0, None)
     too_much = simulate_loop(plant, pi, r, 5.0, FrictionFeedForward(2.0, 2.0, B))

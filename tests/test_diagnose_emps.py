@@ -27,7 +27,7 @@ def result():
 
 
 def test_emps_is_compared_by_restarted_predictions_on_derived_velocity(result):
-    assert result.data.velocity_derived
+    assert result.data.derived
     assert result.data.horizon_s == pytest.approx(0.5)
 
 

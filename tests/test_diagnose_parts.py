@@ -7,15 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from servobench.bench.diagnose.data import (
-    DEFAULT_HORIZON_S,
-    noise_floor_percent,
-    prepare,
-    velocity_from_position,
-)
+from servobench.bench.diagnose.data import DEFAULT_HORIZON_S, noise_floor_percent, prepare
 from servobench.bench.diagnose.refit import refit
 from servobench.bench.diagnose.signatures import compute_signatures
 from servobench.bench.diagnose.simulate import Candidate, gap_percent, simulate
+from servobench.bench.identify.derivative import differentiate_position
 from servobench.bench.logio import ExperimentLog, RunData
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams
@@ -45,7 +41,7 @@ def plant_log(params: PlantParams, n: int = 1000, seed: int = 1) -> ExperimentLo
 def test_velocity_from_position_is_zero_phase():
     t = np.arange(2000) / 1000.0
     x = np.sin(2 * math.pi * 2.0 * t)
-    v = velocity_from_position(x, 1000.0)
+    v = differentiate_position(x, 1000.0).v
     inner = slice(100, -100)
     assert (
         np.max(np.abs(v[inner] - 2 * math.pi * 2.0 * np.cos(2 * math.pi * 2.0 * t[inner]))) < 0.02
@@ -56,10 +52,10 @@ def test_prepare_holds_out_three_blocks_per_run_and_derives_missing_velocity():
     n = 1000
     x = np.cumsum(binary(n, 3)) / FS
     data = prepare(make_log([RunData(1, np.arange(n) / FS, binary(n, 3), None, x)]))
-    r = data.runs[0]
-    assert data.velocity_derived and data.horizon_s is None
-    assert r.held_out.mean() == pytest.approx(0.3) and not r.held_out[:200].any()
-    assert list(r.starts) == [0]
+    held_out = data.held_out[0]
+    assert data.derived and data.horizon_s is None
+    assert held_out.mean() == pytest.approx(0.3) and not held_out[:200].any()
+    assert list(data.starts[0]) == [0]
 
 
 def test_closed_loop_logs_are_compared_over_restart_windows():
@@ -70,7 +66,7 @@ def test_closed_loop_logs_are_compared_over_restart_windows():
     )
     data = prepare(log)
     step = int(DEFAULT_HORIZON_S * FS)
-    assert data.horizon_s == DEFAULT_HORIZON_S and list(data.runs[0].starts) == list(
+    assert data.horizon_s == DEFAULT_HORIZON_S and list(data.starts[0]) == list(
         range(0, n, step)
     )
     assert "restarted" in data.comparison
@@ -86,8 +82,8 @@ def test_short_runs_and_no_motion_are_identification_errors():
 def test_gap_is_rms_error_over_std_of_measured_velocity():
     params = PlantParams()
     data = prepare(plant_log(params))
-    e = [np.full(len(r.v), 0.01) for r in data.runs]
-    v_sim = [r.v + d for r, d in zip(data.runs, e, strict=True)]
+    e = [np.full(len(r.v), 0.01) for r in data.segments]
+    v_sim = [r.v + d for r, d in zip(data.segments, e, strict=True)]
     expected = 100 * 0.01 / np.std(data.cat("v"))
     assert gap_percent(data, v_sim) == pytest.approx(expected)
 
@@ -102,25 +98,25 @@ def test_noise_floor_estimates_white_sensor_noise():
 def test_the_true_base_model_leaves_only_the_noise():
     params = PlantParams(noise=0.01)
     data = prepare(plant_log(params))
-    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    truth = Candidate({"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4})
     gap = gap_percent(data, simulate(data, truth))
     assert gap == pytest.approx(noise_floor_percent(data), rel=0.15)
 
 
 def test_refit_recovers_the_base_model_from_a_poor_start():
     data = prepare(plant_log(PlantParams(noise=0.005)))
-    start = Candidate({"M": 0.07, "B": 1.4, "fc_pos": 0.3, "fc_neg": 0.6})
+    start = Candidate({"M": 0.07, "B": 1.4, "coulomb_pos": 0.3, "coulomb_neg": 0.6})
     fit = refit(data, start, bounds={})
     b = fit.candidate.base
     assert b["M"] == pytest.approx(0.1, rel=0.02) and b["B"] == pytest.approx(1.0, rel=0.02)
-    assert b["fc_pos"] == pytest.approx(0.5, rel=0.05) and b["fc_neg"] == pytest.approx(
+    assert b["coulomb_pos"] == pytest.approx(0.5, rel=0.05) and b["coulomb_neg"] == pytest.approx(
         0.4, rel=0.05
     )
 
 
 def test_signatures_locate_a_position_periodic_residual():
     data = prepare(plant_log(PlantParams()))
-    v_sim = [r.v - 0.2 * np.sin(2 * math.pi * r.x / 0.1) for r in data.runs]
+    v_sim = [r.v - 0.2 * np.sin(2 * math.pi * r.x / 0.1) for r in data.segments]
     sig = compute_signatures(data, v_sim)
     assert sig.vs_position.eta2 > 0.5 > sig.vs_velocity.eta2
     assert sig.acf_max > sig.band95  # a structured residual is not white
@@ -133,7 +129,7 @@ def test_signatures_locate_a_position_periodic_residual():
 
 def test_signatures_of_a_perfect_model_with_white_noise_are_white():
     data = prepare(plant_log(PlantParams(noise=0.02)))
-    truth = Candidate({"M": 0.1, "B": 1.0, "fc_pos": 0.5, "fc_neg": 0.4})
+    truth = Candidate({"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4})
     sig = compute_signatures(data, simulate(data, truth))
     assert sig.acf_max < 2 * sig.band95
     assert abs(sig.xcorr_peak) < 3 * sig.band95
@@ -142,7 +138,7 @@ def test_signatures_of_a_perfect_model_with_white_noise_are_white():
 
 def test_linear_approximation_pole_moves_with_amplitude_for_friction():
     data = prepare(plant_log(PlantParams()))
-    sig = compute_signatures(data, [r.v for r in data.runs])
+    sig = compute_signatures(data, [r.v for r in data.segments])
     a, b = sig.linear
     # Coulomb friction weighs less at run 2's larger amplitude: the DC gain rises.
     assert b.gain_measured > a.gain_measured

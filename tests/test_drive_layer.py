@@ -60,7 +60,7 @@ def test_registry_lists_every_transport_scheme():
 
 def test_sim_drive_matches_the_plant_sample_by_sample():
     u = np.sign(np.sin(np.arange(800) * 0.01)) * 3.0
-    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=2.0, fc_pos=0.3, fc_neg=0.6))
+    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=2.0, coulomb_pos=0.3, coulomb_neg=0.6))
     with open_drive("sim://?M=0.2&B=2&fc_pos=0.3&fc_neg=0.6") as drive:
         drive.set_cycle(1e-3)
         drive.enable()
@@ -226,7 +226,7 @@ def test_plant_from_a_toml_file_with_url_overrides(tmp_path):
     plant = tmp_path / "plant.toml"
     plant.write_text("[plant]\nM = 0.2\nB = 2.0\nfc_pos = 0.3\nfc_neg = 0.6\n")
     u = np.full(300, 3.0)
-    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=4.0, fc_pos=0.3, fc_neg=0.6))
+    expected, _ = simulate(u, 1000.0, PlantParams(M=0.2, B=4.0, coulomb_pos=0.3, coulomb_neg=0.6))
     with open_drive(f"sim://?plant={plant}&B=4") as drive:
         drive.set_cycle(1e-3)
         drive.enable()
@@ -285,10 +285,9 @@ def test_log_metadata_carries_the_known_units_only():
         assert {k: meta[k] for k in ("unit_u", "unit_v", "unit_x")} == {
             f"unit_{k}": v for k, v in drive.units.items()
         }
-    class Bare(type(drive)):
-        units = {"u": "N m", "v": "", "x": "rad"}
-
-    assert Bare("sim://").log_metadata() == {"unit_u": "N m", "unit_x": "rad"}
+    bare = open_drive("sim://")  # not opened: units are a plain attribute
+    bare.units = {"u": "N m", "v": "", "x": "rad"}
+    assert bare.log_metadata() == {"unit_u": "N m", "unit_x": "rad"}
 
 
 def test_feedback_applied_defaults_to_not_reported():

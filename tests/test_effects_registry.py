@@ -9,7 +9,7 @@ import pytest
 from servobench.errors import DriveConfigError, UsageError
 from servobench.sim_backend.physics import effects
 from servobench.sim_backend.physics.effects.spec import EffectSpec, Screening
-from servobench.sim_backend.simurl import DEVICE_KEYS, PLANT_KEYS, plant_from_url
+from servobench.sim_backend.simurl import DEVICE_KEYS, PLANT_KEYS, plant_from_url, plant_query
 
 LIBRARY = (
     "stribeck",
@@ -75,6 +75,24 @@ def test_sim_url_carries_effects_and_rejects_bad_ones_as_config_errors():
         plant_from_url("sim://?stribeck_fs=0.8")
     with pytest.raises(DriveConfigError, match="not a number"):
         plant_from_url("sim://?delay=soon")
+
+
+def test_url_keys_fc_pos_fc_neg_set_the_coulomb_levels_and_stay_the_contract():
+    p = plant_from_url("sim://?M=0.2&B=2&fc_pos=0.3&fc_neg=0.6&brk_pos=0.7&delay=0.004")
+    assert (p.M, p.B, p.coulomb_pos, p.coulomb_neg, p.brk_pos, p.brk_neg) == (
+        0.2,
+        2.0,
+        0.3,
+        0.6,
+        0.7,
+        None,
+    )
+    query = plant_query(p)
+    assert query["fc_pos"] == 0.3 and query["fc_neg"] == 0.6 and "coulomb_pos" not in query
+    assert "brk_neg" not in query and query["delay"] == 0.004
+    assert plant_from_url("sim://?" + "&".join(f"{k}={v!r}" for k, v in query.items())) == p
+    with pytest.raises(DriveConfigError, match="unknown sim plant key.*coulomb_pos"):
+        plant_from_url("sim://?coulomb_pos=0.3")
 
 
 def test_to_query_inverts_effects_from_query():

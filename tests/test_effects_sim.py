@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.sim_backend.physics.effects import build_model
 from servobench.sim_backend.physics.plant import Plant, PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.rich_plant import build_model
 
 DT = 1e-3
-BASE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+BASE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 
 
 def command(seed: int = 3, n: int = 1500) -> np.ndarray:
@@ -105,7 +105,7 @@ def test_stribeck_matches_a_fine_step_reference():
     u = command(n=800)
 
     def friction(speed, d):
-        fc = BASE.fc_pos if d > 0 else BASE.fc_neg
+        fc = BASE.coulomb_pos if d > 0 else BASE.coulomb_neg
         return d * (fc + (fs - fc) * math.exp(-((speed / vs) ** 2)))
 
     v, _, _ = run({"stribeck": {"fs": fs, "vs": vs}}, u)
@@ -118,7 +118,7 @@ def test_cogging_matches_a_fine_step_reference():
     u = command(n=800)
 
     def friction(speed, d):
-        return BASE.fc_pos if d > 0 else -BASE.fc_neg
+        return BASE.coulomb_pos if d > 0 else -BASE.coulomb_neg
 
     force = lambda x: amp * math.sin(2 * math.pi * x / period + phase)  # noqa: E731
     v, _, _ = run({"cogging": {"amp": amp, "period": period, "phase": phase}}, u)
@@ -162,7 +162,7 @@ def test_resonance_without_friction_is_the_rigid_body_times_the_series_mode():
     from scipy.signal import lsim
 
     wn, zeta, r = 150.0, 0.05, 0.5
-    base = PlantParams(M=0.1, B=1.0, fc_pos=0.0, fc_neg=0.0)
+    base = PlantParams(M=0.1, B=1.0, coulomb_pos=0.0, coulomb_neg=0.0)
     rng = np.random.default_rng(7)
     u = np.repeat(rng.normal(0, 2.0, 60), 25)
     v, _, _ = run({"resonance": {"wn": wn, "zeta": zeta, "ratio": r}}, u, base)
@@ -179,7 +179,7 @@ def test_backlash_impact_conserves_momentum():
     u = np.full(1000, 2.0)
     v, x, _ = run({"backlash": {"gap": gap, "ratio": r}}, u, dt=1e-4)
     # Alone, the motor (mass (1-r) M) accelerates faster than the joint body would.
-    free = (2.0 - BASE.fc_pos) / ((1 - r) * BASE.M)
+    free = (2.0 - BASE.coulomb_pos) / ((1 - r) * BASE.M)
     assert (v[20] - v[10]) / (10 * 1e-4) == pytest.approx(free, rel=0.02)
     jump = int(np.argmax(np.diff(v) < 0))  # the impact: the motor slows down
     assert x[jump] == pytest.approx(gap / 2, abs=2e-3)

@@ -33,7 +33,7 @@ from servobench.bench.testing.served import ServedSim
 from servobench.sim_backend.device import WATCHDOG_FAULT
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 #: Samples the host announces before it is killed.
 STREAMING_AFTER = 60
 #: The host: stream a long run at the real cycle rate, say when it is under way.

@@ -67,7 +67,7 @@ def test_reply_lines(raw: bytes, checksum: bool, reply: str) -> None:
 @example(b"w axis0.config.servobench_cycle 1e-320")
 @example(b"f 0*118")
 def test_served_drive_answers_any_request_line(raw: bytes) -> None:
-    device = SimulatedDevice(PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4))
+    device = SimulatedDevice(PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4))
     server = AsciiDriveServer(device, ODRIVE)
     for line in (raw, b"f 0", raw):  # and it still works afterwards
         reply = server.handle(line)

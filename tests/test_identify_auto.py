@@ -14,7 +14,7 @@ from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError, UsageError
 from servobench.sim_backend.physics.plant import PlantParams
 
-TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+TRUE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 CONTRACT = {
     "M",
     "B",
@@ -70,9 +70,9 @@ def test_servo_model_api():
     m = ServoModel(0.1, 1.0, 0.5, 0.4)
     assert m.pole == -10.0 and m.dc_gain == 1.0
     p = m.to_plant_params()
-    assert (p.M, p.B, p.fc_pos, p.fc_neg) == (0.1, 1.0, 0.5, 0.4)
+    assert (p.M, p.B, p.coulomb_pos, p.coulomb_neg) == (0.1, 1.0, 0.5, 0.4)
     resp = m.simulate(np.full(3000, 2.0), 1000.0)
-    # steady state (u - fc_pos)/B
+    # steady state (u - coulomb_pos)/B
     assert resp.v[-1] == pytest.approx(1.5, rel=1e-6)
     assert resp.x.shape == (3000,)
     with pytest.raises(IdentificationError):

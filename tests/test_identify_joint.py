@@ -15,7 +15,7 @@ from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
 
-TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+TRUE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 
 
 def _params(model):

@@ -21,7 +21,7 @@ from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams
 
-TRUE = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+TRUE = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 
 
 def test_sidbe_as_published_at_60():
@@ -44,7 +44,7 @@ def test_sidbe_is_biased_at_the_friction_level_and_joint_is_not():
 def test_linear_plant_frf_is_exact():
     """Without friction the differential FRF equals the sampled 1/(Ms+B) at every line."""
     d = make_design(1.0)
-    log = simulate_experiment(TRUE.with_changes(fc_pos=0.0, fc_neg=0.0), d)
+    log = simulate_experiment(TRUE.with_changes(coulomb_pos=0.0, coulomb_neg=0.0), d)
     data = prepare(log)
     r1, r2 = data.run(1), data.run(2)
     frf = differential_frf(r1.u, r1.v, r2.u, r2.v, d)
@@ -85,7 +85,7 @@ def test_sidbe_needs_the_pair_and_the_design():
 
 
 def test_position_only_sidbe_fits_the_position_frf_exactly():
-    linear = TRUE.with_changes(fc_pos=0.0, fc_neg=0.0)
+    linear = TRUE.with_changes(coulomb_pos=0.0, coulomb_neg=0.0)
     log = simulate_experiment(
         linear, make_design(5.0, period_s=2.0, periods=3), with_velocity=False
     )

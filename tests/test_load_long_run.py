@@ -22,7 +22,7 @@ from servobench.errors import DriveError
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 #: Growth of the resident set allowed while streaming 10^6 samples [bytes]
 #: (the per-run arrays this replaced took 16 MB, 32 MB at their peak).
 RSS_BUDGET = 8e6

@@ -30,8 +30,8 @@ from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM_A = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 SIM_B = "sim://?M=0.2&B=0.5&fc_pos=0.3&fc_neg=0.3"
-PARAMS = {"A": PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4),
-          "B": PlantParams(M=0.2, B=0.5, fc_pos=0.3, fc_neg=0.3)}  # fmt: skip
+PARAMS = {"A": PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4),
+          "B": PlantParams(M=0.2, B=0.5, coulomb_pos=0.3, coulomb_neg=0.3)}  # fmt: skip
 FS_HZ = 1000.0
 N = 600
 

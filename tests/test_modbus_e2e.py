@@ -22,7 +22,7 @@ from servobench.sim_backend.device import WATCHDOG_FAULT
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 #: Cycles per transport: RTU at 115200 baud runs ~120 cycles/s.
 CYCLES = {"modbus-tcp": 400, "modbus-rtu": 240}
 RESOLUTION = 1e-6  # velocity and position LSB of the servobench-sim map

@@ -37,7 +37,7 @@ from servobench.sim_backend.servers import serve_modbus
 from servobench.sim_backend.servers.serve_modbus import parse_faults
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 SIM_MAP = Path(resolve_map("servobench-sim")).read_text()
 
 

@@ -30,13 +30,13 @@ def reference(u: np.ndarray, dt: float, p: PlantParams, sub: int = 2000) -> np.n
         for _ in range(sub):
             if v == 0.0:
                 if uk > p.breakaway_pos:
-                    f = p.fc_pos
+                    f = p.coulomb_pos
                 elif uk < -p.breakaway_neg:
-                    f = -p.fc_neg
+                    f = -p.coulomb_neg
                 else:
                     continue
             else:
-                f = p.fc_pos if v > 0 else -p.fc_neg
+                f = p.coulomb_pos if v > 0 else -p.coulomb_neg
             vn = v + h * (uk - f - p.B * v) / p.M
             if v != 0.0 and (vn > 0) != (v > 0):
                 vn = 0.0
@@ -45,7 +45,7 @@ def reference(u: np.ndarray, dt: float, p: PlantParams, sub: int = 2000) -> np.n
 
 
 def test_step_response_matches_the_analytic_solution():
-    p = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+    p = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
     u = np.full(500, 3.0)
     v, x, _ = simulate_coulomb(u, DT, p)
     t = np.arange(500) * DT
@@ -55,27 +55,27 @@ def test_step_response_matches_the_analytic_solution():
 
 
 def test_negative_direction_uses_its_own_coulomb_level():
-    p = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+    p = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
     v, _, _ = simulate_coulomb(np.full(3000, -3.0), DT, p)
     assert v[-1] == pytest.approx(-(3.0 - 0.4), rel=1e-9)
 
 
 def test_body_at_rest_stays_at_rest_below_breakaway():
-    p = PlantParams(fc_pos=0.5, fc_neg=0.4, brk_pos=0.8, brk_neg=0.7)
+    p = PlantParams(coulomb_pos=0.5, coulomb_neg=0.4, brk_pos=0.8, brk_neg=0.7)
     u = np.concatenate([np.full(100, 0.79), np.full(100, -0.69), np.full(100, 0.0)])
     v, x, st = simulate_coulomb(u, DT, p)
     assert np.all(v == 0.0) and np.all(x == 0.0) and st.v == 0.0
 
 
 def test_breakaway_then_coulomb_keeps_moving():
-    p = PlantParams(fc_pos=0.5, fc_neg=0.4, brk_pos=0.8, brk_neg=0.7)
+    p = PlantParams(coulomb_pos=0.5, coulomb_neg=0.4, brk_pos=0.8, brk_neg=0.7)
     u = np.concatenate([np.full(50, 0.9), np.full(2000, 0.6)])
     v, _, _ = simulate_coulomb(u, DT, p)
     assert v[-1] == pytest.approx(0.1, rel=1e-6)  # (0.6 - 0.5) / B: still sliding
 
 
 def test_no_chatter_after_stopping():
-    p = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+    p = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
     u = np.concatenate([np.full(300, 2.0), np.full(700, 0.3)])  # 0.3 is inside [-0.4, 0.5]
     v, _, _ = simulate_coulomb(u, DT, p)
     stopped = int(np.flatnonzero(v[300:] == 0.0)[0]) + 300
@@ -85,7 +85,7 @@ def test_no_chatter_after_stopping():
 
 @pytest.mark.parametrize("amplitude", [0.7, 1.0, 5.0])
 def test_stick_slip_matches_a_fine_step_reference(amplitude):
-    p = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4, brk_pos=0.6, brk_neg=0.45)
+    p = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4, brk_pos=0.6, brk_neg=0.45)
     rng = np.random.default_rng(3)
     u = amplitude * np.repeat(rng.choice([-1.0, 1.0], 20), 10)
     v, _, _ = simulate_coulomb(u, DT, p)
@@ -124,7 +124,7 @@ def test_plant_reset_and_state():
 
 @pytest.mark.parametrize(
     "changes",
-    [{"M": 0.0}, {"B": -1.0}, {"fc_pos": -0.1}, {"M": math.nan}, {"brk_pos": 0.1}, {"noise": -1}],
+    [{"M": 0.0}, {"B": -1.0}, {"coulomb_pos": -0.1}, {"M": math.nan}, {"brk_pos": 0.1}, {"noise": -1}],
 )
 def test_bad_parameters_are_refused(changes):
     with pytest.raises(UsageError):
@@ -132,7 +132,7 @@ def test_bad_parameters_are_refused(changes):
 
 
 def test_frictionless_plant_is_the_linear_block():
-    p = PlantParams(M=0.1, B=1.0, fc_pos=0.0, fc_neg=0.0)
+    p = PlantParams(M=0.1, B=1.0, coulomb_pos=0.0, coulomb_neg=0.0)
     u = np.concatenate([np.full(300, 2.0), np.full(300, -1.0), np.full(300, 0.5)])
     v, _, _ = simulate_coulomb(u, DT, p)
     a = math.exp(-DT * p.B / p.M)

@@ -29,7 +29,7 @@ from servobench.sim_backend.physics.plant import PlantParams, simulate
 from servobench.sim_backend.servers.serve_serial import PtyPort
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-PARAMS = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 ODRIVE_WATCHDOG = 0x800
 ODRIVE_MOTOR_FAILED = 0x40
 

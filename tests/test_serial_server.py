@@ -24,7 +24,7 @@ from servobench.sim_backend.servers.serve_serial import (
 
 @pytest.fixture
 def device():
-    return SimulatedDevice(PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4))
+    return SimulatedDevice(PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4))
 
 
 @pytest.fixture

@@ -162,10 +162,10 @@ def reference_amplitude(
     """
     if settings.ref_amplitude is not None:
         return min(settings.ref_amplitude, max_v)
-    fc_pos, fc_neg = max(coulomb_pos, 0.0), max(coulomb_neg, 0.0)
-    breakaway_v = 0.5 * (fc_pos + fc_neg) / B
+    coulomb_pos, coulomb_neg = max(coulomb_pos, 0.0), max(coulomb_neg, 0.0)
+    breakaway_v = 0.5 * (coulomb_pos + coulomb_neg) / B
     w = 2 * math.pi * settings.ref_frequency_hz
-    drivable = (SAFE_COMMAND_FRACTION * max_u - max(fc_pos, fc_neg)) / (M * w + B)
+    drivable = (SAFE_COMMAND_FRACTION * max_u - max(coulomb_pos, coulomb_neg)) / (M * w + B)
     cap = min(MAX_AMPLITUDE_FRACTION * max_v, drivable) if drivable > 0 else MAX_AMPLITUDE_FRACTION * max_v
     return min(AMPLITUDE_OVER_BREAKAWAY * breakaway_v, cap) if breakaway_v > 0 else cap
 
@@ -182,7 +182,7 @@ def check_compensation(
     settings: CompensationSettings,
 ) -> CompensationCheck:
     """Track a slow reversing sinusoid on the identified plant with and without ``ff``."""
-    params = PlantParams(M=M, B=B, fc_pos=max(coulomb_pos, 0.0), fc_neg=max(coulomb_neg, 0.0))
+    params = PlantParams(M=M, B=B, coulomb_pos=max(coulomb_pos, 0.0), coulomb_neg=max(coulomb_neg, 0.0))
     amplitude = reference_amplitude(M, B, coulomb_pos, coulomb_neg, max_u, max_v, settings)
     f = settings.ref_frequency_hz
     n = int(round(settings.periods / f / pi.sample_time_s))

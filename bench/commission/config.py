@@ -15,19 +15,13 @@ documented layout::
 
 from __future__ import annotations
 
-import math
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from servobench.errors import UsageError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from servobench.tomlfile import SENTENCE, TomlTable, read_toml
 
 #: The four limit keys, as in the drive URL query.
 LIMIT_KEYS = ("max_u", "max_v", "xmin", "xmax")
@@ -185,53 +179,34 @@ _SECTIONS = {
 _FREE_SECTIONS = ("sidbe", "diagnose")
 
 
-def _number(where: str, value: object) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise UsageError(f"{where} must be a number, got {value!r}")
-    return float(value)
-
-
-def _section(name: str, cls: type, table: object, source: str) -> object:
-    where = f"{source}: [{name}]"
-    if not isinstance(table, dict):
-        raise UsageError(f"{where} must be a table")
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(table) - set(known))
-    if unknown:
-        raise UsageError(
-            f"{where} has unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})"
-        )
+def _section(table: TomlTable, cls: type) -> object:
+    """The settings ``cls`` from ``table``: numbers (``fractions``: a list of them), all optional."""
+    names = [f.name for f in fields(cls)]
+    table.allow(names)
     values: dict[str, object] = {}
-    for key, raw in table.items():
-        if key == "fractions":
-            if not isinstance(raw, list):
-                raise UsageError(f"{where} fractions must be a list of numbers")
-            values[key] = tuple(_number(f"{where} fractions", v) for v in raw)
+    for name in names:
+        if name not in table:
+            continue  # the dataclass default
+        if name == "fractions":
+            values[name] = tuple(float(v) for v in table.sequence(name, float))
         else:
-            value = _number(f"{where} {key}", raw)
-            if math.isnan(value) or (math.isinf(value) and key not in ("xmin", "xmax")):
-                raise UsageError(f"{where} {key} must be finite")
-            values[key] = value
+            values[name] = table.number(name, allow_inf=name in ("xmin", "xmax"))
     try:
         return cls(**values)
     except UsageError as err:
-        raise UsageError(f"{source}: {err}") from None
+        raise UsageError(f"{table.file}: {err}") from None
 
 
 def parse_config(data: Mapping[str, object], source: str = "bench.toml") -> CommissionConfig:
     """Build a :class:`CommissionConfig` from a parsed TOML document."""
-    unknown = sorted(set(data) - set(_SECTIONS) - set(_FREE_SECTIONS))
-    if unknown:
-        known = ", ".join([*_SECTIONS, *_FREE_SECTIONS])
-        raise UsageError(f"{source}: unknown table(s) {', '.join(unknown)} (known: {known})")
+    top = TomlTable(data, source, wording=SENTENCE, error=UsageError)
+    top.allow([*_SECTIONS, *_FREE_SECTIONS], noun="table")
     parts: dict[str, object] = {
-        name: _section(name, cls, data[name], source) for name, cls in _SECTIONS.items() if name in data
+        name: _section(top.table(name), cls) for name, cls in _SECTIONS.items() if name in top
     }
     for name in _FREE_SECTIONS:
-        if name in data:
-            if not isinstance(data[name], dict):
-                raise UsageError(f"{source}: [{name}] must be a table")
-            parts[name] = dict(data[name])
+        if name in top:
+            parts[name] = dict(top.table(name).data)
     return CommissionConfig(**parts, source=source)  # type: ignore[arg-type]
 
 
@@ -239,13 +214,4 @@ def load_config(path: str | Path | None) -> CommissionConfig:
     """Read ``bench.toml``; ``None`` gives the defaults (no limits)."""
     if path is None:
         return CommissionConfig()
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise UsageError(f"cannot read config {path}: {err.strerror or err}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise UsageError(f"config {path} is not valid TOML: {err}") from None
-    return parse_config(data, source=str(path))
+    return parse_config(read_toml(path, "config", UsageError), source=str(path))

@@ -20,7 +20,7 @@ the target with at least ``min_gain_margin_db`` of gain margin, capped by ``max_
 Friction feed-forward (Coulomb per direction and viscous, in the drive's
 command units), from the reference velocity ``r``::
 
-    u_ff = B r + fc_pos * s(r)  for r >= 0,   B r - fc_neg * s(-r)  for r < 0
+    u_ff = B r + coulomb_pos * s(r)  for r >= 0,   B r - coulomb_neg * s(-r)  for r < 0
     s(r) = min(1, r / band)     (fades to 0 at standstill; band 0: a step)
 """
 

@@ -1,9 +1,10 @@
-"""The log as the diagnosis sees it: per-run signals, comparison windows, held-out samples.
+"""The log as the diagnosis compares it: the prepared runs, comparison windows, held-out samples.
 
-Velocity comes from the log's ``v`` column, or from its position with a
-zero-phase filter when the log has none (:func:`velocity_from_position`).
-
-How the model is compared with the data:
+The runs are the project's one prepared log
+(:class:`~servobench.bench.identify.dataset.Dataset`): velocity from the log's
+``v`` column, or from its position with a zero-phase filter when the log has
+none. On top of it the diagnosis decides how the model is compared with the
+data:
 
 * open loop (default): the model runs over each whole run on the logged
   command from the run's initial state -- a pure simulation;
@@ -20,10 +21,12 @@ out of every fit and decides whether a term pays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from servobench.bench.identify.dataset import Dataset, Segment
+from servobench.bench.identify.dataset import prepare as prepare_log
 from servobench.bench.logio import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
 
@@ -38,67 +41,50 @@ REFIT_MAX_SAMPLES = 8000
 MIN_RUN_SAMPLES = 50
 
 
-def lowpass(signal: np.ndarray, fs_hz: float) -> np.ndarray:
-    """The project's zero-phase low-pass (:func:`servobench.bench.identify.derivative.lowpass`) at its default cut-off."""
-    from servobench.bench.identify.derivative import default_cutoff_hz
-    from servobench.bench.identify.derivative import lowpass as zero_phase
-
-    return zero_phase(signal, fs_hz, default_cutoff_hz(fs_hz))
-
-
-def velocity_from_position(x: np.ndarray, fs_hz: float) -> np.ndarray:
-    """Velocity [units/s] from position [units] (:func:`servobench.bench.identify.derivative.differentiate_position`)."""
-    from servobench.bench.identify.derivative import differentiate_position
-
-    return differentiate_position(np.asarray(x, dtype=float), fs_hz).v
-
-
 @dataclass(frozen=True)
-class RunSeries:
-    """One run, ready for comparison; arrays of shape ``(n,)``.
+class DiagnosisData:
+    """A prepared log and how the diagnosis compares the model with it.
 
     Attributes
     ----------
-    run : int
-    t, u : ndarray
-        Time [s] and applied command [command units].
-    v : ndarray
-        Measured (or position-derived) velocity [units/s]: what the model is compared with.
-    x : ndarray
-        Position [units] (integrated from ``v`` when the log has none).
-    v_f : ndarray
-        Low-passed velocity, used for initial states and screening.
-    held_out : ndarray of bool
-        Samples kept out of every fit.
-    starts : ndarray of int
-        Sample indices where the model restarts from the measured state.
+    prepared : Dataset
+        The runs (velocity measured or derived, position, command).
+    horizon_s : float or None
+        Restart horizon [s]; None for whole-run simulation.
+    held_out : tuple of ndarray of bool
+        Per run, the samples kept out of every fit.
+    starts : tuple of ndarray of int
+        Per run, the sample indices where the model restarts from the measured state.
+    sigma_v : float
+        White velocity-sensor noise [units/s] (see :func:`noise_std`).
     """
 
-    run: int
-    t: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-    x: np.ndarray
-    v_f: np.ndarray
-    held_out: np.ndarray
-    starts: np.ndarray
-
-
-@dataclass(frozen=True)
-class DiagnosisData:
-    """All runs of a log plus how they are compared."""
-
-    runs: tuple[RunSeries, ...]
-    fs_hz: float
-    velocity_derived: bool
+    prepared: Dataset
     horizon_s: float | None
-    source: str = ""
-    #: White velocity-sensor noise [units/s] (see :func:`noise_std`).
+    held_out: tuple[np.ndarray, ...]
+    starts: tuple[np.ndarray, ...]
     sigma_v: float = 0.0
 
     @property
+    def segments(self) -> tuple[Segment, ...]:
+        return self.prepared.segments
+
+    @property
+    def fs_hz(self) -> float:
+        return self.prepared.fs_hz
+
+    @property
     def dt_s(self) -> float:
-        return 1.0 / self.fs_hz
+        return self.prepared.dt_s
+
+    @property
+    def source(self) -> str:
+        return self.prepared.source
+
+    @property
+    def derived(self) -> bool:
+        """Velocity derived from position."""
+        return self.prepared.derived
 
     @property
     def comparison(self) -> str:
@@ -107,7 +93,7 @@ class DiagnosisData:
         return f"multi-step prediction restarted from the measured state every {self.horizon_s:g} s"
 
     def cat(self, name: str) -> np.ndarray:
-        return np.concatenate([getattr(r, name) for r in self.runs])
+        return self.prepared.cat(name)
 
 
 def is_closed_loop(log: ExperimentLog) -> bool:
@@ -131,67 +117,39 @@ def prepare(log: ExperimentLog, horizon_s: float | None = None) -> DiagnosisData
     UsageError
         Non-positive horizon.
     """
-    fs = float(log.fs_hz)
     if horizon_s is None and is_closed_loop(log):
         horizon_s = DEFAULT_HORIZON_S
     if horizon_s is not None and not (math.isfinite(horizon_s) and horizon_s > 0):
         raise UsageError(f"horizon must be > 0 s, got {horizon_s}")
-    runs = []
-    derived = False
-    for r in log.runs:
-        n = len(r)
-        if n < MIN_RUN_SAMPLES:
-            raise IdentificationError(
-                f"run {r.run} has {n} samples; diagnose needs {MIN_RUN_SAMPLES}"
-            )
-        if r.v is not None:
-            v = np.asarray(r.v, dtype=float)
-            v_f = lowpass(v, fs)
-        else:
-            v = velocity_from_position(r.x, fs)
-            v_f = v
-            derived = True
-        if r.x is not None:
-            x = np.asarray(r.x, dtype=float)
-        else:
-            x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1])) / fs])
-        if not np.std(v) > 0:
-            raise IdentificationError(f"run {r.run}: the axis does not move")
-        block = np.minimum((np.arange(n) * BLOCKS) // n, BLOCKS - 1)
-        held = np.isin(block, HELD_OUT_BLOCKS)
-        if horizon_s is None:
-            starts = np.array([0])
-        else:
-            step = max(2, int(round(horizon_s * fs)))
-            starts = np.arange(0, n, step)
-            # A window that straddles blocks counts where it starts: hold out whole windows.
-            held = np.repeat(held[starts], np.diff(np.append(starts, n)))
-        runs.append(
-            RunSeries(
-                r.run, np.asarray(r.t, float), np.asarray(r.u, float), v, x, v_f, held, starts
-            )
-        )
-    data = DiagnosisData(tuple(runs), fs, derived, horizon_s, log.source)
-    return replace(data, sigma_v=noise_std(data))
+    prepared = prepare_log(log, min_samples=MIN_RUN_SAMPLES)
+    for s in prepared.segments:
+        if not np.std(s.v) > 0:
+            raise IdentificationError(f"run {s.run}: the axis does not move")
+    plans = [_plan(len(s), horizon_s, prepared.fs_hz) for s in prepared.segments]
+    held_out = tuple(held for held, _ in plans)
+    starts = tuple(start for _, start in plans)
+    return DiagnosisData(prepared, horizon_s, held_out, starts, noise_std(prepared))
 
 
-def noise_std(data: DiagnosisData) -> float:
+def _plan(n: int, horizon_s: float | None, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out mask and restart indices of a run of ``n`` samples."""
+    block = np.minimum((np.arange(n) * BLOCKS) // n, BLOCKS - 1)
+    held = np.isin(block, HELD_OUT_BLOCKS)
+    if horizon_s is None:
+        return held, np.array([0])
+    step = max(2, int(round(horizon_s * fs_hz)))
+    starts = np.arange(0, n, step)
+    # A window that straddles blocks counts where it starts: hold out whole windows.
+    return np.repeat(held[starts], np.diff(np.append(starts, n))), starts
+
+
+def noise_std(prepared: Dataset) -> float:
     """Standard deviation of white velocity-sensor noise [units/s], robustly from second
     differences (0 for velocity derived from position, already smooth)."""
-    if data.velocity_derived:
+    if prepared.derived:
         return 0.0
-    d2 = np.concatenate([np.diff(r.v, 2) for r in data.runs])
+    d2 = np.concatenate([np.diff(s.v, 2) for s in prepared.segments])
     return float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
-
-
-def initial_velocity(run: RunSeries, k: int, sigma: float = 0.0) -> float:
-    """Velocity to start a simulation from at sample ``k``: zero when the axis rests there.
-
-    At rest means within three noise deviations ``sigma`` (or 2% of the velocity's spread).
-    """
-    v0 = float(run.v_f[k])
-    tol = max(3.0 * sigma, 0.02 * float(np.std(run.v_f)))
-    return 0.0 if abs(v0) < tol else v0
 
 
 def noise_floor_percent(data: DiagnosisData) -> float:

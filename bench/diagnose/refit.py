@@ -17,7 +17,7 @@ enter the cost; held-out samples judge the result.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +33,7 @@ DIFF_STEP = 1e-3
 MAX_NFEV = 12
 #: Key of the base parameters in coordinate searches, and which of them are searched.
 BASE = "base"
-BASE_SCAN = ("fc_pos", "fc_neg", "M")
+BASE_SCAN = ("coulomb_pos", "coulomb_neg", "M")
 #: Gradient fits restarted (fresh trust region) while each gains this share of the cost.
 RESTARTS = 3
 RESTART_GAIN = 0.02
@@ -79,7 +79,7 @@ def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitR
 
 def training_windows(data: DiagnosisData) -> list[Window]:
     """Windows that carry training samples, thinned to about :data:`REFIT_MAX_SAMPLES`."""
-    chosen = [w for w in windows(data) if not data.runs[w[0]].held_out[w[1] : w[2]].all()]
+    chosen = [w for w in windows(data) if not data.held_out[w[0]][w[1] : w[2]].all()]
     total = sum(e - s for _, s, e in chosen)
     if total > REFIT_MAX_SAMPLES and len(chosen) > 1:
         keep = max(1, int(len(chosen) * REFIT_MAX_SAMPLES / total))
@@ -98,7 +98,7 @@ class _Layout:
         #: (effect, parameter, scale, low, high) of each fitted effect parameter.
         self.slots: list[tuple[str, str, float, float, float]] = []
         b = cand.base
-        fscale = max(abs(b["fc_pos"]), abs(b["fc_neg"]), 1e-3 * b["B"], 1e-12)
+        fscale = max(abs(b["coulomb_pos"]), abs(b["coulomb_neg"]), 1e-3 * b["B"], 1e-12)
         self.fscale = fscale
         for name, values in cand.effects.items():
             for pname, value in values.items():
@@ -110,7 +110,7 @@ class _Layout:
 
     def start(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         b = self.cand.base
-        z = [0.0, 0.0, b["fc_pos"] / self.fscale, b["fc_neg"] / self.fscale]
+        z = [0.0, 0.0, b["coulomb_pos"] / self.fscale, b["coulomb_neg"] / self.fscale]
         lo = [-math.log(100.0), -math.log(100.0), 0.0, 0.0]
         hi = [math.log(100.0), math.log(100.0), np.inf, np.inf]
         for name, pname, scale, plo, phi in self.slots:
@@ -126,8 +126,8 @@ class _Layout:
         base = {
             "M": b["M"] * math.exp(z[0]),
             "B": b["B"] * math.exp(z[1]),
-            "fc_pos": z[2] * self.fscale,
-            "fc_neg": z[3] * self.fscale,
+            "coulomb_pos": z[2] * self.fscale,
+            "coulomb_neg": z[3] * self.fscale,
         }
         effects = {name: dict(values) for name, values in self.cand.effects.items()}
         for (name, pname, scale, _, _), value in zip(self.slots, z[4:], strict=True):
@@ -155,6 +155,109 @@ def _simplex(cand: Candidate, bounds: Bounds, fixed, cost) -> tuple[Candidate, f
     )
     best = layout.candidate(np.clip(sol.x, lo, hi))
     return best, cost(best)
+
+
+class _TrainingError:
+    """Simulation error of candidates on the training samples, in units of the velocity's
+    spread; counts the simulations."""
+
+    def __init__(self, data: DiagnosisData) -> None:
+        self.data = data
+        self.which = training_windows(data)
+        self.masks = [~data.held_out[i][s:e] for i, s, e in self.which]
+        self.measured = self._training([s.v for s in data.segments])
+        self.scale = float(np.std(data.cat("v")))
+        self.evaluations = 0
+
+    def _training(self, per_run: Sequence[np.ndarray]) -> np.ndarray:
+        """The training samples of one array per run, concatenated."""
+        return np.concatenate(
+            [per_run[i][s:e][m] for (i, s, e), m in zip(self.which, self.masks, strict=True)]
+        )
+
+    def residual(self, cand: Candidate) -> np.ndarray:
+        self.evaluations += 1
+        try:
+            v = simulate(self.data, cand, self.which)
+        except UsageError:
+            return np.full(self.measured.size, PENALTY)
+        out = (self._training(v) - self.measured) / self.scale
+        return np.where(np.isfinite(out), out, PENALTY)
+
+    def cost(self, cand: Candidate) -> float:
+        return float(np.sum(self.residual(cand) ** 2))
+
+    def gap_percent(self, cost: float) -> float:
+        """The training gap [%] a cost stands for."""
+        return 100.0 * math.sqrt(cost / max(self.measured.size, 1))
+
+
+def _with_value(cand: Candidate, name: str, pname: str, value: float) -> Candidate:
+    """``cand`` with one parameter (of the base when ``name`` is :data:`BASE`) set to ``value``."""
+    base, effects = dict(cand.base), {k: dict(v) for k, v in cand.effects.items()}
+    if name == BASE:
+        base[pname] = value
+    else:
+        effects[name][pname] = value
+    return Candidate(base, effects)
+
+
+def _line_search(
+    error: _TrainingError,
+    cand: Candidate,
+    cost: float,
+    params: Mapping[str, tuple[str, ...]],
+    factors: tuple[float, ...],
+    bounds: Bounds,
+) -> tuple[Candidate, float]:
+    """Coordinate search: each parameter times each factor, keeping what lowers the cost."""
+    for name, pnames in params.items():
+        for pname in pnames:
+            if name != BASE and name not in cand.effects:
+                continue
+            centre = cand.base[pname] if name == BASE else cand.effects[name][pname]
+            lo, hi = bounds.get(name, {}).get(pname, (-np.inf, np.inf))
+            for factor in factors:
+                trial = _with_value(cand, name, pname, min(max(centre * factor, lo), hi))
+                trial_cost = error.cost(trial)
+                if trial_cost < cost:
+                    cand, cost = trial, trial_cost
+    return cand, cost
+
+
+def _gradient_fit(
+    error: _TrainingError,
+    start: Candidate,
+    start_cost: float,
+    bounds: Bounds,
+    fixed: Mapping[str, tuple[str, ...]],
+    grid: Mapping[str, tuple[str, ...]],
+    max_nfev: int,
+) -> tuple[Candidate, float]:
+    """Trust-region fits of the scaled parameters, each followed by the grid search of
+    ``grid``, restarted while a round gains :data:`RESTART_GAIN` of the cost."""
+    from scipy.optimize import least_squares
+
+    best, best_cost = start, start_cost
+    for _ in range(RESTARTS):
+        layout = _Layout(best, bounds, fixed)
+        z0, lo, hi = layout.start()
+        sol = least_squares(
+            lambda z, layout=layout: error.residual(layout.candidate(z)),
+            z0,
+            bounds=(lo, hi),
+            diff_step=DIFF_STEP,
+            max_nfev=max_nfev,
+            x_scale=1.0,
+        )
+        trial = layout.candidate(sol.x)
+        trial, trial_cost = _line_search(error, trial, error.cost(trial), grid, GRID, bounds)
+        gain = 1.0 - trial_cost / best_cost if best_cost > 0 else 0.0
+        if trial_cost < best_cost:
+            best, best_cost = trial, trial_cost
+        if gain < RESTART_GAIN:
+            break
+    return best, best_cost
 
 
 def refit(
@@ -185,84 +288,20 @@ def refit(
     floor : float
         Sensor-noise floor of the gap [%]: a rugged candidate that reaches it is not polished.
     """
-    from scipy.optimize import least_squares
-
     fixed = dict(fixed or {})
-    which = training_windows(data)
-    scale = float(np.std(data.cat("v")))
-    masks = [~data.runs[i].held_out[s:e] for i, s, e in which]
-    meas = np.concatenate(
-        [data.runs[i].v[s:e][m] for (i, s, e), m in zip(which, masks, strict=True)]
-    )
-    count = [0]
-
-    def residual(c: Candidate) -> np.ndarray:
-        count[0] += 1
-        try:
-            v = simulate(data, c, which)
-        except UsageError:
-            return np.full(meas.size, PENALTY)
-        sim = np.concatenate([v[i][s:e][m] for (i, s, e), m in zip(which, masks, strict=True)])
-        out = (sim - meas) / scale
-        return np.where(np.isfinite(out), out, PENALTY)
-
-    def cost(c: Candidate) -> float:
-        return float(np.sum(residual(c) ** 2))
-
-    def line_search(c: Candidate, c_cost: float, params, factors) -> tuple[Candidate, float]:
-        """Coordinate search: each parameter times each factor, keeping what lowers the cost."""
-        for name, pnames in params.items():
-            for pname in pnames:
-                if name != BASE and name not in c.effects:
-                    continue
-                centre = c.base[pname] if name == BASE else c.effects[name][pname]
-                lo, hi = bounds.get(name, {}).get(pname, (-np.inf, np.inf))
-                for factor in factors:
-                    value = min(max(centre * factor, lo), hi)
-                    base, effects = dict(c.base), {k: dict(v) for k, v in c.effects.items()}
-                    if name == BASE:
-                        base[pname] = value
-                    else:
-                        effects[name][pname] = value
-                    trial = Candidate(base, effects)
-                    t_cost = cost(trial)
-                    if t_cost < c_cost:
-                        c, c_cost = trial, t_cost
-        return c, c_cost
-
     scan = dict(scan or {})
     grid = {k: tuple(fixed.get(k, ())) + tuple(scan.get(k, ())) for k in set(fixed) | set(scan)}
-    best, best_cost = cand, cost(cand)
-    if any(scan.values()):
+    rugged = any(scan.values())
+    error = _TrainingError(data)
+    best, best_cost = cand, error.cost(cand)
+    if rugged:
         # Rugged surfaces: search the base friction and inertia with the rugged parameters.
-        best, best_cost = line_search(best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE)
-
-    def gradient_fit(start: Candidate, start_cost: float) -> tuple[Candidate, float]:
-        best, best_cost = start, start_cost
-        for _ in range(RESTARTS):
-            layout = _Layout(best, bounds, fixed)
-            z0, lo, hi = layout.start()
-            sol = least_squares(
-                lambda z, layout=layout: residual(layout.candidate(z)),
-                z0,
-                bounds=(lo, hi),
-                diff_step=DIFF_STEP,
-                max_nfev=max_nfev,
-                x_scale=1.0,
-            )
-            trial = layout.candidate(sol.x)
-            trial, trial_cost = line_search(trial, cost(trial), grid, GRID)
-            gain = 1.0 - trial_cost / best_cost if best_cost > 0 else 0.0
-            if trial_cost < best_cost:
-                best, best_cost = trial, trial_cost
-            if gain < RESTART_GAIN:
-                break
-        return best, best_cost
-
-    best, best_cost = gradient_fit(best, best_cost)
-    gap_train = 100.0 * math.sqrt(best_cost / max(meas.size, 1))
-    if any(scan.values()) and gap_train > POLISH_ABOVE * floor:
-        polished, p_cost = _simplex(best, bounds, fixed, cost)
+        best, best_cost = _line_search(
+            error, best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE, bounds
+        )
+    best, best_cost = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
+    if rugged and error.gap_percent(best_cost) > POLISH_ABOVE * floor:
+        polished, p_cost = _simplex(best, bounds, fixed, error.cost)
         if p_cost < (1.0 - RESTART_GAIN) * best_cost:
-            best, best_cost = gradient_fit(polished, p_cost)
-    return evaluate(data, best, count[0])
+            best, best_cost = _gradient_fit(error, polished, p_cost, bounds, fixed, grid, max_nfev)
+    return evaluate(data, best, error.evaluations)

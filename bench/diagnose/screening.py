@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData, lowpass
+from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.simulate import Candidate, gap_percent, held_out_windows, simulate
-from servobench.bench.identify.derivative import zoh_centered
+from servobench.bench.identify.derivative import filter_command
 from servobench.errors import UsageError
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects.spec import RunSignals, Screening, ScreenInput
@@ -33,15 +33,15 @@ def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarra
     fs = data.fs_hz
 
     def command_filter(u: np.ndarray) -> np.ndarray:
-        return lowpass(zoh_centered(u), fs)
+        return filter_command(u, fs)
 
     runs = []
-    for r, vs in zip(data.runs, v_sim, strict=True):
+    for r, vs in zip(data.segments, v_sim, strict=True):
         v_f = r.v_f
         a_f = np.gradient(v_f, data.dt_s)
         u_f = command_filter(r.u)
         vs = np.where(np.isfinite(vs), vs, r.v)
-        runs.append(RunSignals(r.u, r.v, r.x, v_f, a_f, u_f, r.v - vs, vs))
+        runs.append(RunSignals(r.u, r.v, r.position, v_f, a_f, u_f, r.v - vs, vs))
     v_all = np.concatenate([s.v_f for s in runs])
     rms = float(np.sqrt(np.mean(v_all**2)))
     moving = np.abs(v_all) > MOVING_FRACTION * rms
@@ -92,7 +92,11 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
     if s.base is not None and all(np.isfinite(list(s.base.values()))):
         b = dict(s.base)
         if b["M"] > 0 and b["B"] > 0:
-            b = {**b, "fc_pos": max(b["fc_pos"], 0.0), "fc_neg": max(b["fc_neg"], 0.0)}
+            b = {
+                **b,
+                "coulomb_pos": max(b["coulomb_pos"], 0.0),
+                "coulomb_neg": max(b["coulomb_neg"], 0.0),
+            }
             trials.append((b, dict(s.guess), True))
     trials += [(dict(current.base), dict(g), False) for g in s.alternatives]
     mod = library.module(name)

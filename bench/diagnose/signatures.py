@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData, lowpass
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.identify.derivative import lowpass
 
 #: Bins of the residual-versus-signal curves.
 BINS = 24
@@ -193,12 +194,12 @@ def compute_signatures(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> Sign
 
     res, vel, pos, acc, rev = [], [], [], [], []
     linear = []
-    for r, vs in zip(data.runs, v_sim, strict=True):
+    for r, vs in zip(data.segments, v_sim, strict=True):
         ok = np.isfinite(vs)
         e = np.where(ok, r.v - vs, 0.0)
         res.append(e)
         vel.append(r.v_f)
-        pos.append(r.x)
+        pos.append(r.position)
         acc.append(np.gradient(r.v_f, data.dt_s))
         flips = np.flatnonzero(np.diff(np.sign(r.v_f)) != 0)
         near = np.zeros(len(r.v), dtype=bool)

@@ -1,8 +1,8 @@
 """Simulate a candidate model on the log and measure the gap.
 
-A :class:`Candidate` is the base model (``M, B, fc_pos, fc_neg``) plus an
+A :class:`Candidate` is the base model (``M, B, coulomb_pos, coulomb_neg``) plus an
 ordered set of effects; it runs on the same simulator the ``sim://`` drive
-uses (:mod:`servobench.sim_backend.physics.plant` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
+uses (:mod:`servobench.sim_backend.physics.coulomb` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
 with effects), so what diagnose names can be simulated back.
 """
 
@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData, initial_velocity
-from servobench.sim_backend.physics.effects import build_model
-from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.identify.dataset import initial_velocity
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.rich_plant import build_model
 
-BASE_KEYS = ("M", "B", "fc_pos", "fc_neg")
+BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
 
 
 @dataclass(frozen=True)
@@ -32,8 +33,8 @@ class Candidate:
         return PlantParams(
             M=float(b["M"]),
             B=float(b["B"]),
-            fc_pos=max(float(b["fc_pos"]), 0.0),  # a fit may step below zero
-            fc_neg=max(float(b["fc_neg"]), 0.0),
+            coulomb_pos=max(float(b["coulomb_pos"]), 0.0),  # a fit may step below zero
+            coulomb_neg=max(float(b["coulomb_neg"]), 0.0),
             effects={k: dict(v) for k, v in self.effects.items()},
         )
 
@@ -48,15 +49,15 @@ Window = tuple[int, int, int]  # run index, first sample, end sample (exclusive)
 def windows(data: DiagnosisData) -> list[Window]:
     """Every comparison window of the data, in order."""
     out = []
-    for i, r in enumerate(data.runs):
-        ends = np.append(r.starts[1:], len(r.u))
-        out.extend((i, int(s), int(e)) for s, e in zip(r.starts, ends, strict=True))
+    for i, (r, starts) in enumerate(zip(data.segments, data.starts, strict=True)):
+        ends = np.append(starts[1:], len(r))
+        out.extend((i, int(s), int(e)) for s, e in zip(starts, ends, strict=True))
     return out
 
 
 def held_out_windows(data: DiagnosisData) -> list[Window]:
     """Windows that hold held-out samples (all of them for whole-run simulation)."""
-    return [w for w in windows(data) if data.runs[w[0]].held_out[w[1] : w[2]].any()]
+    return [w for w in windows(data) if data.held_out[w[0]][w[1] : w[2]].any()]
 
 
 def simulate(
@@ -73,10 +74,10 @@ def simulate(
     model = build_model(params) if params.effects else None
     dt = data.dt_s
     sigma = data.sigma_v
-    out = [np.full(len(r.u), np.nan) for r in data.runs]
+    out = [np.full(len(r), np.nan) for r in data.segments]
     for i, s, e in windows(data) if which is None else which:
-        r = data.runs[i]
-        state = PlantState(initial_velocity(r, s, sigma), float(r.x[s]))
+        r = data.segments[i]
+        state = PlantState(initial_velocity(r, sigma, s), float(r.position[s]))
         if model is None:
             v, _, _ = simulate_coulomb(r.u[s:e], dt, params, state)
         else:
@@ -93,12 +94,12 @@ def gap_percent(data: DiagnosisData, v_sim: Sequence[np.ndarray], part: str = "a
     ``part`` is ``"all"``, ``"held_out"`` or ``"train"``; samples not simulated are skipped.
     """
     err, meas = [], []
-    for r, vs in zip(data.runs, v_sim, strict=True):
+    for r, held, vs in zip(data.segments, data.held_out, v_sim, strict=True):
         mask = np.isfinite(vs)
         if part == "held_out":
-            mask &= r.held_out
+            mask &= held
         elif part == "train":
-            mask &= ~r.held_out
+            mask &= ~held
         err.append(vs[mask] - r.v[mask])
         meas.append(r.v[mask])
     e, m = np.concatenate(err), np.concatenate(meas)

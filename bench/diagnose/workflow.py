@@ -82,7 +82,7 @@ def diagnose(log: ExperimentLog, horizon_s: float | None = None) -> Diagnosis:
         The log cannot yield a base model.
     """
     data = prepare(log, horizon_s)
-    base = fit_base(log, data)
+    base = fit_base(data)
     signatures = compute_signatures(data, base.v_sim)
     steps, trace = search(data, base)
     final = steps[-1].fit.candidate

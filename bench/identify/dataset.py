@@ -1,34 +1,48 @@
-"""Turn an :class:`~servobench.bench.logio.ExperimentLog` into analysis-ready segments.
+"""The prepared log: analysis-ready runs, shared by identification and diagnosis.
 
-Each run becomes a :class:`Segment` holding the command ``u``, the velocity
-``v`` (measured, or derived from position with a zero-phase filter), the
-sample interval (nominal ``1/fs``, or per interval from ``t`` when the time
-stamps jitter by more than :data:`JITTER_RTOL`), and the excitation design if
-the log's metadata names one. The checks that make identification
-meaningless (no excitation, no motion, too short) raise
+Each run of an :class:`~servobench.bench.logio.ExperimentLog` becomes a
+:class:`Segment` holding the command ``u``, the velocity ``v`` (measured, or
+derived from position with a zero-phase filter), the sample interval
+(nominal ``1/fs``, or per interval from ``t`` when the time stamps jitter by
+more than :data:`JITTER_RTOL`), and the excitation design if the log's
+metadata names one. The checks that make an analysis meaningless (too short,
+nothing moves, no excitation) raise
 :class:`~servobench.errors.IdentificationError` here, once.
+
+Where a simulation starts from the data, :func:`initial_velocity` gives its
+initial velocity by one rule: the velocity at that sample, taken as rest when
+it lies within :data:`REST_SIGMAS` noise deviations of zero.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
 from servobench.bench.excitation import ExcitationDesign, design_from_metadata
-from servobench.bench.identify.derivative import DerivedMotion, differentiate_position
-from servobench.bench.logio import ExperimentLog
+from servobench.bench.identify.derivative import (
+    DerivedMotion,
+    differentiate_position,
+    lowpass,
+    settle_samples,
+)
+from servobench.bench.logio import ExperimentLog, RunData
 from servobench.errors import IdentificationError
+from servobench.units import SignalUnits
 
 #: Relative spread of the sample intervals above which per-interval dt is used.
 JITTER_RTOL = 1e-3
 #: Fewest samples a run must have.
 MIN_SAMPLES = 20
+#: Initial velocities within this many noise deviations of zero are taken as rest.
+REST_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
 class Segment:
-    """One run, ready for identification; arrays of shape ``(n,)``.
+    """One run, ready for analysis; arrays of shape ``(n,)``.
 
     Attributes
     ----------
@@ -40,6 +54,8 @@ class Segment:
         Command [command units], held over ``[t_k, t_{k+1})``.
     v : ndarray
         Velocity [units/s] at ``t_k`` (measured, or derived when ``motion`` is set).
+    fs_hz : float
+        Nominal sample rate [Hz].
     dt_s : ndarray or None
         Per-interval sample time [s], shape ``(n - 1,)``, or None for the nominal ``1/fs``.
     motion : DerivedMotion or None
@@ -52,6 +68,7 @@ class Segment:
     t: np.ndarray
     u: np.ndarray
     v: np.ndarray
+    fs_hz: float
     dt_s: np.ndarray | None = None
     motion: DerivedMotion | None = None
     x: np.ndarray | None = None
@@ -63,6 +80,21 @@ class Segment:
     def __len__(self) -> int:
         return int(self.u.shape[0])
 
+    @cached_property
+    def v_f(self) -> np.ndarray:
+        """Low-passed velocity [units/s]: the derived velocity as it is (already filtered),
+        a measured one through :func:`~servobench.bench.identify.derivative.lowpass`."""
+        return self.v if self.derived else lowpass(self.v, self.fs_hz)
+
+    @cached_property
+    def position(self) -> np.ndarray:
+        """Position [units]: as logged, or the velocity integrated (trapezoids) from 0."""
+        if self.x is not None:
+            return self.x
+        mean_v = 0.5 * (self.v[1:] + self.v[:-1])
+        steps = mean_v / self.fs_hz if self.dt_s is None else mean_v * self.dt_s
+        return np.concatenate([[0.0], np.cumsum(steps)])
+
     def head(self, n: int) -> Segment:
         """The first ``n`` samples."""
         motion = self.motion
@@ -72,7 +104,42 @@ class Segment:
             )
         dt = None if self.dt_s is None else self.dt_s[: max(0, n - 1)]
         x = None if self.x is None else self.x[:n]
-        return Segment(self.run, self.t[:n], self.u[:n], self.v[:n], dt, motion, x)
+        return Segment(self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x)
+
+
+def initial_velocity(segment: Segment, noise_std: float, k: int = 0) -> float:
+    """Velocity [units/s] to start a simulation from at sample ``k``: 0 when the axis rests there.
+
+    The velocity at ``k`` is taken as rest when it lies within ``REST_SIGMAS *
+    noise_std`` of zero. The threshold is the noise, not a share of the
+    velocity's range: a log that starts at rest within the noise starts the
+    model at rest, and one that starts in motion, however slowly, starts it
+    in motion (exactly so for noise-free data).
+
+    The velocity at ``k`` is ``v[k]``, except where ``v`` was derived from
+    position and ``k`` lies within the filter's edge transient: there it is
+    extrapolated from the next two position increments,
+    ``(1.5 (x1 - x0) - 0.5 (x2 - x1)) / dt``.
+
+    Parameters
+    ----------
+    segment : Segment
+    noise_std : float
+        Noise [units/s] of ``v`` (0 for derived or noise-free velocity).
+    k : int
+        Sample index.
+    """
+    v0 = float(segment.v[k])
+    motion = segment.motion
+    if motion is not None and segment.x is not None and k + 2 < len(segment):
+        edge = settle_samples(segment.fs_hz, motion.cutoff_hz)
+        if k < edge or k >= len(segment) - edge:
+            x, t = segment.x, segment.t
+            v0 = float(
+                1.5 * (x[k + 1] - x[k]) / (t[k + 1] - t[k])
+                - 0.5 * (x[k + 2] - x[k + 1]) / (t[k + 2] - t[k + 1])
+            )
+    return 0.0 if abs(v0) <= REST_SIGMAS * noise_std else v0
 
 
 @dataclass(frozen=True)
@@ -92,6 +159,8 @@ class Dataset:
         Facts worth reporting (derived velocity, irregular sampling).
     closed_loop : bool or None
         From the ``loop`` metadata key (``open``/``closed ...``); None when unknown.
+    units : SignalUnits
+        Units of the signals, from the log's ``unit_*`` metadata.
     """
 
     segments: tuple[Segment, ...]
@@ -100,6 +169,7 @@ class Dataset:
     source: str = ""
     notes: tuple[str, ...] = ()
     closed_loop: bool | None = None
+    units: SignalUnits = SignalUnits()
 
     @property
     def dt_s(self) -> float:
@@ -112,6 +182,10 @@ class Dataset:
     @property
     def jittered(self) -> bool:
         return any(s.dt_s is not None for s in self.segments)
+
+    def cat(self, name: str) -> np.ndarray:
+        """Attribute ``name`` (``"u"``, ``"v"``, ``"v_f"``, ``"position"`` ...) of every run, concatenated."""
+        return np.concatenate([getattr(s, name) for s in self.segments])
 
     def run(self, number: int) -> Segment:
         for s in self.segments:
@@ -148,6 +222,7 @@ def prepare(
     *,
     velocity_cutoff_hz: float | None = None,
     derivative_method: str = "butter",
+    min_samples: int = MIN_SAMPLES,
 ) -> Dataset:
     """Build a :class:`Dataset` from a log.
 
@@ -157,11 +232,13 @@ def prepare(
     velocity_cutoff_hz : float, optional
         Cut-off of the position filter when velocity must be derived [Hz].
     derivative_method : {"butter", "savgol"}
+    min_samples : int
+        Fewest samples a run must have.
 
     Raises
     ------
     IdentificationError
-        A run is too short, ``u`` is zero throughout, or nothing moves.
+        A run is too short, nothing moves, or ``u`` is zero throughout.
     """
     fs = float(log.fs_hz)
     notes: list[str] = []
@@ -169,52 +246,60 @@ def prepare(
         notes.append(
             "the log is incomplete (no 'status = complete' trailer): the run was cut short"
         )
-    segments: list[Segment] = []
+    segments = []
     for r in log.runs:
-        if len(r) < MIN_SAMPLES:
+        if len(r) < min_samples:
             raise IdentificationError(
-                f"run {r.run} has {len(r)} samples; at least {MIN_SAMPLES} are needed"
+                f"run {r.run} has {len(r)} samples; at least {min_samples} are needed"
             )
-        t = np.asarray(r.t, dtype=float)
-        dt = np.diff(t)
-        dt_s = None
-        nominal = 1.0 / fs
-        if dt.std() > JITTER_RTOL * dt.mean() or abs(np.median(dt) - nominal) > 1e-2 * nominal:
-            dt_s = dt
-            note = "irregular time stamps: per-sample intervals from t are used"
-            if note not in notes:
-                notes.append(note)
-        motion = None
-        if r.v is not None:
-            v = np.asarray(r.v, dtype=float)
-        else:
-            motion = differentiate_position(
-                r.x, fs, velocity_cutoff_hz, derivative_method, t=None if dt_s is None else t
-            )
-            v = motion.v
-            note = (
-                f"velocity derived from position ({derivative_method}, zero-phase, "
-                f"cut-off {motion.cutoff_hz:.4g} Hz)"
-            )
-            if note not in notes:
-                notes.append(note)
-        x = None if r.x is None else np.asarray(r.x, dtype=float)
-        segments.append(Segment(r.run, t, np.asarray(r.u, dtype=float), v, dt_s, motion, x))
+        segment, how = _segment(r, fs, velocity_cutoff_hz, derivative_method)
+        segments.append(segment)
+        notes.extend(note for note in how if note not in notes)
+    if not any(_moves(s) for s in segments):
+        raise IdentificationError(
+            "no motion in the data: the axis does not move (velocity and position never change)"
+        )
     if not any(np.any(s.u != 0) for s in segments):
         raise IdentificationError("no excitation: the command u is zero throughout the log")
-    if not any(_moves(s) for s in segments):
-        raise IdentificationError("no motion in the data: velocity (or position) never changes")
     design = design_from_metadata(log.metadata, fs, log.source)
-    if design is not None and min(len(s) for s in segments) < 2 * design.samples_per_period:
+    shortest = min(len(s) for s in segments)
+    if design is not None and shortest < 2 * design.samples_per_period:
         notes.append("fewer than two excitation periods per run: periodic processing disabled")
         design = None
-    elif design is not None:
-        periods = min(len(s) for s in segments) // design.samples_per_period
-        if periods != design.periods:
-            design = design.with_periods(periods)
+    elif design is not None and shortest // design.samples_per_period != design.periods:
+        design = design.with_periods(shortest // design.samples_per_period)
     loop = log.metadata.get("loop", "").strip().lower()
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
-    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed)
+    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units)
+
+
+def _segment(
+    r: RunData, fs_hz: float, cutoff_hz: float | None, method: str
+) -> tuple[Segment, list[str]]:
+    """One run as a :class:`Segment`, and notes on how it was prepared (none if plainly)."""
+    t = np.asarray(r.t, dtype=float)
+    dt = np.diff(t)
+    nominal = 1.0 / fs_hz
+    dt_s = None
+    notes = []
+    if dt.std() > JITTER_RTOL * dt.mean() or abs(np.median(dt) - nominal) > 1e-2 * nominal:
+        dt_s = dt
+        notes.append("irregular time stamps: per-sample intervals from t are used")
+    motion = None
+    if r.v is not None:
+        v = np.asarray(r.v, dtype=float)
+    else:
+        motion = differentiate_position(
+            r.x, fs_hz, cutoff_hz, method, t=None if dt_s is None else t
+        )
+        v = motion.v
+        notes.append(
+            f"velocity derived from position ({method}, zero-phase, "
+            f"cut-off {motion.cutoff_hz:.4g} Hz)"
+        )
+    x = None if r.x is None else np.asarray(r.x, dtype=float)
+    u = np.asarray(r.u, dtype=float)
+    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x), notes
 
 
 def _moves(s: Segment) -> bool:

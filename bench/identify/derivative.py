@@ -46,11 +46,20 @@ def settle_samples(fs_hz: float, cutoff_hz: float) -> int:
 
 
 def lowpass(
-    y: np.ndarray, fs_hz: float, cutoff_hz: float, order: int = FILTER_ORDER, axis: int = 0
+    y: np.ndarray,
+    fs_hz: float,
+    cutoff_hz: float | None = None,
+    order: int = FILTER_ORDER,
+    axis: int = 0,
 ) -> np.ndarray:
-    """Zero-phase Butterworth low-pass of ``y`` along ``axis`` (cut-off in Hz)."""
+    """Zero-phase Butterworth low-pass of ``y`` along ``axis``.
+
+    ``cutoff_hz`` [Hz] defaults to :func:`default_cutoff_hz`, that of the position filter.
+    """
     from scipy import signal
 
+    if cutoff_hz is None:
+        cutoff_hz = default_cutoff_hz(fs_hz)
     if not (0 < cutoff_hz < fs_hz / 2):
         raise IdentificationError(
             f"velocity filter cut-off {cutoff_hz} Hz must lie between 0 and Nyquist ({fs_hz / 2} Hz)"
@@ -71,6 +80,15 @@ def zoh_centered(u: np.ndarray) -> np.ndarray:
     """
     u = np.asarray(u, dtype=float)
     return np.concatenate((u[:1], 0.5 * (u[1:] + u[:-1])))
+
+
+def filter_command(u: np.ndarray, fs_hz: float, cutoff_hz: float | None = None) -> np.ndarray:
+    """The command [command units] as a filtered velocity sees it.
+
+    :func:`zoh_centered`, then the same zero-phase :func:`lowpass` (default cut-off
+    :func:`default_cutoff_hz`), so that the filter cancels from the fitted relation.
+    """
+    return lowpass(zoh_centered(u), fs_hz, cutoff_hz)
 
 
 def differentiate_position(

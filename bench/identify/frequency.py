@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -183,18 +184,32 @@ def fit_linear_block(
     """
     from scipy.optimize import least_squares
 
-    G, dt = frf.G, frf.dt_s
-    if G.size < (4 if resonance else 2):
-        raise IdentificationError(f"{G.size} excited lines are too few for the fit")
+    if frf.G.size < (4 if resonance else 2):
+        raise IdentificationError(f"{frf.G.size} excited lines are too few for the fit")
+    dt = frf.dt_s
     z = np.exp(2j * np.pi * frf.f_hz * dt)
-    G_meas = G
-    if of_position:
-        G = G * 2 * (z - 1) / (dt * (1 + z))  # trapezoidal velocity, for the start only
-    # (z - a) - b / G = 0, relative to |z - a| ~ 1: linear in (a, b)
+    # the start works on velocity: trapezoidal velocity from position, for the start only
+    G_start = frf.G * 2 * (z - 1) / (dt * (1 + z)) if of_position else frf.G
+    M0, B0 = _start_values(G_start, z, dt)
+    p0 = [math.log(M0), math.log(B0)]
+    args = (z, dt, frf.G, resonance, of_position)
+    try:
+        if resonance:
+            sol, bounds = _fit_with_resonance(frf.f_hz, G_start, z, dt, (M0, B0), args)
+        else:
+            sol, bounds = least_squares(_relative_misfit, p0, method="lm", args=args), None
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
+        raise IdentificationError(f"the FRF fit failed: {err}") from None
+    return _linear_fit(sol, frf.G.size, bounds)
+
+
+def _start_values(G: np.ndarray, z: np.ndarray, dt: float) -> tuple[float, float]:
+    """``M, B`` from the linear least-squares fit of ``(z - a) - b / G = 0`` to a velocity
+    FRF (relative to ``|z - a| ~ 1``), or from the gain of the lowest line when that fit
+    is not a damped plant."""
     A = np.column_stack((-np.ones_like(G), -1.0 / G))
-    rhs = -z
     A_ri = np.vstack((A.real, A.imag))
-    rhs_ri = np.concatenate((rhs.real, rhs.imag))
+    rhs_ri = np.concatenate((-z.real, -z.imag))
     (a0, b0), *_ = np.linalg.lstsq(A_ri, rhs_ri, rcond=None)
     a0, b0 = float(np.real(a0)), float(np.real(b0))
     if not (0.0 < a0 < 1.0 and b0 > 0):
@@ -202,59 +217,82 @@ def fit_linear_block(
         b0 = abs(G[0]) * (1 - 0.99)
         a0 = 0.99
     B0 = (1.0 - a0) / b0
-    M0 = -B0 * dt / math.log(a0)
+    return -B0 * dt / math.log(a0), B0
 
-    def residual(p: np.ndarray) -> np.ndarray:
-        M, B = math.exp(p[0]), math.exp(p[1])
-        if resonance:
-            g = _zoh_third_order(M, B, math.exp(p[2]), math.exp(p[3]), z, dt)
-        else:
-            g = zoh_first_order(M, B, z, dt)
-        if of_position:
-            g = g * position_over_velocity(M, B, z, dt)
-        e = (g - G_meas) / np.abs(G_meas)
-        return np.concatenate((e.real, e.imag))
 
-    p0 = [math.log(M0), math.log(B0)]
-    try:
-        if resonance:
-            # keep the mode between a tenth of the lowest line and 0.45 fs, damping in [1e-3, 10]
-            lo = [-np.inf, -np.inf, math.log(2 * math.pi * frf.f_hz[0] / 10), math.log(1e-3)]
-            hi = [np.inf, np.inf, math.log(2 * math.pi * 0.45 / dt), math.log(10.0)]
-            g1 = zoh_first_order(M0, B0, z, dt)
-            ratio = np.abs(G / g1)
-            guesses = [
-                frf.f_hz[int(np.argmax(ratio))],
-                frf.f_hz[-1] * 2.0,
-                frf.f_hz[len(frf.f_hz) // 2],
-            ]
-            best = None
-            for f_guess in guesses:
-                for zeta0 in (0.05, 0.3):
-                    x0 = np.clip(p0 + [math.log(2 * math.pi * f_guess), math.log(zeta0)], lo, hi)
-                    x0 = np.minimum(np.maximum(x0, np.array(lo) + 1e-9), np.array(hi) - 1e-9)
-                    cand = least_squares(residual, x0, bounds=(lo, hi), method="trf")
-                    if best is None or cand.cost < best.cost:
-                        best = cand
-            sol = best
-        else:
-            sol = least_squares(residual, p0, method="lm")
-    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
-        raise IdentificationError(f"the FRF fit failed: {err}") from None
-    p = sol.x
-    r = sol.fun
-    dof = max(1, r.size - p.size)
-    s2 = float(r @ r) / dof
+def _relative_misfit(
+    p: np.ndarray,
+    z: np.ndarray,
+    dt: float,
+    G: np.ndarray,
+    resonance: bool,
+    of_position: bool,
+) -> np.ndarray:
+    """``(G_model - G) / |G|`` (real parts, then imaginary) at ``p = log (M, B[, wn, zeta])``."""
+    M, B = math.exp(p[0]), math.exp(p[1])
+    if resonance:
+        g = _zoh_third_order(M, B, math.exp(p[2]), math.exp(p[3]), z, dt)
+    else:
+        g = zoh_first_order(M, B, z, dt)
+    if of_position:
+        g = g * position_over_velocity(M, B, z, dt)
+    e = (g - G) / np.abs(G)
+    return np.concatenate((e.real, e.imag))
+
+
+def _fit_with_resonance(
+    f_hz: np.ndarray,
+    G_start: np.ndarray,
+    z: np.ndarray,
+    dt: float,
+    start: tuple[float, float],
+    args: tuple,
+) -> tuple[Any, tuple[list[float], list[float]]]:
+    """The best of several bounded fits with a resonance, and the bounds ``(lo, hi)``.
+
+    The mode is kept between a tenth of the lowest line and 0.45 fs, its damping in
+    [1e-3, 10]; the fits start at the line where the velocity FRF ``G_start`` most
+    exceeds the first-order start ``(M, B)``, beyond the band and mid band, each
+    lightly and well damped. ``args`` are those of :func:`_relative_misfit`.
+    """
+    from scipy.optimize import least_squares
+
+    lo = [-np.inf, -np.inf, math.log(2 * math.pi * f_hz[0] / 10), math.log(1e-3)]
+    hi = [np.inf, np.inf, math.log(2 * math.pi * 0.45 / dt), math.log(10.0)]
+    p0 = [math.log(start[0]), math.log(start[1])]
+    ratio = np.abs(G_start / zoh_first_order(start[0], start[1], z, dt))
+    guesses = [f_hz[int(np.argmax(ratio))], f_hz[-1] * 2.0, f_hz[len(f_hz) // 2]]
+    best = None
+    for f_guess in guesses:
+        for zeta0 in (0.05, 0.3):
+            x0 = np.clip(p0 + [math.log(2 * math.pi * f_guess), math.log(zeta0)], lo, hi)
+            x0 = np.minimum(np.maximum(x0, np.array(lo) + 1e-9), np.array(hi) - 1e-9)
+            cand = least_squares(_relative_misfit, x0, bounds=(lo, hi), method="trf", args=args)
+            if best is None or cand.cost < best.cost:
+                best = cand
+    return best, (lo, hi)
+
+
+def _linear_fit(sol: Any, lines: int, bounds: tuple[list[float], list[float]] | None) -> LinearFit:
+    """:class:`LinearFit` from a least-squares solution in ``log (M, B[, wn, zeta])``:
+    stds from the Jacobian, and whether the resonance ended on a bound."""
+    p, r = sol.x, sol.fun
+    s2 = float(r @ r) / max(1, r.size - p.size)
     try:
         cov = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
     except np.linalg.LinAlgError:
         cov = np.full((p.size, p.size), np.nan)
     M, B = math.exp(p[0]), math.exp(p[1])
-    misfit = math.sqrt(float(r @ r) / max(1, G.size))
-    wn = math.exp(p[2]) if resonance else None
-    zeta = math.exp(p[3]) if resonance else None
-    at_bound = bool(resonance and np.any(np.abs(p[2:] - np.array(lo[2:])) < 1e-6))
-    at_bound = at_bound or bool(resonance and np.any(np.abs(p[2:] - np.array(hi[2:])) < 1e-6))
+    misfit = math.sqrt(float(r @ r) / max(1, lines))
+    wn = zeta = None
+    at_bound = False
+    if bounds is not None:
+        wn, zeta = math.exp(p[2]), math.exp(p[3])
+        lo, hi = bounds
+        at_bound = bool(
+            np.any(np.abs(p[2:] - np.array(lo[2:])) < 1e-6)
+            or np.any(np.abs(p[2:] - np.array(hi[2:])) < 1e-6)
+        )
     return LinearFit(
         M,
         B,

@@ -21,17 +21,16 @@ import math
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.derivative import (
     differentiate_position,
+    filter_command,
     lowpass,
     settle_samples,
-    zoh_centered,
 )
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
-from servobench.bench.identify.verify import initial_velocity
-from servobench.bench.model import ServoModel
+from servobench.bench.model import STD_KEYS, ServoModel
 from servobench.errors import IdentificationError
 
 #: Samples with |v| below this fraction of max |v| count as standstill.
@@ -42,17 +41,45 @@ INITIAL_TIME_CONSTANTS = 10.0
 
 def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
     """``M``, ``B``, Coulomb friction per direction from position-only (derived-velocity) runs."""
+    X, y, cutoff_hz = _regressors(data)
+    theta, sd = _least_squares(X, y, data.fs_hz, cutoff_hz)
+    M, B, fp, fn = (float(x) for x in theta)
+    notes = list(data.notes)
+    if fp < 0 or fn < 0:
+        notes.append("a negative Coulomb level was estimated and clipped to 0")
+    model = ServoModel(M, B, max(fp, 0.0), max(fn, 0.0))
+    std = dict(zip(STD_KEYS, (float(x) for x in sd), strict=True))
+    if data.closed_loop is not False or not refine_oe:
+        if data.closed_loop:
+            notes.append(
+                "closed-loop log: inverse-dynamic least squares (IDIM-LS), no simulation-error refinement"
+            )
+        elif refine_oe:
+            notes.append(
+                "loop not stated in the log (metadata 'loop = open' enables the simulation-error "
+                "refinement): inverse-dynamic least squares (IDIM-LS) only"
+            )
+        return MethodEstimate(model, "joint", std, "idim-ls", 0.0, tuple(notes))
+    chunks = derived_chunks(data, model.time_constant_s)
+    free = (True, True, bool(np.any(X[:, 2] > 0)), bool(np.any(X[:, 3] < 0)))
+    oe = refine(model, chunks, free)
+    return MethodEstimate(oe.model, "joint", oe.std, "idim-ls + output-error", 0.0, tuple(notes))
+
+
+def _regressors(data: Dataset) -> tuple[np.ndarray, np.ndarray, float]:
+    """Rows ``(a_f, v_f, H[v > 0], -H[v < 0])`` and targets ``u_f`` of the samples in clear
+    motion, all runs stacked, and the filter cut-off [Hz]."""
     rows: list[np.ndarray] = []
     ys: list[np.ndarray] = []
     vmax = max(float(np.max(np.abs(s.v))) for s in data.segments)
     rest = REST_FRACTION * vmax
-    cutoff = None
+    fs = data.fs_hz
+    cutoff = math.nan
     for s in data.segments:
         if s.motion is None:
             raise IdentificationError(
                 "mixed logs (some runs with velocity, some without) are not supported"
             )
-        fs = data.fs_hz
         cutoff = s.motion.cutoff_hz
         edge = settle_samples(fs, cutoff)
         if len(s) <= 2 * edge + 10:
@@ -69,7 +96,7 @@ def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
         keep = ~near_still
         keep[:edge] = False
         keep[-edge:] = False
-        uf = lowpass(zoh_centered(s.u), fs, cutoff)
+        uf = filter_command(s.u, fs, cutoff)
         hp = lowpass(pos, fs, cutoff)
         hn = lowpass(neg, fs, cutoff)
         rows.append(np.column_stack((a, v, hp, -hn))[keep])
@@ -78,6 +105,18 @@ def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
     y = np.concatenate(ys)
     if y.size < 10:
         raise IdentificationError("too few samples in motion for the inverse-dynamic fit")
+    return X, y, cutoff
+
+
+def _least_squares(
+    X: np.ndarray, y: np.ndarray, fs_hz: float, cutoff_hz: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``theta = (M, B, coulomb_pos, coulomb_neg)`` and its 1-sigma, on scaled columns.
+
+    Columns that are zero throughout (a direction never travelled) stay out: their
+    parameter is 0 with an unknown (NaN) deviation. Filtered residuals are correlated
+    over about ``fs / (2 cutoff)`` samples, which inflates the variance.
+    """
     used = [i for i in range(4) if np.any(X[:, i] != 0)]
     Xu = X[:, used]
     scale = np.sqrt(np.mean(Xu * Xu, axis=0))
@@ -87,41 +126,15 @@ def identify_idim(data: Dataset, *, refine_oe: bool = True) -> MethodEstimate:
     theta = np.zeros(4)
     theta[used] = theta_u
     r = y - X @ theta
-    # filtered residuals are correlated over about fs/(2 cutoff) samples
-    inflate = max(1.0, data.fs_hz / (2.0 * cutoff)) if cutoff else 1.0
+    inflate = max(1.0, fs_hz / (2.0 * cutoff_hz))
     s2 = float(r @ r) / max(1, r.size - len(used)) * inflate
+    sd = np.full(4, np.nan)
     try:
         cov = s2 * np.linalg.inv((Xu / scale).T @ (Xu / scale)) / np.outer(scale, scale)
-        sd = np.full(4, np.nan)
         sd[used] = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
-        sd = np.full(4, np.nan)
-    M, B, fp, fn = (float(x) for x in theta)
-    notes = list(data.notes)
-    if fp < 0 or fn < 0:
-        notes.append("a negative Coulomb level was estimated and clipped to 0")
-    model = ServoModel(M, B, max(fp, 0.0), max(fn, 0.0))
-    std = {
-        "M": float(sd[0]),
-        "B": float(sd[1]),
-        "coulomb_pos": float(sd[2]),
-        "coulomb_neg": float(sd[3]),
-    }
-    if data.closed_loop is not False or not refine_oe:
-        if data.closed_loop:
-            notes.append(
-                "closed-loop log: inverse-dynamic least squares (IDIM-LS), no simulation-error refinement"
-            )
-        elif refine_oe:
-            notes.append(
-                "loop not stated in the log (metadata 'loop = open' enables the simulation-error "
-                "refinement): inverse-dynamic least squares (IDIM-LS) only"
-            )
-        return MethodEstimate(model, "joint", std, "idim-ls", 0.0, tuple(notes))
-    chunks = derived_chunks(data, model.time_constant_s)
-    free = (True, True, bool(np.any(X[:, 2] > 0)), bool(np.any(X[:, 3] < 0)))
-    oe = refine(model, chunks, free)
-    return MethodEstimate(oe.model, "joint", oe.std, "idim-ls + output-error", 0.0, tuple(notes))
+        pass
+    return theta, sd
 
 
 def derived_chunks(data: Dataset, tau_s: float) -> list[Chunk]:

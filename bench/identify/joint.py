@@ -24,11 +24,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
+from servobench.bench.identify.idim import identify_idim
 from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
 from servobench.bench.identify.regression import (
+    Pairs,
     ZohFit,
     fit_pairs,
     fit_pairs_irregular,
@@ -36,7 +38,6 @@ from servobench.bench.identify.regression import (
     select_pairs,
 )
 from servobench.bench.identify.simulation import simulate_run
-from servobench.bench.identify.verify import initial_velocity
 from servobench.bench.model import ServoModel
 from servobench.errors import IdentificationError
 
@@ -72,21 +73,16 @@ def identify_joint(
         on all data after the held-out comparison).
     """
     if data.derived:
-        from servobench.bench.identify.idim import identify_idim
-
         return identify_idim(data, refine_oe=refine_oe)
     dt = data.dt_s
-    vs = [s.v for s in data.segments]
-    us = [s.u for s in data.segments]
-    ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in data.segments]
     notes: list[str] = list(data.notes)
-    v_all = np.concatenate(vs)
+    v_all = data.cat("v")
 
     if start is not None and start.estimator == "output-error" and refine_oe:
         sigma = start.noise_std
         return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
 
-    fit = _solve(select_pairs(vs, us, ints, max_pairs=MAX_PAIRS), data, None)
+    fit = _solve(_pairs(data), data, None)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
     v_rms = math.sqrt(float(np.mean(v_all**2)))
     if sigma <= EXACT_RTOL * v_rms:
@@ -99,20 +95,45 @@ def identify_joint(
         raise IdentificationError(
             f"no motion above the sensor noise (sigma {sigma:.3g}); raise the amplitude"
         )
-    fit = _solve(select_pairs(vs, us, ints, threshold=threshold, max_pairs=MAX_PAIRS), data, fit)
+    fit = _solve(_pairs(data, threshold), data, fit)
+    fit, model = _instrumental(data, fit, sigma, v_rms)
+    if not refine_oe:
+        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-iv", sigma, tuple(notes))
+    return _refine(data, model, sigma, threshold, v_all, notes)
+
+
+def _pairs(
+    data: Dataset, threshold: float = 0.0, references: list[np.ndarray] | None = None
+) -> Pairs:
+    """The regression's sample pairs of every run (see :func:`select_pairs`)."""
+    return select_pairs(
+        [s.v for s in data.segments],
+        [s.u for s in data.segments],
+        [np.full(len(s) - 1, data.dt_s) if s.dt_s is None else s.dt_s for s in data.segments],
+        references=references,
+        threshold=threshold,
+        max_pairs=MAX_PAIRS,
+    )
+
+
+def _instrumental(
+    data: Dataset, fit: ZohFit, sigma: float, v_rms: float
+) -> tuple[ZohFit, ServoModel]:
+    """:data:`IV_PASSES` instrumental-variable fits, each on the pairs and instruments of
+    the previous estimate's simulation; the last fit that gives a model, and that model.
+
+    The instruments need simulations: on long non-periodic logs they run on the
+    refinement window (:func:`_iv_data`).
+    """
     model = _model(fit)
-    # the instruments need simulations; on long non-periodic logs use the refinement window
     iv = _iv_data(data)
-    iv_vs = [s.v for s in iv.segments]
-    iv_us = [s.u for s in iv.segments]
-    iv_ints = [np.full(len(s) - 1, dt) if s.dt_s is None else s.dt_s for s in iv.segments]
-    iv_v = np.concatenate(iv_vs)
+    iv_v = iv.cat("v")
     for _ in range(IV_PASSES):
         sims = [
             simulate_run(
                 model,
                 s.u,
-                dt if s.dt_s is None else s.dt_s,
+                data.dt_s if s.dt_s is None else s.dt_s,
                 initial_velocity(s, sigma),
                 _period(iv),
             )
@@ -120,17 +141,13 @@ def identify_joint(
         ]
         mismatch2 = float(np.mean((iv_v - np.concatenate(sims)) ** 2)) - sigma**2
         margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
-        pairs = select_pairs(
-            iv_vs, iv_us, iv_ints, references=sims, threshold=margin, max_pairs=MAX_PAIRS
-        )
         try:
-            fit = _solve(pairs, iv, fit, instrumental=True)
-            model = _model(fit)
+            new = _solve(_pairs(iv, margin, sims), iv, fit, instrumental=True)
+            model = _model(new)
         except IdentificationError:
             break
-    if not refine_oe:
-        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-iv", sigma, tuple(notes))
-    return _refine(data, model, sigma, threshold, v_all, notes)
+        fit = new
+    return fit, model
 
 
 def _refine(
@@ -167,11 +184,13 @@ def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = F
         return fit_pairs(pairs, data.dt_s, instrumental=instrumental)
     if previous is None:
         previous = fit_pairs(pairs, float(np.mean(pairs.dt)))
-    return fit_pairs_irregular(pairs, (previous.M, previous.B, previous.fc_pos, previous.fc_neg))
+    return fit_pairs_irregular(
+        pairs, (previous.M, previous.B, previous.coulomb_pos, previous.coulomb_neg)
+    )
 
 
 def _model(fit: ZohFit) -> ServoModel:
-    return ServoModel(fit.M, fit.B, max(fit.fc_pos, 0.0), max(fit.fc_neg, 0.0))
+    return ServoModel(fit.M, fit.B, max(fit.coulomb_pos, 0.0), max(fit.coulomb_neg, 0.0))
 
 
 def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:

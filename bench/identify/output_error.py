@@ -25,7 +25,7 @@ from servobench.bench.identify.derivative import DerivedMotion, differentiate_po
 from servobench.bench.identify.simulation import simulate_steady_period, simulate_velocity
 from servobench.bench.model import STD_KEYS, ServoModel
 from servobench.errors import IdentificationError
-from servobench.sim_backend.physics.plant import PlantState, simulate_coulomb
+from servobench.sim_backend.physics.coulomb import PlantState, simulate_coulomb
 
 #: Largest number of raw samples used by the refinement of a non-periodic log.
 MAX_RAW_SAMPLES = 60_000

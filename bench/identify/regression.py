@@ -4,11 +4,11 @@ Between two samples in which the velocity keeps one strict sign (no zero
 crossing, no sticking inside the interval) the friction force is constant
 and the zero-order-hold solution is exact::
 
-    v[k+1] = a v[k] + b u[k] - b fc_pos      (v > 0)
-    v[k+1] = a v[k] + b u[k] + b fc_neg      (v < 0)
+    v[k+1] = a v[k] + b u[k] - b coulomb_pos      (v > 0)
+    v[k+1] = a v[k] + b u[k] + b coulomb_neg      (v < 0)
 
 with ``a = exp(-B dt/M)`` and ``b = (1 - a)/B``. Stacking such pairs gives
-a linear least-squares problem in ``(a, b, b fc_pos, b fc_neg)`` that is
+a linear least-squares problem in ``(a, b, b coulomb_pos, b coulomb_neg)`` that is
 exact for noise-free data at any amplitude. With sensor noise the pairs
 are chosen on a noise-free reference (a simulation) and solved with
 instrumental variables; the output-error refinement in
@@ -103,13 +103,13 @@ def select_pairs(
 class ZohFit:
     """Physical parameters from the regression, their covariance and the residual.
 
-    ``theta`` is ``(a, b, b*fc_pos, b*fc_neg)``; ``cov`` its covariance.
+    ``theta`` is ``(a, b, b*coulomb_pos, b*coulomb_neg)``; ``cov`` its covariance.
     """
 
     M: float
     B: float
-    fc_pos: float
-    fc_neg: float
+    coulomb_pos: float
+    coulomb_neg: float
     theta: np.ndarray
     cov: np.ndarray
     residual: np.ndarray
@@ -129,7 +129,7 @@ class ZohFit:
 
 
 def to_physical(theta: np.ndarray, dt_s: float) -> tuple[float, float, float, float]:
-    """``(a, b, b fc_pos, b fc_neg)`` -> ``(M, B, fc_pos, fc_neg)``."""
+    """``(a, b, b coulomb_pos, b coulomb_neg)`` -> ``(M, B, coulomb_pos, coulomb_neg)``."""
     a, b, cp, cn = (float(x) for x in theta)
     if not (0.0 < a < 1.0) or not b > 0.0:
         raise IdentificationError(
@@ -219,9 +219,10 @@ def noise_std_from_residual(residual: np.ndarray, a: float) -> float:
 
 
 def fit_pairs_irregular(pairs: Pairs, start: tuple[float, float, float, float]) -> ZohFit:
-    """The regression with a different interval per pair: nonlinear least squares in ``(M, B, fc_pos, fc_neg)``.
+    """The regression with a different interval per pair, by nonlinear least squares.
 
-    ``a_k = exp(-B dt_k/M)``, ``b_k = (1 - a_k)/B``; exact for noise-free data.
+    Unknowns ``(M, B, coulomb_pos, coulomb_neg)``; ``a_k = exp(-B dt_k/M)``,
+    ``b_k = (1 - a_k)/B``; exact for noise-free data.
     """
     from scipy.optimize import least_squares
 

@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
-from servobench.bench.identify.derivative import lowpass, settle_samples, zoh_centered
+from servobench.bench.identify.derivative import filter_command, settle_samples
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import (
     detrend_position,
@@ -123,7 +123,7 @@ def _friction_derived(
     for s in data.segments:
         assert s.motion is not None
         edge = settle_samples(data.fs_hz, s.motion.cutoff_hz)
-        uf = lowpass(zoh_centered(s.u), data.fs_hz, s.motion.cutoff_hz)
+        uf = filter_command(s.u, data.fs_hz, s.motion.cutoff_hz)
         f = uf - M * s.motion.a - B * s.v
         pos = s.v > 1e-3 * vmax
         neg = s.v < -1e-3 * vmax

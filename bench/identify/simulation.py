@@ -1,7 +1,7 @@
 """Simulate an identified model on logged commands.
 
 Thin layer over the exact stick-slip integrator
-:func:`servobench.sim_backend.physics.plant.simulate_coulomb`, adding what identification
+:func:`servobench.sim_backend.physics.coulomb.simulate_coulomb`, adding what identification
 needs: irregular sample intervals (an exact per-interval integrator, same
 equations), the optional series resonance, a warm start, and the periodic
 steady state of a periodic command (long periodic logs are then verified
@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from servobench.bench.model import ServoModel
-from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 
 #: Time constants of pre-roll that make the periodic steady state exact to ~3e-7.
 PREROLL_TIME_CONSTANTS = 15.0
@@ -60,10 +60,10 @@ def simulate_variable_dt(
     """Exact stick-slip velocity with a different interval ``dt_s[k]`` after each sample.
 
     The same piecewise-exponential solution as
-    :func:`~servobench.sim_backend.physics.plant.simulate_coulomb`, with ``exp(-dt_k/tau)`` per step.
+    :func:`~servobench.sim_backend.physics.coulomb.simulate_coulomb`, with ``exp(-dt_k/tau)`` per step.
     """
     M, B = params.M, params.B
-    fcp, fcn = params.fc_pos, params.fc_neg
+    fcp, fcn = params.coulomb_pos, params.coulomb_neg
     bkp, bkn = params.breakaway_pos, params.breakaway_neg
     tau = M / B
     exp, log = math.exp, math.log

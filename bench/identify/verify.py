@@ -1,8 +1,9 @@
 """Verification by simulation: does the identified model reproduce the measured velocity?
 
 The model is simulated with the exact stick-slip integrator on each run's
-logged command, from the run's initial velocity, and compared with the
-measured (or derived) velocity::
+logged command, from the run's initial velocity
+(:func:`~servobench.bench.identify.dataset.initial_velocity`), and compared
+with the measured (or derived) velocity::
 
     fit_percent = 100 * (1 - ||v - v_sim|| / ||v - mean(v)||)
 
@@ -17,12 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset, Segment
+from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.simulation import simulate_run
 from servobench.bench.model import ServoModel, fit_percent
-
-#: Initial velocities below this many noise sigmas are taken as rest.
-REST_SIGMAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -44,22 +42,6 @@ class Verification:
     runs: tuple[RunVerification, ...]
     fit_percent: float
     window: tuple[int, int | None] = (0, None)
-
-
-def initial_velocity(segment: Segment, noise_std: float) -> float:
-    """The run's first velocity [units/s], or 0 when it is within noise of rest.
-
-    For velocity derived from position the filtered value at the first sample
-    is spoiled by the filter's edge; the velocity is then extrapolated from the
-    first two position increments, ``(1.5 (x1 - x0) - 0.5 (x2 - x1)) / dt``.
-    """
-    if segment.derived and segment.x is not None and len(segment.x) >= 3:
-        x = segment.x
-        dt0 = float(segment.t[1] - segment.t[0])
-        dt1 = float(segment.t[2] - segment.t[1])
-        return float(1.5 * (x[1] - x[0]) / dt0 - 0.5 * (x[2] - x[1]) / dt1)
-    v0 = float(segment.v[0])
-    return 0.0 if abs(v0) <= REST_SIGMAS * noise_std else v0
 
 
 def verify(

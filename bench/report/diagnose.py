@@ -52,7 +52,7 @@ def to_json(d: Diagnosis) -> dict:
             for s in d.steps
         ],
         "comparison": d.data.comparison,
-        "velocity": "derived from position" if d.data.velocity_derived else "measured",
+        "velocity": "derived from position" if d.data.derived else "measured",
         "noise_floor": d.trace.noise_floor,
         "findings": d.signatures.findings(),
         "tried": [
@@ -70,7 +70,7 @@ def write_comparison_csv(d: Diagnosis, path: str | Path) -> Path:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["run", "t", "v_measured", "v_before", "v_after"])
-        for r, vb, va in zip(d.data.runs, before, after, strict=True):
+        for r, vb, va in zip(d.data.segments, before, after, strict=True):
             for row in zip(np.full(len(r.t), r.run), r.t, r.v, vb, va, strict=True):
                 w.writerow([int(row[0])] + [format(float(x), ".10g") for x in row[1:]])
     return path
@@ -109,10 +109,10 @@ def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
     ax.set_title("Residual spectrum")
     figs.append(_save(fig, out / "residual_spectrum.png"))
 
-    n = len(data.runs)
+    n = len(data.segments)
     fig = new_figure(2.8 * n, 10)
     axes = fig.subplots(n, 1, squeeze=False)
-    for ax, r, vb, va in zip(axes[:, 0], data.runs, before, after, strict=True):
+    for ax, r, vb, va in zip(axes[:, 0], data.segments, before, after, strict=True):
         ax.plot(r.t, r.v, color="0.2", lw=0.8, label="measured")
         ax.plot(r.t, vb, lw=0.8, label=f"base model ({d.gap_before:.2f}%)")
         ax.plot(r.t, va, lw=0.8, ls="--", label=f"final model ({d.gap_after:.2f}%)")
@@ -154,7 +154,7 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     lines = [
         "# servobench diagnose",
         "",
-        f"Log: `{Path(d.data.source).name or 'log'}`; velocity {('derived from position' if d.data.velocity_derived else 'measured')}; "
+        f"Log: `{Path(d.data.source).name or 'log'}`; velocity {('derived from position' if d.data.derived else 'measured')}; "
         f"comparison: {d.data.comparison}.",
         "",
         f"**Velocity gap (NRMSE): {d.gap_before:.3g}% before, {d.gap_after:.3g}% after.**",
@@ -176,8 +176,8 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     base = d.steps[0].fit.candidate.base
     lines += [
         "",
-        f"Base model: M = {base['M']:.4g}, B = {base['B']:.4g}, fc_pos = {base['fc_pos']:.4g}, "
-        f"fc_neg = {base['fc_neg']:.4g}; sensor-noise floor {d.trace.noise_floor:.3g}%.",
+        f"Base model: M = {base['M']:.4g}, B = {base['B']:.4g}, coulomb_pos = {base['coulomb_pos']:.4g}, "
+        f"coulomb_neg = {base['coulomb_neg']:.4g}; sensor-noise floor {d.trace.noise_floor:.3g}%.",
         "",
         "## Where the base model disagrees",
         "",

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.logio import LogWriter
-from servobench.sim_backend.physics.effects import to_query
 from servobench.sim_backend.physics.plant import Plant, PlantParams
+from servobench.sim_backend.simurl import plant_query
 
 #: Sample rate of the generated logs [Hz] and duration of each run [s].
 CASE_FS_HZ = 500.0
@@ -41,9 +41,7 @@ class HiddenCase:
 
     def sim_url(self) -> str:
         """The ``sim://`` URL of this plant (noise included)."""
-        p = self.params
-        keys = {"M": p.M, "B": p.B, "fc_pos": p.fc_pos, "fc_neg": p.fc_neg, "noise": p.noise}
-        keys.update(to_query(self.effects))
+        keys = plant_query(self.params)
         return "sim://?" + "&".join(f"{k}={v:.10g}" for k, v in keys.items())
 
 
@@ -67,16 +65,19 @@ def excitation(rng: np.random.Generator, n: int, fs_hz: float, amplitude: float)
 
 def _effect_params(effect: str, base: PlantParams, amp: float, rng: np.random.Generator) -> dict:
     u = rng.uniform
-    fc = 0.5 * (base.fc_pos + base.fc_neg)
+    fc = 0.5 * (base.coulomb_pos + base.coulomb_neg)
     v_typ = amp / base.B
     sign = rng.choice([-1.0, 1.0])
     if effect == "stribeck":
-        return {"fs": max(base.fc_pos, base.fc_neg) * u(1.8, 2.6), "vs": v_typ * u(0.05, 0.15)}
+        return {
+            "fs": max(base.coulomb_pos, base.coulomb_neg) * u(1.8, 2.6),
+            "vs": v_typ * u(0.05, 0.15),
+        }
     if effect == "viscous_asymmetry":
         return {"dB": sign * base.B * u(0.3, 0.5)}
     if effect == "offset":
         # Below the Coulomb level an offset is exactly a Coulomb asymmetry: only larger ones show.
-        level = base.fc_pos if sign > 0 else base.fc_neg
+        level = base.coulomb_pos if sign > 0 else base.coulomb_neg
         return {"offset": sign * level * u(1.5, 2.2)}
     if effect == "time_delay":
         return {"delay": u(3.0, 8.0) / CASE_FS_HZ}
@@ -101,7 +102,7 @@ def random_case(effect: str | None, rng: np.random.Generator) -> HiddenCase:
     fcp, fcn = rng.uniform(0.2, 0.5), rng.uniform(0.2, 0.5)
     amp = rng.uniform(4.0, 6.0) * max(fcp, fcn)
     noise = NOISE_FRACTION * AMPLITUDE_RATIO * amp / B
-    base = PlantParams(M=M, B=B, fc_pos=fcp, fc_neg=fcn, noise=noise)
+    base = PlantParams(M=M, B=B, coulomb_pos=fcp, coulomb_neg=fcn, noise=noise)
     effects = {} if effect is None else {effect: _effect_params(effect, base, amp, rng)}
     return HiddenCase(effect, base.with_changes(effects=effects), amp, effects)
 

@@ -44,8 +44,8 @@ def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], t
     k : tuple
         :func:`consts` of the segment.
     fr : tuple
-        ``(fc_pos, fc_neg, brk_pos, brk_neg, excess)``: Coulomb and breakaway magnitudes,
-        and the velocity-dependent friction excess or ``None``.
+        ``(coulomb_pos, coulomb_neg, breakaway_pos, breakaway_neg, excess)``: Coulomb and
+        breakaway magnitudes, and the velocity-dependent friction excess or ``None``.
 
     Returns
     -------

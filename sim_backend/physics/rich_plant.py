@@ -1,6 +1,6 @@
 """The servo plant with extra physical effects, integrated in sub-steps with exact stick handling.
 
-The base physics is that of :mod:`servobench.sim_backend.physics.plant`; the effects of
+The base physics is that of :mod:`servobench.sim_backend.physics.coulomb`; the effects of
 :mod:`servobench.sim_backend.physics.effects` contribute :class:`~servobench.sim_backend.physics.effects.spec.Terms`:
 
 * command transforms (quantization, saturation, dead zone, offset) and a
@@ -29,9 +29,10 @@ import numpy as np
 
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.bodies import Propagator, consts, slider
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState
 from servobench.sim_backend.physics.coupling import CouplingMixin
+from servobench.sim_backend.physics.effects import collect_terms
 from servobench.sim_backend.physics.effects.spec import Terms
-from servobench.sim_backend.physics.plant import PlantParams, PlantState
 
 #: Sub-steps per interval for terms that are not exact under constant force.
 DEFAULT_SUBSTEPS = 2
@@ -71,8 +72,8 @@ class RichModel(CouplingMixin):
         if not (self.B_pos > 0 and self.B_neg > 0):
             raise UsageError(f"viscous asymmetry |dB| = {abs(dB):g} must stay below B = {B:g}")
         self.friction = (
-            params.fc_pos,
-            params.fc_neg,
+            params.coulomb_pos,
+            params.coulomb_neg,
             max(params.breakaway_pos, terms.static_pos),
             max(params.breakaway_neg, terms.static_neg),
             terms.friction_excess,
@@ -202,3 +203,8 @@ class RichModel(CouplingMixin):
                 v, x = step(v, x, f)
         self._hidden = (v, x, v, x, 0)
         return vs, xs
+
+
+def build_model(params: PlantParams) -> RichModel:
+    """The simulation model of a plant with effects: their terms collected, then integrated."""
+    return RichModel(params, collect_terms(params))

@@ -141,7 +141,7 @@ def to_query(effects: Mapping[str, Mapping[str, float]]) -> dict[str, float]:
 
 
 def collect_terms(params) -> Terms:
-    """The :class:`Terms` of every effect of a :class:`~servobench.sim_backend.physics.plant.PlantParams`."""
+    """The :class:`Terms` of every effect of a :class:`~servobench.sim_backend.physics.coulomb.PlantParams`."""
     terms = Terms()
     for name, values in params.effects.items():
         mod = module(name)
@@ -151,10 +151,3 @@ def collect_terms(params) -> Terms:
             check(values, params)
         mod.contribute(values, params, terms)
     return terms
-
-
-def build_model(params):
-    """The simulation model for a plant with effects (:class:`~servobench.sim_backend.physics.rich_plant.RichModel`)."""
-    from servobench.sim_backend.physics.rich_plant import RichModel
-
-    return RichModel(params, collect_terms(params))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     Coupling,
     EffectSpec,
@@ -52,8 +53,6 @@ EFFECT = EffectSpec(
 
 def contribute(p, plant, terms: Terms) -> None:
     if terms.coupling is not None:
-        from servobench.errors import UsageError
-
         raise UsageError("backlash cannot be combined with another coupling (resonance)")
     terms.coupling = Coupling("gap", float(p["ratio"]), gap=float(p["gap"]), measured="motor")
 
@@ -97,7 +96,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the apparent inertia drops to {100 * (1 - ratio):.0f}% until the axis has moved "
         f"{gap:.3g} units after a reversal: a play (equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0] + coef[4], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0] + coef[4], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     guess = {"gap": gap, "ratio": ratio}
     score = explained(sse0, sse, 2, y.size)
     # The load coasts while the play is open, which the play operator ignores: let a quick

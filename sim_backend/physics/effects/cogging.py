@@ -127,6 +127,6 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the force residual repeats every {period:.4g} position units "
         f"(amplitude {amp:.3g}; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     score = explained(sse0, sse, 3, y.size)
     return Screening(score, guess, bounds, evidence, base=base, alternatives=tuple(others))

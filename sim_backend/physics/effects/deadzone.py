@@ -64,7 +64,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the command acts only beyond a dead band of +/-{w:.3g} (the force residual steps with "
         f"the sign of u, not of v; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     n = int(ctx.moving.sum())
     bounds = {"width": (0.0, float(mag.max()) if mag.size else 1.0)}
     return Screening(explained(sse0, sse, 1, n), {"width": float(w)}, bounds, evidence, base=base)

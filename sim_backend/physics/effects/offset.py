@@ -1,8 +1,8 @@
 """``offset`` -- a constant force on the axis (gravity, amplifier or sensor offset).
 
 Model: the command becomes ``u + offset`` [command units]. In motion this is
-exactly a shift of the per-direction Coulomb levels (``fc_pos - offset``,
-``fc_neg + offset``), so the base model absorbs any offset smaller than the
+exactly a shift of the per-direction Coulomb levels (``coulomb_pos - offset``,
+``coulomb_neg + offset``), so the base model absorbs any offset smaller than the
 Coulomb level; the term is identifiable only when it exceeds one of them and
 the axis drifts or accelerates without command (a negative Coulomb level).
 """
@@ -56,5 +56,5 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the free Coulomb fit puts the {side}-direction level below zero "
         f"({min(fcp, fcn):.3g}): a constant force of about {guess:.3g} acts whatever the motion"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": fcp + guess, "fc_neg": fcn - guess}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp + guess, "coulomb_neg": fcn - guess}
     return Screening(score, {"offset": guess}, bounds, evidence, base=base)

@@ -66,7 +66,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the force residual follows the rounding error of the command for a step of {q:.3g} "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     n = int(ctx.moving.sum())
     bounds = {"step": (0.5 * q, 2.0 * q)}
     return Screening(

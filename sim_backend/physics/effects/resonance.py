@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     Coupling,
     EffectSpec,
@@ -64,8 +65,6 @@ MIN_COHERENCE = 0.5
 
 def contribute(p, plant, terms: Terms) -> None:
     if terms.coupling is not None:
-        from servobench.errors import UsageError
-
         raise UsageError("resonance cannot be combined with another coupling (backlash)")
     wn, zeta, r = float(p["wn"]), float(p["zeta"]), float(p["ratio"])
     mr = r * (1 - r) * plant.M

@@ -62,7 +62,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the applied command looks clipped at |u| = {lim:.3g} ({100 * share:.0f}% of samples "
         f"beyond it; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     n = int(ctx.moving.sum())
     bounds = {"limit": (0.05 * top, 2.0 * top)}
     return Screening(explained(sse0, sse, 1, n), {"limit": float(lim)}, bounds, evidence, base=base)

@@ -168,7 +168,7 @@ class ScreenInput:
     dt_s : float
         Sample interval [s].
     base : Mapping[str, float]
-        Base model ``M, B, fc_pos, fc_neg``.
+        Base model ``M, B, coulomb_pos, coulomb_neg``.
     effects : Mapping[str, Mapping[str, float]]
         Effects already in the model (their terms are in ``residual`` already).
     moving : ndarray of bool
@@ -211,7 +211,7 @@ class Screening:
     fixed : tuple of str
         Parameters held at ``guess`` during the gradient refit (piecewise-constant ones).
     base : Mapping[str, float], optional
-        Base parameters (``M, B, fc_pos, fc_neg``) fitted jointly with the term, if any.
+        Base parameters (``M, B, coulomb_pos, coulomb_neg``) fitted jointly with the term, if any.
     scan : tuple of str
         Parameters on which the error is rugged (a play that closes or not before a
         reversal, a period): scanned coarsely before the gradient refit.

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     EffectSpec,
     ParamSpec,
@@ -48,18 +49,16 @@ MAX_EXCESS = 5.0
 
 
 def check(p, plant) -> None:
-    from servobench.errors import UsageError
-
-    if p["fs"] < max(plant.fc_pos, plant.fc_neg):
+    if p["fs"] < max(plant.coulomb_pos, plant.coulomb_neg):
         raise UsageError(
             f"stribeck_fs = {p['fs']:g} must be at least the Coulomb levels "
-            f"({plant.fc_pos:g}, {plant.fc_neg:g})"
+            f"({plant.coulomb_pos:g}, {plant.coulomb_neg:g})"
         )
 
 
 def contribute(p, plant, terms: Terms) -> None:
     fs, vs = float(p["fs"]), float(p["vs"])
-    dp, dn = fs - plant.fc_pos, fs - plant.fc_neg
+    dp, dn = fs - plant.coulomb_pos, fs - plant.coulomb_neg
     inv = 1.0 / vs
     exp = math.exp
 
@@ -129,7 +128,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"static level {fs:.3g} over vs = {vs:.3g} units/s "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": fcp, "fc_neg": fcn}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp, "coulomb_neg": fcn}
     score = explained(sse0, sse, 2, y.size)
     return Screening(
         score, {"fs": fs, "vs": vs}, bounds, evidence, base=base, alternatives=_spread(coef0, scale)
@@ -138,4 +137,4 @@ def screen(ctx: ScreenInput) -> Screening:
 
 def project(p, base):
     """Keep the static level at or above both Coulomb levels (for the refit)."""
-    return {**p, "fs": max(p["fs"], base["fc_pos"], base["fc_neg"])}
+    return {**p, "fs": max(p["fs"], base["coulomb_pos"], base["coulomb_neg"])}

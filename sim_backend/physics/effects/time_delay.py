@@ -61,7 +61,7 @@ def screen(ctx: ScreenInput) -> Screening:
         f"the response lags the command by about {d:g} samples ({d * dt * 1e3:.3g} ms; "
         f"equation error {100 * (1 - sse / sse0):.0f}% lower with the delayed command)"
     )
-    base = {"M": coef[0], "B": coef[1], "fc_pos": coef[2], "fc_neg": coef[3]}
+    base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     bounds = {"delay": (0.0, (MAX_DELAY_SAMPLES + 2) * dt)}
     n = int(ctx.moving.sum())
     return Screening(explained(sse0, sse, 1, n), {"delay": d * dt}, bounds, evidence, base=base)

@@ -7,6 +7,7 @@ under zero-order hold. (The EMPS axis: Fv+ = 166.7, Fv- = 240.4 N s/m.)
 
 from __future__ import annotations
 
+from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     EffectSpec,
     ParamSpec,
@@ -38,8 +39,6 @@ EFFECT = EffectSpec(
 
 
 def check(p, plant) -> None:
-    from servobench.errors import UsageError
-
     if not abs(p["dB"]) < plant.B:
         raise UsageError(
             f"viscous_asymmetry: |visc_asym| = {abs(p['dB']):g} must be below B = {plant.B:g}"
@@ -68,7 +67,7 @@ def screen(ctx: ScreenInput) -> Screening:
         if sse0 > 0
         else "no equation error to explain"
     )
-    base = {"M": coef[0], "B": B, "fc_pos": coef[3], "fc_neg": coef[4]}
+    base = {"M": coef[0], "B": B, "coulomb_pos": coef[3], "coulomb_neg": coef[4]}
     dB = max(-0.9 * lim, min(0.9 * lim, dB))
     return Screening(score, {"dB": dB}, {"dB": (-lim, lim)}, evidence, base=base)
 
