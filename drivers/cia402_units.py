@@ -28,7 +28,8 @@ What the values mean (every factor is "SI per LSB" of the object):
   the feed 0x6092 of one driving shaft revolution. Without 0x60A9 the velocity
   is taken as position units per second.
 * command 0x6071 / 0x6077 / 0x60B2: per mille of the rated torque 0x6076
-  (rated force on a linear motor: a linear axis without a feed constant),
+  (rated force on a linear motor: a linear axis without a feed constant,
+  or with CiA 402's identity 0x6092 = 1/1),
   times the gear ratio at the driving shaft; on a linear axis with a feed
   constant, ``F = T 2 pi i / lead``. A drive without 0x6076 but with 0x6075
   is a current-mode drive: per mille of the rated current, in A, or in N m
@@ -189,9 +190,15 @@ def _position(obj: FactorObjects) -> tuple[Factor, bool]:
 
 
 def _lead_m(obj: FactorObjects, x: Factor, linear: bool) -> float | None:
-    """Travel of one driving shaft revolution [m] on a linear axis (0x6092), or ``None``."""
+    """Travel of one driving shaft revolution [m] on a linear axis (0x6092), or ``None``.
+
+    0x6092 = 1/1 is CiA 402's default, the identity a linear motor's drive keeps:
+    no screw (a lead of one position unit would be absurd).
+    """
+    if not linear or obj.feed is None or obj.feed[0] == obj.feed[1]:
+        return None
     feed = _ratio(obj.feed)
-    return None if feed is None or not linear else feed * x.scale
+    return None if feed is None else feed * x.scale
 
 
 def _velocity(obj: FactorObjects, x: Factor, linear: bool) -> Factor:

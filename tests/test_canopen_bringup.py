@@ -33,7 +33,7 @@ from servobench.errors import DriveConnectionError, DriveTimeoutError, DriveWarn
 from servobench.sim_backend.device import PowerState
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
-PLANT = PlantParams(M=0.1, B=1.0, fc_pos=0.5, fc_neg=0.4)
+PLANT = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 #: The served ZeroErr counts 2**19 increments per revolution (its eRob examples).
 INC_PER_RAD = 2**19 / (2 * math.pi)
 

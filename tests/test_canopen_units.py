@@ -15,12 +15,14 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from servobench.bench.logio import read_log
 from servobench.bench.testing.served import ServedSim
 from servobench.bench.testing.served_canopen import served
 from servobench.drivers.registry import open_drive
+from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 M, B, FC_POS, FC_NEG = 2e-4, 2e-3, 0.02, 0.016  # kg m^2, N m s/rad, N m
 FACTORS = "rated_torque=0.64&inc_per_rev=131072&vel_unit=rpm"
@@ -73,6 +75,10 @@ def test_sidbe_returns_the_si_plant(tmp_path) -> None:
     assert model["B"] == pytest.approx(B, rel=0.01)
     assert model["coulomb_pos"] == pytest.approx(FC_POS, rel=0.01)
     assert model["coulomb_neg"] == pytest.approx(FC_NEG, rel=0.01)
+    units = {"M": "kg m^2", "B": "N m s/rad", "coulomb_pos": "N m", "coulomb_neg": "N m", "pole": "1/s"}
+    assert {k: model["units"][k] for k in units} == units
+    saved = json.loads((tmp_path / "run" / "model.json").read_text())
+    assert {k: saved["units"][k] for k in units} == units
     meta = read_log(tmp_path / "run" / "log.csv").metadata
     assert (meta["unit_u"], meta["unit_v"], meta["unit_x"]) == ("N m", "rad/s", "rad")
     assert meta["scale_v_source"] == "0x60A9 rpm (0x00B44700)"
@@ -92,3 +98,35 @@ def test_max_rate_is_the_wire_time_of_the_mapped_cycle() -> None:
         with open_drive(url + "&bitrate=500000") as drive:
             assert drive.max_rate_hz() == pytest.approx(5e5 / bits)
     assert math.isinf(open_drive(url).max_rate_hz())  # not open: nothing known yet
+
+
+@pytest.mark.parametrize(
+    ("keys", "u_per_lsb", "v_per_lsb", "source"),
+    [
+        # a ball screw: 5 mm lead, 0.64 N m motor, speed in rpm of the screw
+        ("feed=0.005&rated_torque=0.64&vel_unit=rpm", 0.64e-3 * 2 * math.pi / 0.005, 0.005 / 60,
+         "x 2 pi gear / lead"),
+        # a linear motor: rated force 50 N (0x6076 = 50000 mN), speed in µm/s
+        ("rated_torque=50", 0.05, 1e-6, "0x6076 rated force 50000 mN"),
+    ],
+    ids=["ball-screw", "linear-motor"],
+)  # fmt: skip
+def test_linear_axes_are_served_and_read_in_n_m_s_and_m(keys, u_per_lsb, v_per_lsb, source):
+    sim = f"sim://?M=2&B=20&fc_pos=5&fc_neg=4&units=linear&{keys}"
+    with served(sim) as (device, url), open_drive(url) as drive:
+        assert drive.units == {"u": "N", "v": "m/s", "x": "m"}
+        meta = drive.log_metadata()
+        assert float(meta["scale_u"]) == pytest.approx(u_per_lsb)
+        assert float(meta["scale_v"]) == pytest.approx(v_per_lsb)
+        assert float(meta["scale_x"]) == pytest.approx(1e-6) and source in meta["scale_u_source"]
+        applied: list[float] = []
+        step = device.step
+        device.step = lambda: (applied.append(device.command), step())[1]
+        drive.set_cycle(0.001)
+        drive.enable()
+        u = 40 * u_per_lsb * np.where((np.arange(300) // 100) % 2 == 0, 1.0, -1.0)
+        fb = [drive.exchange(uk)[0] for uk in u]
+    np.testing.assert_allclose(applied, u, rtol=1e-9)  # whole LSBs: the force arrives exactly
+    v_ref, x_ref = simulate(u, 1000.0, PlantParams(M=2, B=20, coulomb_pos=5, coulomb_neg=4))
+    np.testing.assert_allclose([f.velocity for f in fb], v_ref, atol=v_per_lsb)
+    np.testing.assert_allclose([f.position for f in fb], x_ref, atol=1e-6)

@@ -99,8 +99,9 @@ def test_ball_screw_feed_constant_turns_torque_into_force() -> None:
     assert "lead" in s.u.source
 
 
-def test_a_linear_motor_rates_force_in_mN() -> None:
-    s = derive_scaling(FactorObjects(rated_torque_mNm=50000, position_unit=0xFA010000))
+@pytest.mark.parametrize("feed", [None, (1, 1)], ids=["no-0x6092", "identity-0x6092"])
+def test_a_linear_motor_rates_force_in_mN(feed) -> None:
+    s = derive_scaling(FactorObjects(rated_torque_mNm=50000, feed=feed, position_unit=0xFA010000))
     assert s.units == {"u": "N", "v": "m/s", "x": "m"}
     assert s.u.scale == pytest.approx(0.05)
     assert "rated force 50000 mN" in s.u.source

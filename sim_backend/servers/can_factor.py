@@ -26,6 +26,10 @@ the default values in its EDS, else by the defaults below:
 ``feed`` [m]
     Travel per driving shaft revolution (0x6092): the axis is linear, its
     position in µm (0x60A8 = 0xFA010000).
+``units``
+    The plant's own ``sim://`` key: ``linear`` without a ``feed`` is a linear
+    motor: position in µm, velocity in µm/s, 0x6076 its rated force [mN]
+    (``rated_torque`` in N) and 0x6092 the identity 1/1.
 
 The conversions here are written from the physics of each unit, apart from
 the host's derivation (:mod:`servobench.drivers.cia402_units`); only the CiA
@@ -56,7 +60,7 @@ from servobench.errors import DriveConfigError
 #: ``sim://`` keys of the served CiA 402 drive (factor group and position loop gains).
 SIM_KEYS = frozenset(
     {"rated_torque", "rated_current", "inc_per_rev", "vel_unit", "gear", "feed",
-     "pos_kp", "pos_ki", "pos_kd"}
+     "pos_kp", "pos_ki", "pos_kd", "units"}
 )  # fmt: skip
 #: ``vel_unit`` values and their 0x60A9 codes.
 VEL_UNITS = {
@@ -107,6 +111,7 @@ class ServedFactors:
     inc_per_rev: int
     gear: int
     feed_m: float | None  # linear axis: travel per driving shaft revolution
+    linear: bool  # a linear axis (on a screw when feed_m is given, else a linear motor)
     position_code: int  # 0x60A8
     velocity_code: int  # 0x60A9
 
@@ -124,6 +129,16 @@ class ServedFactors:
         current = _number(keys, "rated_current") or (_default(od, 0x6075) or 1000) / 1000
         eds_pos, eds_vel = _default(od, 0x60A8), _default(od, 0x60A9)
         feed = _number(keys, "feed") or _eds_feed(od, eds_pos)
+        axis = keys.get("units", "")
+        linear = (
+            bool(feed)
+            or axis == "linear"
+            or bool(eds_pos and decode_si_unit(eds_pos).kind == "length")
+        )
+        if axis == "rotary" and linear:
+            raise DriveConfigError(
+                "units=rotary with a feed constant: a screw makes the axis linear"
+            )
         gear = _number(keys, "gear") or (_default(od, 0x6091, 1) or 1) / (
             _default(od, 0x6091, 2) or 1
         )
@@ -135,7 +150,7 @@ class ServedFactors:
             inc_key
             or (eds_inc // (_default(od, 0x608F, 2) or 1) if eds_inc else DEFAULT_INC_PER_REV)
         )
-        if feed:
+        if linear:
             position = (
                 eds_pos if eds_pos and decode_si_unit(eds_pos).kind == "length" else MICROMETRE
             )
@@ -143,15 +158,19 @@ class ServedFactors:
             position = INCREMENTS
         else:
             position = eds_pos or MICRORADIAN
-        velocity = cls._velocity_code(keys, od, eds_vel, position, feed)
+        velocity = cls._velocity_code(keys, od, eds_vel, position, linear, feed)
+        unit = decode_si_unit(velocity)
+        if linear and not feed and unit.numerator not in (CODE_M,) and 0x60A9 in od:
+            raise DriveConfigError(f"a linear motor (no feed) cannot speak {unit.name()}: use um/s")
         return cls(
             rated_torque_Nm=torque if 0x6076 in od else None,
             rated_current_A=current if 0x6075 in od else None,
-            inc_per_rev=inc, gear=int(gear), feed_m=feed, position_code=position, velocity_code=velocity,
+            inc_per_rev=inc, gear=int(gear), feed_m=feed, linear=linear,
+            position_code=position, velocity_code=velocity,
         )  # fmt: skip
 
     @staticmethod
-    def _velocity_code(keys, od, eds_vel, position, feed) -> int:
+    def _velocity_code(keys, od, eds_vel, position, linear, feed) -> int:
         if "vel_unit" in keys:
             if keys["vel_unit"] not in VEL_UNITS:
                 raise DriveConfigError(
@@ -161,7 +180,10 @@ class ServedFactors:
         if 0x60A9 not in od:  # the host then reads position units per second
             unit = decode_si_unit(position)
             return encode_si_unit(unit.exponent, unit.numerator, CODE_S)
-        return eds_vel or VEL_UNITS["um/s" if feed else "urad/s"]
+        kind = decode_si_unit(eds_vel).kind if eds_vel else ""
+        if kind == "angle" and linear and not feed:  # the EDS's rotary default, on a linear motor
+            eds_vel = None
+        return eds_vel or VEL_UNITS["um/s" if linear else "urad/s"]
 
     # ------------------------------------------------------- plant <-> objects
     def _increments_per_unit(self) -> float:
@@ -192,6 +214,8 @@ class ServedFactors:
         if self.current_mode:
             return self.rated_current_A / 1000.0
         rated = 1.0 if self.rated_torque_Nm is None else self.rated_torque_Nm
+        if self.linear and not self.feed_m:  # a linear motor: 0x6076 is its rated force
+            return rated / 1000.0
         if self.feed_m:  # motor torque through gear and screw: F = T 2 pi i / p
             return rated / 1000.0 * 2.0 * math.pi * self.gear / self.feed_m
         return rated / 1000.0 * self.gear
@@ -199,8 +223,12 @@ class ServedFactors:
     def od_values(self) -> dict[tuple[int, int], int]:
         """The factor-group objects' values (the served node keeps those it has)."""
         x_unit = decode_si_unit(self.position_code)
-        per_rev = (self.inc_per_rev * self.gear if x_unit.numerator == CODE_INC
-                   else self.position_raw(self.feed_m or 2.0 * math.pi))  # fmt: skip
+        if x_unit.numerator == CODE_INC:
+            per_rev = self.inc_per_rev * self.gear
+        elif self.linear and not self.feed_m:
+            per_rev = 1  # a linear motor: CiA 402's identity 1/1
+        else:
+            per_rev = self.position_raw(self.feed_m or 2.0 * math.pi)
         values = {
             (0x6075, 0): round((self.rated_current_A or 1.0) * 1000),
             (0x608F, 1): self.inc_per_rev, (0x608F, 2): 1,

@@ -52,6 +52,10 @@ def load_transport(name: str) -> ServeFunction:
     return module.serve
 
 
+#: ``sim://`` keys a transport may read that stay in the plant's URL too.
+SHARED_KEYS = frozenset({"units"})
+
+
 def split_served_keys(transport: str, sim_url: str) -> tuple[str, str]:
     """``sim_url`` without the transport's own ``SIM_KEYS``, and those keys as a query string."""
     from servobench.drivers.url import parse_drive_url
@@ -61,7 +65,8 @@ def split_served_keys(transport: str, sim_url: str) -> tuple[str, str]:
     served = {k: v for k, v in parsed.query.items() if k in own}
     if not served:
         return sim_url, ""
-    plant = urlencode({k: v for k, v in parsed.query.items() if k not in own})
+    # units= belongs to the plant too (what its signals are in): it stays in both
+    plant = urlencode({k: v for k, v in parsed.query.items() if k not in own - SHARED_KEYS})
     return f"{parsed.scheme}://{parsed.host}{parsed.path}" + (
         f"?{plant}" if plant else ""
     ), urlencode(served)
