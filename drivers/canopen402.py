@@ -259,6 +259,9 @@ class CANopen402Drive(Drive):
         return self._sdo().read(0x603F)
 
     # ---------------------------------------------------------------- cycles
+    def _representable(self, u: float) -> float:
+        return u if self.session is None else self.session.io.representable(u)
+
     def _write_command(self, u: float) -> None:
         self.session.io.set_torque(u, holding=self.holding)
         self.session.io.send_rpdos(holding=self.holding)

@@ -68,6 +68,10 @@ class CycleIO:
     def _lsb(self, u: float) -> int:
         return max(-self.max_lsb, min(self.max_lsb, round(u / self.scaling.u.scale)))
 
+    def representable(self, u: float) -> float:
+        """``u`` rounded to the torque object's resolution [command units]."""
+        return self._lsb(u) * self.scaling.u.scale
+
     def set_torque(self, u: float, holding: bool) -> None:
         """The host's command: target torque 0x6071, or the torque offset 0x60B2 in a hold."""
         raw = self._lsb(u)

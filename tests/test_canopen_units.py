@@ -53,6 +53,18 @@ def test_the_driver_reads_the_factor_group_and_says_where_each_factor_came_from(
         assert fb.applied == pytest.approx(0.192, abs=0.64e-3)
 
 
+def test_the_applied_command_is_the_one_on_the_wire() -> None:
+    """A command between two per-mille steps is rounded once, in the Drive layer: the value
+    returned as applied (and logged) is what the drive received and applies."""
+    with served(SIM) as (device, url), open_drive(url) as drive:
+        drive.enable()
+        _, applied = drive.exchange(0.1925)  # 300.78 LSB of 0.64 mN m
+        assert applied == pytest.approx(301 * 0.64e-3, rel=1e-12)
+        drive.exchange(applied)
+        assert device.command == pytest.approx(applied, rel=1e-12)
+        assert drive.command(-0.0001) == 0.0
+
+
 def test_url_scales_still_override() -> None:
     with served(SIM) as (_, url), open_drive(url + "&vel_scale=0.5") as drive:
         meta = drive.log_metadata()
