@@ -94,11 +94,14 @@ def check_record(out: Path, plant=PLANT) -> dict:
     page.feed((out / "report.html").read_text())
     pngs = [s for s in page.images if s.startswith("data:image/png;base64,")]
     assert len(pngs) >= 7 and len(pngs) == len(page.images)  # bump, excitation, velocity, FRF, friction, compensation, ...
+    assert model["units"]["B"] == "N m s/rad" and model["identity"]["transport"] == "sim"
     assert page.external == []
     html = (out / "report.html").read_text()
+    for heading in ("Summary", "Values to program into the drive", "Evidence"):
+        assert f"<h2>{heading}</h2>" in html
     for heading in ("Excitation", "Velocities", "Frequency response", "Friction-velocity map", "Diagnosis",
                     "Friction compensation and velocity-loop PI"):  # fmt: skip
-        assert f"<h2>{heading}" in html
+        assert f"<h3>{heading}" in html
 
     from scipy.io import loadmat
 
