@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import textwrap
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,10 +29,16 @@ from servobench.bench.model import IdentificationResult
 from servobench.bench.report.figure import new_figure, save_png
 from servobench.bench.report.plot_data import FrfEvidence, FrictionMap, frf_evidence, friction_map
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 #: Most points drawn per line (the rest are thinned out evenly).
 MAX_POINTS = 20_000
 #: Error bars of the FRF: this many standard errors (about 95 %).
 FRF_SIGMAS = 2.0
+#: Coulomb friction over the excitation amplitude from which an FRF that cannot
+#: show the model's friction bias warns of one.
+FRICTION_SHARE_NOTE = 0.05
 
 FRF_FILE, TIME_FILE, FRICTION_FILE = "frf.png", "time.png", "friction.png"
 
@@ -49,19 +56,25 @@ def _frf_label(result: IdentificationResult) -> str:
 
 def _bias_note(result: IdentificationResult, ev: FrfEvidence) -> str:
     """The sentence that explains a friction-biased differential FRF, empty when there is no bias."""
+    m, u = result.model, result.units.of("u")
+    share = 100.0 * max(m.coulomb_pos, m.coulomb_neg) / ev.amplitude
+    friction = (f"at ±{ev.amplitude:.3g} {u} the Coulomb friction (+{m.coulomb_pos:.3g} / "
+                f"-{m.coulomb_neg:.3g} {u}) is {share:.0f} % of the excitation")  # fmt: skip
+    if ev.with_friction is None:
+        if share < 100 * FRICTION_SHARE_NOTE:
+            return ""
+        return (f"Possible friction bias: {friction}, and the differential pair cancels friction only "
+                "where both runs stick and slip together. This FRF was measured on position, so the "
+                "spread over periods and the model's own friction bias are not drawn.")  # fmt: skip
     if not ev.biased:
         return ""
-    m, u = result.model, result.units.of("u")
     bias = ev.friction_bias
     worst = int(np.argmax(bias))
-    share = 100.0 * max(m.coulomb_pos, m.coulomb_neg) / ev.amplitude
     return (
-        f"Friction bias: at ±{ev.amplitude:.3g} {u} the Coulomb friction "
-        f"(+{m.coulomb_pos:.3g} / -{m.coulomb_neg:.3g} {u}) is {share:.0f} % of the excitation. "
-        "The two runs stick and slip at different instants, so friction does not cancel in "
-        "(V1-V2)/(U1-U2) and the measured points leave the linear block. The identified model "
-        "simulated with its friction and put through the same differential FRF (open circles) "
-        f"predicts the offset: up to {100 * bias[worst]:.0f} % at {ev.f_hz[worst]:.3g} Hz."
+        f"Friction bias: {friction}. The two runs stick and slip at different instants, so friction "
+        "does not cancel in (V1-V2)/(U1-U2) and the measured points leave the linear block. The "
+        "identified model simulated with its friction and put through the same differential FRF "
+        f"(open circles) predicts the offset: up to {100 * bias[worst]:.0f} % at {ev.f_hz[worst]:.3g} Hz."
     )
 
 
@@ -112,17 +125,17 @@ def _draw_frf(fig, result: IdentificationResult, ev: FrfEvidence) -> None:
     )
 
 
-def plot_frf(result: IdentificationResult, path: str | Path) -> Path | None:
+def frf_figure(result: IdentificationResult) -> Figure | None:
     """Bode plot of the measured FRF, its uncertainty and the model; None when the result has no FRF."""
     ev = frf_evidence(result)
     if ev is None:
         return None
     fig = new_figure(7.0)
     _draw_frf(fig, result, ev)
-    return save_png(fig, path)
+    return fig
 
 
-def plot_time(result: IdentificationResult, path: str | Path) -> Path | None:
+def time_figure(result: IdentificationResult) -> Figure | None:
     """Measured vs simulated velocity, one panel per run; None without a verification."""
     ver = result.verification
     if ver is None:
@@ -140,7 +153,7 @@ def plot_time(result: IdentificationResult, path: str | Path) -> Path | None:
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"Verification by simulation: fit {result.fit_percent:.2f} %")
-    return save_png(fig, path)
+    return fig
 
 
 def _draw_friction(fig, result: IdentificationResult, fm: FrictionMap) -> None:
@@ -172,14 +185,33 @@ def _draw_friction(fig, result: IdentificationResult, fm: FrictionMap) -> None:
                  fontsize=9)  # fmt: skip
 
 
-def plot_friction(result: IdentificationResult, path: str | Path) -> Path | None:
+def friction_figure(result: IdentificationResult) -> Figure | None:
     """Friction map: binned friction force against velocity with the identified Coulomb levels."""
     fm = friction_map(result)
     if fm is None or fm.v_centre.size == 0:
         return None
     fig = new_figure(3.8)
     _draw_friction(fig, result, fm)
-    return save_png(fig, path)
+    return fig
+
+
+def _save(fig: Figure | None, path: str | Path) -> Path | None:
+    return None if fig is None else save_png(fig, path)
+
+
+def plot_frf(result: IdentificationResult, path: str | Path) -> Path | None:
+    """:func:`frf_figure` written to ``path``; None when the result has no FRF."""
+    return _save(frf_figure(result), path)
+
+
+def plot_time(result: IdentificationResult, path: str | Path) -> Path | None:
+    """:func:`time_figure` written to ``path``; None without a verification."""
+    return _save(time_figure(result), path)
+
+
+def plot_friction(result: IdentificationResult, path: str | Path) -> Path | None:
+    """:func:`friction_figure` written to ``path``; None without a verification."""
+    return _save(friction_figure(result), path)
 
 
 def captions(result: IdentificationResult) -> dict[str, str]:
