@@ -200,13 +200,13 @@ def program_section(r: RecordInputs) -> Section:
     ]  # fmt: skip
     logged = "SI value" if r.units.si else "value as logged"
     header = ("quantity", logged, "unit", "in the drive's own units", "drive unit", "note")
-    blocks: list = [Grid("", header, rows, css="program")]
     if r.scale.reported:
-        blocks.append("The drive's own units, as its driver reports them: "
-                      + "; ".join(r.scale.definitions(r.units)) + ".")  # fmt: skip
+        intro = ("The drive's own units, as its driver reports them: "
+                 + "; ".join(r.scale.definitions(r.units)) + ".")  # fmt: skip
     else:
-        blocks.append("The drive reports no scale factors: it takes the values in the units of its log "
-                      f"(u in {r.units.of('u')}, v in {r.units.of('v')}), so both columns agree.")  # fmt: skip
+        intro = ("The drive reports no scale factors: it takes the values in the units of its log "
+                 f"(u in {r.units.of('u')}, v in {r.units.of('v')}), so both columns agree.")  # fmt: skip
+    blocks: list = [intro, Grid("", header, rows, css="program")]
     return Section("Values to program into the drive", blocks)
 
 
