@@ -178,7 +178,7 @@ class FrfEvidence:
     periods : int
         Steady periods averaged.
     amplitude : float
-        Largest ``|u1|`` [u unit].
+        Largest ``|u1|`` [u unit]; NaN without the logged runs.
     """
 
     f_hz: np.ndarray
@@ -237,7 +237,7 @@ def frf_evidence(result: IdentificationResult) -> FrfEvidence | None:
         return None
     linear = result.model.frequency_response(frf.f_hz, frf.dt_s)
     runs = {r.run: r for r in result.verification.runs} if result.verification else {}
-    amplitude = float(np.max(np.abs(runs[1].u))) if 1 in runs else float(2 * np.max(np.abs(frf.U1)))
+    amplitude = float(np.max(np.abs(runs[1].u))) if 1 in runs else math.nan
     found = _steady_periods(frf, runs)
     if found is None:
         return FrfEvidence(frf.f_hz, frf.G, None, linear, None, frf.periods_averaged, amplitude)

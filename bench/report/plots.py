@@ -57,6 +57,8 @@ def _frf_label(result: IdentificationResult) -> str:
 def _bias_note(result: IdentificationResult, ev: FrfEvidence) -> str:
     """The sentence that explains a friction-biased differential FRF, empty when there is no bias."""
     m, u = result.model, result.units.of("u")
+    if not math.isfinite(ev.amplitude):
+        return ""
     share = 100.0 * max(m.coulomb_pos, m.coulomb_neg) / ev.amplitude
     friction = (f"at ±{ev.amplitude:.3g} {u} the Coulomb friction (+{m.coulomb_pos:.3g} / "
                 f"-{m.coulomb_neg:.3g} {u}) is {share:.0f} % of the excitation")  # fmt: skip
@@ -119,8 +121,9 @@ def _draw_frf(fig, result: IdentificationResult, ev: FrfEvidence) -> None:
         ax_n.text(0.0, 0.5, textwrap.fill(note, 125), transform=ax_n.transAxes, ha="left", va="center",
                   fontsize=8, bbox=dict(boxstyle="round", fc="#fff8e0", ec="#c9a227"))  # fmt: skip
     m = result.model
+    at = f" at ±{ev.amplitude:.3g} {result.units.of('u')}" if math.isfinite(ev.amplitude) else ""
     fig.suptitle(
-        f"Differential FRF at ±{ev.amplitude:.3g} {result.units.of('u')}: pole {m.pole:.4g} 1/s, "
+        f"Differential FRF{at}: pole {m.pole:.4g} 1/s, "
         f"DC gain {m.dc_gain:.4g} {result.units.parameters()['dc_gain']}"
     )
 
