@@ -9,30 +9,26 @@ and judges the final model against the noise floor (``explained`` or
 that verdict; ``--json`` prints exactly one JSON object; ``--out DIR`` writes
 ``report.md``, ``model.json`` (loadable by ``servobench validate``),
 ``comparison.csv`` and the figures. The exit status is 0 whatever the
-verdict. Progress goes to stderr, stage by stage.
+verdict. On a terminal, stderr shows the stage and the elapsed time while it runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", metavar="LOG", help="servobench CSV log or MATLAB .mat file")
+    add_log_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.add_argument(
         "--out",
         metavar="DIR",
         help="write report.md, model.json, comparison.csv and the figures here",
-    )
-    p.add_argument(
-        "--mat-map",
-        metavar="MAP",
-        help="variable mapping for .mat logs, e.g. t=t,u=vir*gtau,x=qm",
     )
     p.add_argument(
         "--horizon",
@@ -44,37 +40,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 @contextmanager
-def stage_progress() -> Iterator[Callable[[str], None]]:
-    """Yield ``say(message)``: a spinner with the stage and the elapsed time on a terminal's
-    stderr, one line per stage otherwise."""
+def stage_progress(console=None) -> Iterator[Callable[[str], None]]:
+    """Yield ``say(message)``: on a terminal's stderr, a spinner with the stage and the elapsed
+    time, and at the end one line with the total time; nothing when stderr is not a terminal
+    (an error then stays the one line on stderr)."""
     from rich.console import Console
 
-    console = Console(stderr=True)
-    t0 = time.monotonic()
+    console = console or Console(stderr=True)
     if not console.is_terminal:
-
-        def line(message: str) -> None:
-            print(f"diagnose [{time.monotonic() - t0:5.1f} s]: {message}", file=sys.stderr)
-
-        yield line
+        yield lambda _m: None
         return
+    t0 = time.monotonic()
     with console.status("diagnose: reading the log") as status:
 
         def spin(message: str) -> None:
             status.update(f"diagnose [{time.monotonic() - t0:4.0f} s]: {message}")
 
         yield spin
+    console.print(f"diagnose: done in {time.monotonic() - t0:.0f} s", highlight=False)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
     from servobench.bench.diagnose.workflow import diagnose
-    from servobench.bench.logio import read_log
     from servobench.bench.report.diagnose import summary_lines, to_json, write_report
 
-    log = read_log(args.log, args.mat_map)
     with stage_progress() as say:
+        log = read_log_of(args)
         result = diagnose(log, horizon_s=args.horizon, progress=say)
         if args.out:
             say("writing the report")
