@@ -35,6 +35,7 @@ from typing import Any
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.errors import UsageError
 from servobench.sim_backend.physics import effects as library
+from servobench.sim_backend.physics.effects import position_friction
 from servobench.sim_backend.physics.plant import PlantParams
 from servobench.units import SignalUnits
 
@@ -52,7 +53,21 @@ def sim_url(cand: Candidate) -> str:
     query.pop("noise_x", None)
     query.pop("res_x", None)
     query.pop("res_v", None)
+    if "position_friction" in cand.effects:  # the unused knots are zero by default
+        n = position_friction.knot_count(cand.effects["position_friction"])
+        query = {k: v for k, v in query.items() if k not in _unused_knot_keys(n)}
     return "sim://?" + "&".join(f"{k}={v:.10g}" for k, v in query.items())
+
+
+def _unused_knot_keys(n: int) -> set[str]:
+    return {f"posfric_{i}" for i in range(n, position_friction.MAX_KNOTS)}
+
+
+def _compact(name: str, params: Mapping[str, float]) -> dict[str, float]:
+    """An effect's parameters as written: library names, unused spline knots left out."""
+    if name == "position_friction":
+        return position_friction.compact(params)
+    return {k: float(v) for k, v in params.items()}
 
 
 def effect_unit(unit: str, units: SignalUnits) -> str:
@@ -69,9 +84,11 @@ def effect_unit(unit: str, units: SignalUnits) -> str:
 def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
     out = dict(units.parameters())
-    for name in cand.effects:
+    for name, values in cand.effects.items():
+        kept = _compact(name, values)
         for p in library.spec(name).params:
-            out[f"{name}.{p.name}"] = effect_unit(p.unit, units)
+            if p.name in kept:
+                out[f"{name}.{p.name}"] = effect_unit(p.unit, units)
     return out
 
 
@@ -96,7 +113,7 @@ def model_record(
         "coulomb_neg": b["coulomb_neg"],
         "fit_percent": 100.0 - gap_percent,
         "method": METHOD,
-        "effects": {n: {k: float(v) for k, v in p.items()} for n, p in cand.effects.items()},
+        "effects": {n: _compact(n, p) for n, p in cand.effects.items()},
         "sim_url": sim_url(cand),
         "units": parameter_units(cand, units),
         "gap_percent": gap_percent,

@@ -30,6 +30,7 @@ from servobench.bench.diagnose.simulate import Candidate
 from servobench.bench.diagnose.verdict import Verdict, judge
 from servobench.bench.logio import ExperimentLog
 from servobench.sim_backend.physics import effects as library
+from servobench.sim_backend.physics.effects import position_friction
 
 __all__ = ["Diagnosis", "NamedEffect", "diagnose"]
 
@@ -106,8 +107,7 @@ def named_parameters(name: str, values: dict[str, float], base: dict[str, float]
         params["B_pos"] = base["B"] + params["dB"]
         params["B_neg"] = base["B"] - params["dB"]
     if name == "position_friction":
-        knots = int(params["knots"])
-        params = {k: v for k, v in params.items() if not (k[0] == "f" and int(k[1:]) >= knots)}
+        params = position_friction.compact(params)
     return params
 
 

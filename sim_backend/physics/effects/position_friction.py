@@ -85,6 +85,12 @@ def knot_count(p) -> int:
     return int(n)
 
 
+def compact(p) -> dict[str, float]:
+    """The parameters without the knots beyond ``knots`` (zero, unused: the library's defaults)."""
+    n = knot_count(p)
+    return {k: float(v) for k, v in p.items() if not (k[0] == "f" and int(k[1:]) >= n)}
+
+
 def basis(x: np.ndarray, x_from: float, x_to: float, knots: int) -> np.ndarray:
     """Spline basis over ``x`` [units], shape ``(x.size, knots)``: column ``i`` is the natural
     cubic spline through 1 at knot ``i`` and 0 at the others, held constant outside the range."""
