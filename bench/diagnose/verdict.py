@@ -24,11 +24,15 @@ be mistaken for noise. The verdict is ``explained`` when the final gap is
 within :data:`VERDICT_FACTOR` of the floor, ``unexplained`` otherwise.
 
 Where the residual lives: each *place* is a set of force-like regressors built
-from the log -- velocity (piecewise-linear in the filtered velocity), position
+from the log and the final model's own simulated motion -- velocity
+(piecewise-linear in the simulated velocity), position
 (piecewise-linear in position, alone and signed by the direction of motion),
 direction of motion, acceleration, time (since the last reversal, and along
 the run), frequency (the command's recent history: a linear dynamic the
-model lacks) and the command's level. A force error reaches the velocity
+model lacks) and the command's level. Velocity, acceleration and direction come
+from the simulated velocity, not the measured one: regressors built on the
+measurement carry its noise, and would predict coloured noise as if it were
+structure. A force error reaches the velocity
 through the model's linear block ``1/(M s + B)``, so every regressor is
 passed through it (restarted with each comparison window). Each place is fitted
 to the residual on the training samples alone; its *share* is the part of the
@@ -175,26 +179,26 @@ def _since_reversal(d: np.ndarray, dt_s: float) -> np.ndarray:
     return (idx - last) * dt_s
 
 
-def _signals(data: DiagnosisData, i: int) -> dict[str, np.ndarray]:
-    """The signals of run ``i`` the piecewise-linear places are built on."""
+def _signals(data: DiagnosisData, i: int, v_model: np.ndarray) -> dict[str, np.ndarray]:
+    """The signals of run ``i`` the piecewise-linear places are built on; ``v_model`` is the
+    model's simulated velocity of the run (noise-free)."""
     r = data.segments[i]
     return {
-        "velocity": r.v_f,
+        "velocity": v_model,
         "position": r.position,
-        "acceleration": np.gradient(r.v_f, data.dt_s),
+        "acceleration": np.gradient(v_model, data.dt_s),
         "command": r.u,
         "time": np.arange(len(r)) / len(r),
     }
 
 
 def _run_places(
-    data: DiagnosisData, i: int, nodes: Mapping[str, np.ndarray]
+    data: DiagnosisData, i: int, nodes: Mapping[str, np.ndarray], v_model: np.ndarray
 ) -> dict[str, np.ndarray]:
     """The raw (unfiltered) regressors of run ``i``, per place; ``nodes`` of the piecewise-linear
     ones are shared by all runs (the columns mean the same in every run)."""
-    r = data.segments[i]
-    sig = _signals(data, i)
-    v, u = r.v_f, r.u
+    sig = _signals(data, i, v_model)
+    v, u = sig["velocity"], data.segments[i].u
     rms = float(np.sqrt(np.mean(v * v))) or 1.0
     d = np.where(np.abs(v) > REST_FRACTION * rms, np.sign(v), 0.0)
     since = _since_reversal(d, data.dt_s)
@@ -231,17 +235,28 @@ def _through_block(phi: np.ndarray, starts: np.ndarray, M: float, B: float, dt: 
 
 
 def regressors(
-    data: DiagnosisData, base: Mapping[str, float], knots: Mapping[str, int]
+    data: DiagnosisData,
+    base: Mapping[str, float],
+    knots: Mapping[str, int],
+    v_model: Sequence[np.ndarray],
 ) -> dict[str, np.ndarray]:
-    """Every place's regressors over all runs (concatenated), through the model's linear block."""
+    """Every place's regressors over all runs (concatenated), through the model's linear block;
+    ``v_model`` is the model's simulated velocity per run."""
     M, B = float(base["M"]), float(base["B"])
-    signals = [_signals(data, i) for i in range(len(data.segments))]
+    v_model = [_finite(v, r.v_f) for v, r in zip(v_model, data.segments, strict=True)]
+    signals = [_signals(data, i, v) for i, v in enumerate(v_model)]
     nodes = {k: nodes_of(np.concatenate([s[k] for s in signals]), n) for k, n in knots.items()}
     per_run = []
     for i, starts in enumerate(data.starts):
-        raw = _run_places(data, i, nodes)
+        raw = _run_places(data, i, nodes, v_model[i])
         per_run.append({k: _through_block(v, starts, M, B, data.dt_s) for k, v in raw.items()})
     return {k: np.concatenate([p[k] for p in per_run]) for k in PLACES}
+
+
+def _finite(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """``v`` with samples the simulation could not give taken from ``fallback``."""
+    v = np.asarray(v, dtype=float)
+    return np.where(np.isfinite(v), v, fallback)
 
 
 def _held_out_share(X: np.ndarray, e: np.ndarray, train: np.ndarray, test: np.ndarray) -> float:
@@ -308,13 +323,19 @@ def _where(places: Sequence[Place]) -> str:
 
 
 def shares(
-    data: DiagnosisData, final: Candidate, e: np.ndarray, train: np.ndarray, test: np.ndarray
+    data: DiagnosisData,
+    final: Candidate,
+    v_sim: Sequence[np.ndarray],
+    e: np.ndarray,
+    train: np.ndarray,
+    test: np.ndarray,
 ) -> tuple[dict[str, float], float]:
-    """Held-out share of the residual ``e`` each place predicts, and all places together."""
+    """Held-out share of the residual ``e`` each place predicts, and all places together;
+    ``v_sim`` is the final model's simulated velocity per run."""
     best = {k: 0.0 for k in PLACES}
     together = 0.0
     for knots in KNOTS:
-        X = regressors(data, final.base, knots)
+        X = regressors(data, final.base, knots, v_sim)
         for k in PLACES:
             best[k] = max(best[k], _held_out_share(X[k], e, train, test))
         every = np.column_stack([X[k] for k in PLACES])
@@ -377,7 +398,7 @@ def judge(
     ok = np.isfinite(e)
     held = np.concatenate(data.held_out)
     e = np.where(ok, e, 0.0)
-    by_place, together = shares(data, final, e, ok & ~held, ok & held)
+    by_place, together = shares(data, final, v_sim, e, ok & ~held, ok & held)
     places = tuple(sorted((Place(k, s) for k, s in by_place.items()), key=lambda p: -p.share))
     floor = noise_floor(data, gap, together)
     spectrum = _spectrum(data, e[ok])
