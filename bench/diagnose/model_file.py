@@ -21,9 +21,10 @@
 * ``gap_percent``, ``noise_floor_percent``, ``verdict``, ``comparison`` (how
   the gap was measured) and ``source`` (the log).
 
-:func:`candidate_from_record` and :func:`plant_from_record` read it back
-(``effects`` wins over ``sim_url`` when both are present; either alone is
-enough beside the base keys).
+The one reader of model files, :func:`servobench.bench.modelfile.read_model`
+(``servobench validate``), reads it back: the base keys at the top level and
+``effects`` as a mapping; ``sim_url`` is for the simulated drive and
+``serve-sim``, not read back.
 """
 
 from __future__ import annotations
@@ -33,10 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from servobench.bench.diagnose.simulate import Candidate
-from servobench.errors import UsageError
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects import position_friction
-from servobench.sim_backend.physics.plant import PlantParams
 from servobench.units import SignalUnits
 
 #: Base keys, as ``servobench identify --json`` names them.
@@ -123,29 +122,3 @@ def model_record(
         "source": Path(source).name,
     }
     return record
-
-
-def candidate_from_record(record: Mapping[str, Any]) -> Candidate:
-    """The model of a ``model.json`` object (this format, or any with the identify keys).
-
-    Raises
-    ------
-    UsageError
-        A base key missing, or effects the library does not know or rejects.
-    """
-    missing = [k for k in BASE_KEYS if k not in record]
-    if missing:
-        raise UsageError(f"model lacks {', '.join(missing)}")
-    base = {k: float(record[k]) for k in BASE_KEYS}
-    effects = record.get("effects")
-    if effects is None and "sim_url" in record:
-        from servobench.sim_backend.simurl import plant_from_url
-
-        effects = plant_from_url(str(record["sim_url"])).effects
-    effects = {n: library.validate(n, dict(p)) for n, p in dict(effects or {}).items()}
-    return Candidate(base, effects)
-
-
-def plant_from_record(record: Mapping[str, Any]) -> PlantParams:
-    """:class:`PlantParams` of a ``model.json`` object, ready to simulate."""
-    return candidate_from_record(record).plant()
