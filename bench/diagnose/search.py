@@ -32,6 +32,7 @@ from servobench.bench.diagnose.screening import (
     screen_input,
 )
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects.spec import Screening
 
 #: Singles refitted per round: the best quick guesses that beat the current model, and
@@ -200,6 +201,27 @@ def _decide(
     return chosen, fit, reasons
 
 
+def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitResult:
+    """The refit of effect ``name`` to keep, of those from its different starts: of one model
+    order, the lowest training gap; of several (a spline's knot count, the module's ``order``),
+    the lowest order, and a higher one only when it pays against it on held-out data."""
+    order = getattr(library.module(name), "order", None)
+
+    def rank(f: FitResult) -> int:
+        return order(f.candidate.effects[name]) if order is not None else 0
+
+    by_order: dict[int, FitResult] = {}
+    for f in fits:
+        k = rank(f)
+        if k not in by_order or f.gap_train < by_order[k].gap_train:
+            by_order[k] = f
+    chosen = by_order[min(by_order)]
+    for k in sorted(by_order)[1:]:
+        if payoff(data, chosen, by_order[k]).pays:
+            chosen = by_order[k]
+    return chosen
+
+
 def _round(
     fitter: _Fitter, current: FitResult, quick: dict[str, QuickScore], progress: Progress
 ) -> tuple[tuple[str, ...], FitResult | None, Round]:
@@ -209,7 +231,7 @@ def _round(
     for i, n in enumerate(pool, 1):
         progress(f"refitting {n} ({i}/{len(pool)})")
         fits = [fitter.fit(start, (n,)) for start in quick[n].starts]
-        singles[n] = min(fits, key=lambda f: f.gap_train)
+        singles[n] = _best_start(fitter.data, n, fits)
     order = sorted(singles, key=lambda n: singles[n].gap_held_out)
     pairs: dict[tuple[str, str], FitResult] = {}
     top = singles[order[0]] if order else None

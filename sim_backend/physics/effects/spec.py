@@ -8,7 +8,12 @@ Every effect module in :mod:`servobench.sim_backend.physics.effects` defines
   collection that :mod:`servobench.sim_backend.physics.rich_plant` integrates;
 * ``screen(ctx)`` -- looks for its signature in a :class:`ScreenInput` and
   returns a :class:`Screening` (score, parameter guess, bounds, evidence);
-* optionally ``check(p, plant)`` -- cross-checks against the base plant.
+* optionally ``check(p, plant)`` -- cross-checks against the base plant;
+* optionally ``project(p, base)`` -- keeps refitted parameters physical (the
+  diagnosis applies it at every step of a refit);
+* optionally ``order(p)`` -- the model order of a parameter set (a spline's
+  knot count) when a screening's alternatives differ in it: the diagnosis
+  then keeps a higher order only when it pays on held-out data.
 
 All are pure functions of numbers and arrays: no I/O, no globals.
 """
