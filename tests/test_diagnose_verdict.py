@@ -9,6 +9,9 @@ processes (the machine has two cores).
 
 from __future__ import annotations
 
+import contextlib
+import io
+import json
 import math
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -16,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from servobench.bench.cli import main
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.logio import read_log
 from servobench.bench.report.diagnose import summary_lines, to_json
@@ -56,24 +60,57 @@ CASES = {
 }
 
 
+#: The case diagnosed through the command line (``--json --out``) rather than the function.
+THROUGH_CLI = "spring"
+
+
 def run_case(name: str, folder: str) -> dict:
     seed, make, allowed = CASES[name]
     rng = np.random.default_rng(seed)
     case = make(rng)
-    log = read_log(write_case_log(case, Path(folder) / f"{name}.csv", rng))
-    d = diagnose(log, effects=allowed)
+    path = write_case_log(case, Path(folder) / f"{name}.csv", rng)
+    log = read_log(path)
     v = np.concatenate([r.v for r in log.runs])
-    return {
-        "named": [e.name for e in d.effects],
-        "parameters": [e.parameters for e in d.effects],
+    truth = {
         "truth": case.effects,
         # The generator's sensor noise as a gap [%] (for coloured noise: its standard deviation).
         "true_noise": 100.0 * case.params.noise / float(np.std(v)),
         "top_speed": float(np.quantile(np.abs(v), 0.99)),
+    }
+    if name == THROUGH_CLI:
+        return {**truth, **run_cli(path, Path(folder) / name)}
+    stages: list[str] = []
+    d = diagnose(log, effects=allowed, progress=stages.append)
+    return {
+        **truth,
+        "named": [e.name for e in d.effects],
+        "parameters": [e.parameters for e in d.effects],
         "json": to_json(d),
         "text": summary_lines(d),
         "start_note": d.start.note,
-        "rejected": [t for rnd in d.trace.rounds for t in rnd.tried if not t.chosen],
+        "rejected": [(t.effects, t.reason) for rnd in d.trace.rounds for t in rnd.tried if not t.chosen],
+        "stages": stages,
+    }
+
+
+def run_cli(path: Path, out: Path) -> dict:
+    """``servobench diagnose LOG --json --out DIR``: its status, JSON, report and model.json."""
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        status = main(["diagnose", str(path), "--json", "--out", str(out)])
+    j = json.loads(stdout.getvalue())
+    return {
+        "status": status,
+        "json": j,
+        "named": [e["name"] for e in j["effects"]],
+        "report": (out / "report.md").read_text(),
+        "model": json.loads((out / "model.json").read_text()),
+        "rejected": [
+            (tuple(c["effects"]), c["reason"])
+            for rnd in j["tried"]
+            for c in rnd["candidates"]
+            if not c["chosen"]
+        ],
     }
 
 
@@ -167,13 +204,26 @@ def test_coloured_noise_raises_the_floor_instead_of_naming_effects(results):
     assert j["noise_floor_percent"] == pytest.approx(r["true_noise"], rel=0.3)
 
 
-def test_a_plant_outside_the_library_is_unexplained(results):
-    j = results["spring"]["json"]
+def test_a_plant_outside_the_library_is_unexplained_and_the_command_still_succeeds(results):
+    r = results[THROUGH_CLI]
+    j = r["json"]
+    assert r["status"] == 0
     assert j["verdict"] == "unexplained"
     assert "position" in j["unexplained_signature"]
+    # The report leads with the verdict; model.json carries it with the floor.
+    assert r["report"].splitlines()[2] == f"**verdict: unexplained -- {j['unexplained_signature']}**"
+    assert r["model"]["verdict"] == "unexplained"
+    assert r["model"]["noise_floor_percent"] == j["noise_floor_percent"]
 
 
 def test_every_rejected_candidate_says_why(results):
     rejected = [t for r in results.values() for t in r["rejected"]]
     assert rejected
-    assert all(t.reason for t in rejected), [t for t in rejected if not t.reason]
+    assert all(reason for _, reason in rejected), [t for t in rejected if not t[1]]
+
+
+def test_progress_names_each_stage_as_it_starts(results):
+    stages = results["issue"]["stages"]
+    assert stages[0] == "fitting the base model" and stages[-1].startswith("judging")
+    assert "round 1: screening the effect library" in stages
+    assert any(s.startswith("round 1: refitting position_friction") for s in stages), stages
