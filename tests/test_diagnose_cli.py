@@ -6,6 +6,7 @@ import contextlib
 import csv
 import io
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -96,18 +97,38 @@ def test_model_json_validates_to_diagnose_s_gap_and_the_report_s_url_is_the_plan
     )
 
 
-def test_text_output_names_the_effect(deadzone_log, tmp_path, capsys):
-    # The log of a run cut short: no 'status = complete' trailer. Said so, as identify does.
+def test_text_output_names_the_effect(deadzone_log, tmp_path, capsys, monkeypatch):
+    # The log of a run cut short (no 'status = complete' trailer), in newtons and metres.
     cut = tmp_path / "cut.csv"
     text = deadzone_log.read_text()
-    cut.write_text(text[: text.rindex("# status = complete")])
-    assert main(["diagnose", str(cut)]) == 0
+    units = "# unit_u = N\n# unit_v = m/s\n# unit_x = m\n"
+    cut.write_text(units + text[: text.rindex("# status = complete")])
+    from servobench.bench.report import diagnose_figures
+
+    axes = {}  # what each figure's axes show, captured as the report saves them
+
+    def keep_axes(fig, path, dpi=None):
+        axes[Path(path).name] = [(a.get_xlabel(), a.get_ylabel(), a.get_xscale()) for a in fig.axes]
+        return save_png(fig, path, dpi=dpi)
+
+    save_png = diagnose_figures.save_png
+    monkeypatch.setattr(diagnose_figures, "save_png", keep_axes)
+    assert main(["diagnose", str(cut), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "1. deadzone" in out and "velocity gap" in out
     lines = out.splitlines()
     assert lines[0].startswith("verdict: explained -- ")
+    # Said so, as identify does.
     assert "note: the log is incomplete (no 'status = complete' trailer)" in out
-    assert lines[-1].startswith("diagnosed plant: sim://?M=")
+    named = next(x for x in lines if x.startswith("1. "))
+    assert named.startswith("1. deadzone (width=") and named.endswith(" N)"), named
+    assert any(line.startswith("diagnosed plant: sim://?M=") for line in lines)
+    # Issue 13: the log's units on the axes, a logarithmic residual spectrum, captions.
+    assert axes["residual_spectrum.png"] == [("frequency [Hz]", "residual PSD [(m/s)^2/Hz]", "log")]
+    assert [a[0] for a in axes["residual_vs_state.png"]] == ["velocity [m/s]", "position [m]"]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "*Figure 2. Power spectral density of the velocity residual" in report
+    assert any(x.startswith("| M | ") and x.endswith(" | kg |") for x in report.splitlines())
 
 
 def test_progress_on_a_terminal_shows_the_stage_and_the_time():
