@@ -12,7 +12,9 @@ Layout::
 ``run`` is optional for a single run (run 1 is the u1 experiment, run 2 the
 u2 experiment); ``v`` or ``x`` may be missing, not both. ``t`` is in
 seconds, ``u`` in command units, ``v`` in velocity units/s, ``x`` in
-position units. Metadata lines may also follow the data (the writer appends
+position units. Closed-loop logs (metadata ``loop = closed``) also carry
+``u_exc``, the excitation (``u`` is then the total command applied, the
+hold loop's included), and ``x_ref``, the position the hold loop holds. Metadata lines may also follow the data (the writer appends
 a trailer with the status and timing statistics; a later line wins). The
 writer opens every log with ``# status = running``, so a log whose writer
 died before the trailer (a killed host) reads as incomplete; a log without
@@ -39,6 +41,8 @@ from servobench.errors import LogFormatError, one_line
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")
+#: The columns of a closed-loop log beyond :data:`SIGNALS`: the excitation and the held position.
+CLOSED_LOOP_SIGNALS = ("u_exc", "x_ref")
 #: Largest run number accepted [-].
 MAX_RUN = 2**31 - 1
 _META = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*=\s*(.*?)\s*$")
@@ -65,11 +69,17 @@ class RunData:
     t : ndarray
         Sample times [s].
     u : ndarray
-        Applied command [command units], held over ``[t_k, t_k+1)``.
+        Applied command [command units], held over ``[t_k, t_k+1)``; in a
+        closed-loop log the total command, the hold loop's included.
     v, x : ndarray or None
         Measured velocity [units/s] and position [units], sampled at ``t_k``.
     extra : dict of ndarray
         Any other columns.
+    u_exc : ndarray or None
+        Closed loop: the excitation [command units], held like ``u`` (the
+        instrument of the closed-loop estimators); None in open loop.
+    x_ref : ndarray or None
+        Closed loop: the position the hold loop holds [units]; None in open loop.
     """
 
     run: int
@@ -78,10 +88,12 @@ class RunData:
     v: np.ndarray | None = None
     x: np.ndarray | None = None
     extra: Mapping[str, np.ndarray] = field(default_factory=dict)
+    u_exc: np.ndarray | None = None
+    x_ref: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]
-        for name in ("u", "v", "x"):
+        for name in ("u", "v", "x", "u_exc", "x_ref"):
             arr = getattr(self, name)
             if arr is not None and arr.shape != (n,):
                 raise LogFormatError(
@@ -322,15 +334,13 @@ def _assemble(
     runs: list[RunData] = []
     for number in dict.fromkeys(run_col.astype(int).tolist()):
         idx = run_col == number
-        extra = {k: v[idx] for k, v in columns.items() if k not in SIGNALS}
+        extra = {
+            k: v[idx] for k, v in columns.items() if k not in SIGNALS + CLOSED_LOOP_SIGNALS
+        }
+        picked = {k: columns[k][idx] if k in columns else None for k in ("v", "x", *CLOSED_LOOP_SIGNALS)}
         runs.append(
             RunData(
-                run=int(number),
-                t=columns["t"][idx],
-                u=columns["u"][idx],
-                v=columns["v"][idx] if "v" in columns else None,
-                x=columns["x"][idx] if "x" in columns else None,
-                extra=extra,
+                run=int(number), t=columns["t"][idx], u=columns["u"][idx], extra=extra, **picked
             )
         )
     for r in runs:
@@ -391,7 +401,7 @@ def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog
         raise LogFormatError(
             f"{where}: not a readable MATLAB file ({one_line(str(err))[:200]})"
         ) from None
-    mapping = mapping_spec or {k: k for k in SIGNALS if k in mat}
+    mapping = mapping_spec or {k: k for k in SIGNALS + CLOSED_LOOP_SIGNALS if k in mat}
 
     def value(expr: str) -> np.ndarray | float:
         out: np.ndarray | float = 1.0

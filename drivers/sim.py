@@ -5,11 +5,28 @@
 wall-clock time like a real drive; ``pace=fast`` (default) runs as fast as
 the host asks, and supports block exchange for batch work.
 Timestamps are the drive's own clock (cycle count times cycle period).
+
+Drive-side position hold: with ``pos_kp`` (and optionally ``pos_ki``,
+``pos_kd``) in the URL the simulated drive has its own position loop, as a
+CiA 402 drive in cyclic synchronous position does, and
+:attr:`~servobench.drivers.base.Drive.supports_drive_hold` is true. While it
+holds ``x_ref`` (:meth:`~servobench.drivers.base.Drive.hold_position`), each
+cycle applies, from the feedback sampled at the cycle start::
+
+    u = kp (x_ref - x) + ki sum((x_ref - x) dt) - kd v + offset
+
+limited to ``max_u`` (the sum frozen while the output saturates outwards),
+``offset`` being the host's command; ``Feedback.applied`` reports the total
+applied over the previous cycle. Gains are in plant units (command units per
+position unit, per position unit and second, per velocity unit), the keys
+of the served CiA 402 drive's loop.
 """
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -18,11 +35,31 @@ from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import PowerState, SimulatedDevice
 from servobench.sim_backend.simurl import plant_from_url, sim_query_keys
 
+#: Keys of the simulated drive's own position loop (those of the served CiA 402 drive).
+HOLD_KEYS = ("pos_kp", "pos_ki", "pos_kd")
+
+
+class _PositionLoop:
+    """The simulated drive's own position loop (see the module docstring)."""
+
+    def __init__(self, gains: dict[str, float], x_ref: float, limit: float) -> None:
+        self.kp, self.ki, self.kd = (gains.get(k, 0.0) for k in HOLD_KEYS)
+        self.x_ref, self.limit = x_ref, limit
+        self._sum = 0.0
+
+    def command(self, offset: float, x: float, v: float, dt_s: float) -> float:
+        e = self.x_ref - x
+        total = self._sum + e * dt_s
+        u = self.kp * e + self.ki * total - self.kd * v + offset
+        if -self.limit <= u <= self.limit or (u > self.limit) != (e > 0):
+            self._sum = total
+        return min(max(u, -self.limit), self.limit)
+
 
 class SimDrive(Drive):
     """The simulated drive of :mod:`sim_backend`, driven in-process."""
 
-    query_keys = sim_query_keys()
+    query_keys = sim_query_keys() | frozenset(HOLD_KEYS)
     drive_clock = True
     units = {"u": "command units", "v": "units/s", "x": "units"}
 
@@ -33,8 +70,25 @@ class SimDrive(Drive):
             raise DriveConfigError(f"sim pace must be 'fast' or 'real', got {pace!r}")
         self.realtime = pace == "real"
         self.supports_block = not self.realtime
-        self.device = SimulatedDevice(plant_from_url(self.url))
+        self.hold_gains = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
+        self.supports_drive_hold = "pos_kp" in self.hold_gains
+        if self.hold_gains and not self.supports_drive_hold:
+            raise DriveConfigError("sim position loop: pos_ki and pos_kd need pos_kp")
+        plant_query = {k: v for k, v in self.url.query.items() if k not in HOLD_KEYS}
+        self.device = SimulatedDevice(plant_from_url(replace(self.url, query=plant_query)))
         self._t0_wall: float | None = None
+        self._loop: _PositionLoop | None = None
+        self._applied = 0.0  # total command of the last held cycle
+
+    def _gain(self, key: str) -> float:
+        value = self.url.get_float(key)
+        if value is None or not value >= 0:
+            raise DriveConfigError(f"sim position loop gain {key}={self.url.query[key]!r} must be >= 0")
+        return value
+
+    def log_metadata(self) -> dict[str, str]:
+        """The base lines, and the gains of the drive's own position loop when it has one."""
+        return {**super().log_metadata(), **{k: format(v, ".10g") for k, v in self.hold_gains.items()}}
 
     def _open(self) -> None:
         self._t0_wall = None
@@ -52,10 +106,20 @@ class SimDrive(Drive):
         self.device.enable()
 
     def _disable(self) -> None:
+        self._loop = None
         self.device.disable()
 
     def _quick_stop(self) -> None:
+        self._loop = None
         self.device.quick_stop()
+
+    def _hold_position(self, x_ref: float) -> None:
+        self._applied = self.device.command
+        self._loop = _PositionLoop(self.hold_gains, x_ref, self.limits.max_command)
+
+    def _release_hold(self) -> None:
+        self._loop = None
+        self.device.set_command(0.0)
 
     def _write_command(self, u: float) -> None:
         self.device.set_command(u)
@@ -83,11 +147,33 @@ class SimDrive(Drive):
 
     def _exchange(self, u: float) -> Feedback:
         self._pace()
+        if self._loop is not None:
+            return self._held(u)
         s = self.device.exchange(u)
         self._check_fault(s.fault_code)
         return Feedback(s.t_s, s.velocity, s.position, s.fault_code)
 
+    def _held(self, offset: float) -> Feedback:
+        """One cycle of the drive's own loop: the loop acts on the feedback the host receives."""
+        assert self._loop is not None
+        s = self.device.sample()
+        self._check_fault(s.fault_code)
+        total = self._loop.command(offset, s.position, s.velocity, self.device.cycle_s)
+        if not (math.isfinite(s.position) and math.isfinite(s.velocity)):
+            total = 0.0
+        self.device.exchange(total)
+        fb = Feedback(s.t_s, s.velocity, s.position, s.fault_code, applied=self._applied)
+        self._applied = self.device.command
+        return fb
+
     def _exchange_block(self, u: np.ndarray) -> BlockFeedback:
+        if self._loop is not None:
+            rows = [self._held(float(uk)) for uk in u]
+            applied = [r.applied for r in rows[1:]] + [self._applied]
+            return BlockFeedback(
+                t_s=np.array([r.t_s for r in rows]), velocity=np.array([r.velocity for r in rows]),
+                position=np.array([r.position for r in rows]), applied=np.array(applied),
+            )  # fmt: skip
         if self.realtime or self.device.frozen_feedback is not None:
             return super()._exchange_block(u)
         self._check_fault(self.device.fault_code)
