@@ -81,30 +81,8 @@ def closed_rounds(
     Returns the rounds, the best ``(result, design, log)``, and the facts of the hold
     (for ``model.json``).
     """
-    window = TravelWindow.of(drive.limits)
     pace = options.pace or drive.url.get_str("pace", "") or default_pace(drive)
-    base = options.design()
-    learnt: dict[str, Any]
-    if known is None:
-        cap = options.max_amplitude or drive.limits.max_command
-        start = probe_start(options.amplitude, drive.limits.max_command)
-        if not math.isfinite(cap):
-            cap = start * 2.0**PROBE_DOUBLINGS
-        probe = run_probe(drive, window, base.fs_hz, start, cap, out / PROBE_LOG, pace=pace)
-        model, x0, level = probe.model, probe.x_start, probe.amplitude
-        learnt = {"probe": probe.as_dict()}
-    else:
-        model, x0, level = known, drive.read().position, 0.0
-        learnt = {"known": known.as_dict()}
-    plan = _first_plan(drive, options, base, model, window, x0, level)
-    if plan.controller.where == "drive":
-        gains = _drive_gains(drive, options, plan, out, pace)
-        if gains is not None:
-            plan = _first_plan(drive, options, base, model, window, x0, level, gains)
-        learnt["drive_loop"] = f"gains fitted to {HOLD_TRIAL_LOG}" if gains else (
-            f"the drive reported no applied torque in {HOLD_TRIAL_LOG}: predicted with the host's design")
-    cap = options.amplitude_cap(drive, plan.design.amplitude)
-    cap = min(cap, (1.0 - HOLD_AUTHORITY) * drive.limits.max_command) if options.max_amplitude is None else cap
+    plan, learnt, cap = prepare(drive, options, out / PROBE_LOG, out / HOLD_TRIAL_LOG, pace, known)
     iterations: list[Iteration] = []
     best: Best | None = None
     for index in range(1, int(options.max_iterations) + 1):
@@ -127,24 +105,65 @@ def closed_rounds(
             break
         plan = plan_next
     shares = [it.travel_share for it in iterations if it.travel_share is not None]
-    return iterations, best, {**_facts(plan), "travel_share": max(shares, default=0.0), **learnt}
+    return iterations, best, {**facts(plan), "travel_share": max(shares, default=0.0), **learnt}
+
+
+def prepare(
+    drive: Drive, options: SidbeOptions, probe_log: Path, trial_log: Path, pace: str,
+    known: ServoModel | None = None,
+) -> tuple[ClosedLoopPlan, dict[str, Any], float]:  # fmt: skip
+    """Learn the axis (``known``, else a relay probe into ``probe_log``) and plan the first
+    round; for a drive's own loop, fit its gains to a trial (``trial_log``) and plan again.
+
+    Returns the plan, what was learnt (for ``model.json``), and the highest amplitude
+    the rounds may reach.
+    """
+    window = TravelWindow.of(drive.limits)
+    base = options.design()
+    learnt: dict[str, Any]
+    if known is None:
+        cap = options.max_amplitude or drive.limits.max_command
+        start = probe_start(options.amplitude, drive.limits.max_command)
+        if not math.isfinite(cap):
+            cap = start * 2.0**PROBE_DOUBLINGS
+        probe = run_probe(drive, window, base.fs_hz, start, cap, probe_log, pace=pace)
+        model, x0, level = probe.model, probe.x_start, probe.amplitude
+        learnt = {"probe": probe.as_dict()}
+    else:
+        model, x0, level = known, drive.read().position, 0.0
+        learnt = {"known": known.as_dict()}
+    if options.amplitude is None:
+        friction = max(model.coulomb_pos, model.coulomb_neg)
+        amplitude = max(AMPLITUDE_OVER_FRICTION * friction, level) or base.amplitude
+        base = base.with_amplitude(min(amplitude, _cap(drive, options, amplitude)))
+    cap = _cap(drive, options, base.amplitude)
+    plan = _first_plan(drive, options, base, model, window, x0, cap)
+    if plan.controller.where == "drive":
+        gains = _drive_gains(drive, options, plan, trial_log, pace)
+        if gains is not None:
+            plan = _first_plan(drive, options, base, model, window, x0, cap, gains)
+        learnt["drive_loop"] = (
+            f"gains fitted to {trial_log.name}" if gains else f"the drive reported no applied "
+            f"torque in {trial_log.name}: its travel predicted with the host's design"
+        )
+    return plan, learnt, cap
+
+
+def _cap(drive: Drive, options: SidbeOptions, start: float) -> float:
+    """The highest amplitude in closed loop: ``--max-amplitude``, else ``max_u`` less the hold's
+    share (:data:`~servobench.bench.run.travel.HOLD_AUTHORITY`), else :data:`UNLIMITED` x ``start``."""
+    if options.max_amplitude is not None:
+        return min(options.max_amplitude, drive.limits.max_command)
+    limit = drive.limits.max_command
+    return (1.0 - HOLD_AUTHORITY) * limit if math.isfinite(limit) else UNLIMITED * start
 
 
 def _first_plan(
     drive: Drive, options: SidbeOptions, base: exc.ExcitationDesign, model: ServoModel,
-    window: TravelWindow, x0: float, level: float, gains: HoldGains | None = None,
+    window: TravelWindow, x0: float, cap: float, gains: HoldGains | None = None,
 ) -> ClosedLoopPlan:  # fmt: skip
-    """The first round's plan: amplitude (unless given) from friction and the relay level."""
+    """The first round's plan (see :func:`~servobench.bench.run.travel.plan_closed_loop`)."""
     limits = drive.limits
-    cap = options.amplitude_cap(drive, base.amplitude)
-    if options.amplitude is None:
-        friction = max(model.coulomb_pos, model.coulomb_neg)
-        amplitude = max(AMPLITUDE_OVER_FRICTION * friction, level) or base.amplitude
-        top = min(limits.max_command * (1.0 - HOLD_AUTHORITY), options.max_amplitude or math.inf)
-        base = base.with_amplitude(min(amplitude, top))
-        cap = options.max_amplitude or (
-            limits.max_command if math.isfinite(limits.max_command) else UNLIMITED * base.amplitude
-        )
     x_ref = window.hold_point(x0)
     where = "drive" if drive.supports_drive_hold else "host"
     return plan_closed_loop(
@@ -155,7 +174,7 @@ def _first_plan(
 
 
 def _drive_gains(
-    drive: Drive, options: SidbeOptions, plan: ClosedLoopPlan, out: Path, pace: str
+    drive: Drive, options: SidbeOptions, plan: ClosedLoopPlan, log: Path, pace: str
 ) -> HoldGains | None:
     """The gains of the drive's own loop, fitted to a trial under its hold: one period of the
     first round's ``u1`` at :data:`TRIAL_SCALE` (``hold-trial.csv``); None when the drive
@@ -163,7 +182,7 @@ def _drive_gains(
     d = plan.design
     u = TRIAL_SCALE * exc.design_excitation(d).u1[: d.samples_per_period]
     meta = {"experiment": "trial under the drive's own hold (its gains are fitted to it)"}
-    run = stream_closed_runs(drive, [(1, u)], d.fs_hz, out / HOLD_TRIAL_LOG, plan, metadata=meta,
+    run = stream_closed_runs(drive, [(1, u)], d.fs_hz, log, plan, metadata=meta,
                              pace=pace, settle_s=options.settle_s)  # fmt: skip
     r = read_log(run.log_path).run(1)
     if r.u_exc is None or r.x_ref is None or r.v is None or r.x is None:
@@ -217,7 +236,7 @@ def _grow(
     ), replace(plan, design=bigger)
 
 
-def _facts(plan: ClosedLoopPlan) -> dict[str, Any]:
+def facts(plan: ClosedLoopPlan) -> dict[str, Any]:
     """Where the hold ran and with what (the host's gains; a drive's own loop keeps its own)."""
     c, g = plan.controller, plan.controller.gains
     return {"where": c.where, "x_ref": c.x_ref, "room": plan.room, "kp": g.kp, "ki": g.ki,
