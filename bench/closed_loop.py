@@ -50,7 +50,7 @@ from servobench.bench.run.travel import (
     predict_travel,
 )
 from servobench.drivers.base import Drive
-from servobench.errors import IdentificationError
+from servobench.errors import IdentificationError, UsageError
 
 if TYPE_CHECKING:
     from servobench.bench.procedure import Iteration, SidbeOptions
@@ -137,7 +137,11 @@ def prepare(
         amplitude = max(AMPLITUDE_OVER_FRICTION * friction, level) or base.amplitude
         base = base.with_amplitude(min(amplitude, _cap(drive, options, amplitude)))
     cap = _cap(drive, options, base.amplitude)
-    plan = _first_plan(drive, options, base, model, window, x0, cap)
+    try:
+        plan = _first_plan(drive, options, base, model, window, x0, cap)
+    except UsageError as err:
+        kept = f"; probe log kept in {probe_log}" if known is None else ""
+        raise UsageError(f"{err}{kept}") from None
     if plan.controller.where == "drive":
         gains = _drive_gains(drive, options, plan, trial_log, pace)
         if gains is not None:

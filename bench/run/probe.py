@@ -7,8 +7,10 @@ auto-tuners do), ``u = +A`` until ``x > x0 + h``, then ``u = -A`` until
 ``x < x0 - h``, and so on, with ``h`` a tenth of the room around the start
 ``x0``. Braking with the same ``A`` that accelerated keeps the swing within
 about ``3 h`` whatever the axis; the relay also reverses early beyond half of
-``max_v``. The level starts small and doubles until the axis swings, then
-:data:`SWITCHES` reversals are logged and the axis comes to rest at a turn.
+``max_v``. The level starts small and doubles until the axis swings (a level
+that has not moved it beyond the rest noise within :data:`STILL_S`, or has
+not reversed within :data:`WAIT_S`, doubles), then :data:`SWITCHES`
+reversals are logged and the axis comes to rest at a turn.
 
 The relay's samples are identified by the joint estimator
 (:func:`~servobench.bench.identify.joint.identify_joint`): ``M``, ``B`` and
@@ -41,14 +43,18 @@ from servobench.errors import IdentificationError, LimitExceededError, UsageErro
 PROBE_LOG = "probe.csv"
 #: Hysteresis of the relay [share of the room around the start].
 HYSTERESIS_SHARE = 0.1
-#: A swing beyond this share of the room stops the probe (a runaway).
-ABORT_SHARE = 0.45
+#: A swing beyond this share of the room stops the probe (a runaway, or a window too small).
+ABORT_SHARE = 0.6
 #: The relay reverses early beyond this share of max_v.
 SPEED_SHARE = 0.5
 #: Reversals logged at the level that swings.
 SWITCHES = 8
 #: Longest wait for a reversal before the level doubles [s].
 WAIT_S = 2.0
+#: A level that has not moved the axis beyond the rest noise after this long doubles [s].
+STILL_S = 0.3
+#: Motion threshold over the position's spread at rest.
+NOISE_FACTOR = 6.0
 #: Cycles at zero command before the relay (rest and noise).
 REST_CYCLES = 100
 #: Longest coast to rest after the relay [s].
@@ -148,6 +154,7 @@ class _Relay:
         self.k = 0
         self.t_first: float | None = None
         self.x0 = math.nan
+        self.still = 0.0  # displacement that counts as motion [position units]
 
     def cycle(self, run: int, u: float) -> tuple[float, float]:
         if self.pace == "real":
@@ -165,8 +172,11 @@ class _Relay:
         """Rest, relay at rising levels until the axis swings, coast; the level that swung."""
         self.drive.set_cycle(self.dt)
         self.drive.enable()
-        xs = [self.cycle(0, 0.0)[0] for _ in range(REST_CYCLES)]
+        xs = np.array([self.cycle(0, 0.0)[0] for _ in range(REST_CYCLES)])
         self.x0 = float(np.median(xs))
+        steps = np.abs(np.diff(xs))
+        quantum = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
+        self.still = max(NOISE_FACTOR * float(np.std(xs)), 2.0 * quantum)
         room = self.window.room(self.x0)
         if not room > 0:
             raise UsageError(
@@ -192,6 +202,7 @@ class _Relay:
         vmax = SPEED_SHARE * self.drive.limits.max_velocity
         sign, switches, waited = 1.0, 0, 0
         x, v = self.cycle(run, sign * level)
+        x_level, moved = x, 0.0
         while switches < SWITCHES or v * sign < 0:  # the last swing is braked to its turn
             turn = (sign > 0 and (x > self.x0 + h or v > vmax)) or (
                 sign < 0 and (x < self.x0 - h or v < -vmax)
@@ -200,12 +211,14 @@ class _Relay:
                 sign, switches, waited = -sign, switches + 1, 0
             if abs(x - self.x0) > abort:
                 raise LimitExceededError(
-                    f"axis stopped: the relay probe ran away to {x:.4g} (started at {self.x0:.4g}); "
-                    f"probe log kept in {self.writer.path}. Check that positive command gives "
-                    "positive velocity and rising position"
+                    f"axis stopped: the relay probe swung to {x:.4g}, beyond {ABORT_SHARE:.0%} of the "
+                    f"room around {self.x0:.4g}; probe log kept in {self.writer.path}. Check that "
+                    "positive command gives positive velocity and rising position, or widen xmin/xmax"
                 )
             waited += 1
-            if waited * self.dt > WAIT_S:
+            moved = max(moved, abs(x - x_level))
+            if waited * self.dt > WAIT_S or (switches == 0 and waited * self.dt > STILL_S
+                                             and moved <= max(self.still, 1e-3 * h)):  # fmt: skip
                 return False
             x, v = self.cycle(run, sign * level)
         return True
