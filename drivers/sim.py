@@ -33,7 +33,7 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import PowerState, SimulatedDevice
-from servobench.sim_backend.simurl import plant_from_url, sim_query_keys
+from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
 
 #: Keys of the simulated drive's own position loop (those of the served CiA 402 drive).
 HOLD_KEYS = ("pos_kp", "pos_ki", "pos_kd")
@@ -61,7 +61,6 @@ class SimDrive(Drive):
 
     query_keys = sim_query_keys() | frozenset(HOLD_KEYS)
     drive_clock = True
-    units = {"u": "command units", "v": "units/s", "x": "units"}
 
     def __init__(self, url) -> None:
         super().__init__(url)
@@ -74,8 +73,10 @@ class SimDrive(Drive):
         self.supports_drive_hold = "pos_kp" in self.hold_gains
         if self.hold_gains and not self.supports_drive_hold:
             raise DriveConfigError("sim position loop: pos_ki and pos_kd need pos_kp")
-        plant_query = {k: v for k, v in self.url.query.items() if k not in HOLD_KEYS}
-        self.device = SimulatedDevice(plant_from_url(replace(self.url, query=plant_query)))
+        plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
+        self.device = SimulatedDevice(plant_from_url(plant_url))
+        signal_units = units_from_url(plant_url)
+        self.units = {"u": signal_units.u, "v": signal_units.v, "x": signal_units.x}
         self._t0_wall: float | None = None
         self._loop: _PositionLoop | None = None
         self._applied = 0.0  # total command of the last held cycle

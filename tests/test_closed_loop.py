@@ -76,7 +76,7 @@ def test_emps_sized_axis_with_a_tenth_of_a_metre(tmp_path):
     """Also the trap of reading a closed-loop log as open loop: the hold's command is not
     periodic (the loop answers the noisy motion), so one period of it against the averaged
     velocity biases B; the closed-loop estimator works on raw samples and is not biased."""
-    plant = "sim://?M=95.1&B=203.5&fc_pos=17.2&fc_neg=23.6&noise=0.002&seed=2&max_u=300"
+    plant = "sim://?M=95.1&B=203.5&fc_pos=17.2&fc_neg=23.6&noise=0.002&seed=2&max_u=300&units=linear"
     r = run_sidbe(open_drive(plant + "&xmin=-0.1&xmax=0.1"), SidbeOptions(plots=False), tmp_path)
     check_model(r.to_json(), 95.1, 203.5, 17.2, 23.6)
     log = check_closed_log(tmp_path / "log.csv", -0.1, 0.1)

@@ -30,6 +30,7 @@ from servobench.bench.identify.derivative import (
 )
 from servobench.bench.logio import ExperimentLog, RunData
 from servobench.errors import IdentificationError
+from servobench.units import SignalUnits
 
 #: Relative spread of the sample intervals above which per-interval dt is used.
 JITTER_RTOL = 1e-3
@@ -168,6 +169,8 @@ class Dataset:
     closed_loop : bool or None
         From the ``loop`` metadata key (``open``/``closed ...``), else True when the
         runs carry the excitation ``u_exc``; None when unknown.
+    units : SignalUnits
+        Units of the signals, from the log's ``unit_*`` metadata.
     """
 
     segments: tuple[Segment, ...]
@@ -176,6 +179,7 @@ class Dataset:
     source: str = ""
     notes: tuple[str, ...] = ()
     closed_loop: bool | None = None
+    units: SignalUnits = SignalUnits()
 
     @property
     def dt_s(self) -> float:
@@ -283,7 +287,7 @@ def prepare(
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
     if closed is None and all(r.u_exc is not None for r in log.runs):
         closed = True
-    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed)
+    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units)
 
 
 def _segment(
