@@ -12,7 +12,8 @@ there with the host's loop (a smooth ramp of ``x_ref``, with the plan's
 model fed forward: ``M a + B v`` and the Coulomb level of the direction, so
 that friction does not stall a slow loop); enter the drive's hold if the
 plan says so; rest with the hold on; then each run, resting with the hold on
-between runs; finally leave the hold, stop and disable.
+between runs and restarting the loop's integral at each run's start (as the
+prediction does); finally leave the hold, stop and disable.
 
 The log has the columns ``run,t,u,v,x,t_host,u_exc,x_ref`` and the metadata
 ``loop = closed`` with the controller's parameters. ``u`` is the total
@@ -182,6 +183,7 @@ class _Cycler:
         done = 0
         for number, u_exc in runs:
             self.rest()
+            self.restart_loop()
             u_exc = np.asarray(u_exc, dtype=float)
             host, clock = PeriodStats(), PeriodStats()
             try:
@@ -223,6 +225,15 @@ class _Cycler:
             quiet = quiet + 1 if speed <= 1e-3 * peak or speed == 0.0 else 0
             if quiet >= REST_SAMPLES:
                 return
+
+    def restart_loop(self) -> None:
+        """Start each run as the prediction does, the loop's integral at zero: while the axis
+        rested against friction it wound up towards the breakaway level, which the excitation
+        would add to. A drive's own loop forgets it on entering the hold again."""
+        self.loop.reset()
+        if self.drive.holding:
+            self.drive.release_hold()
+            self.drive.hold_position(self.x_ref)
 
     def run(self, number: int, u_exc: np.ndarray, done: int, host: PeriodStats, clock: PeriodStats) -> None:
         check = FeedbackCheck(self.checked.frozen_cycles, None, self.drive.drive_clock, self.checked.dt)

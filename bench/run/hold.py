@@ -180,6 +180,10 @@ class HoldLoop:
         self.x_ref = controller.x_ref
         self._integral = 0.0
 
+    def reset(self) -> None:
+        """Forget the integral (at the start of a run, as the prediction starts)."""
+        self._integral = 0.0
+
     def command(self, u_exc: float, x: float, v: float) -> float:
         """Total command [command units] for excitation ``u_exc`` and the feedback ``x``, ``v``."""
         g, limit = self.c.gains, self.c.max_u
