@@ -130,11 +130,15 @@ class SidbeOptions:
             raise UsageError("growth must be > 1")
         if not math.isfinite(self.fit_threshold) or self.fit_threshold > 100:
             raise UsageError("fit threshold must be a number <= 100 %")
-        if drive is not None and design.amplitude > drive.limits.max_command:
+        # without an amplitude, closed loop chooses one within the limits: nothing to check
+        chosen = self.amplitude is None and (
+            self.loop == "closed" or (drive is not None and self.closed(drive.limits))
+        )
+        if drive is not None and not chosen and design.amplitude > drive.limits.max_command:
             raise UsageError(
                 f"amplitude {design.amplitude:g} exceeds the drive limit max_u = {drive.limits.max_command:g}"
             )
-        if self.max_amplitude is not None and not (self.max_amplitude >= design.amplitude):
+        if self.max_amplitude is not None and not chosen and not self.max_amplitude >= design.amplitude:
             raise UsageError("max amplitude must be >= amplitude")
         return design
 
