@@ -169,7 +169,7 @@ class _Cycler:
         self.k = 0
         self.last: Feedback | None = None
         self.pending: _Row | None = None
-        self.pending_sent = 0.0  # the command sent in the last cycle
+        self.sent = 0.0  # the command sent in the last cycle (after the Drive layer's clamping)
         self.excursion = 0.0
 
     def session(self, runs: Sequence[tuple[int, np.ndarray]], timing: list[TimingStats]) -> None:
@@ -244,8 +244,8 @@ class _Cycler:
         acted = 0.0
         for k, uk in enumerate(u_exc.tolist()):
             fb = self.cycle(uk)
-            check.check(fb.t_s, acted, fb.velocity, fb.position)
-            acted = self.pending_sent
+            check.check(fb.t_s, acted, fb.velocity, fb.position)  # acted: the cycle before's
+            acted = self.sent
             t0_drive = fb.t_s if t0_drive is None else t0_drive
             t_host = time.monotonic() - t0_host
             t = k * self.checked.dt if nominal else fb.t_s - t0_drive
@@ -270,7 +270,7 @@ class _Cycler:
         else:
             u = u_exc
         try:
-            fb, self.pending_sent = self.drive.exchange(u)
+            fb, self.sent = self.drive.exchange(u)
         except BaseException:
             self._write_pending(math.nan)  # no sample taken is lost
             raise

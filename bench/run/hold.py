@@ -155,7 +155,7 @@ class HoldController:
         """The ``# key = value`` lines of a closed-loop log (for a drive's own loop, the
         gains the host measured it to have, or designed for it to predict with)."""
         g = self.gains
-        return {
+        out: dict[str, object] = {
             "loop": "closed",
             "hold": self.where,
             "x_ref": self.x_ref,
@@ -165,6 +165,12 @@ class HoldController:
             "hold_kd": g.kd,
             "hold_bandwidth_hz": g.bandwidth_hz,
         }
+        if self.where == "drive":
+            out["hold_gains"] = (
+                "measured from the drive" if math.isnan(g.bandwidth_hz)
+                else "the drive's own are not known: the host's design stands in"
+            )  # fmt: skip
+        return out
 
 
 class HoldLoop:
