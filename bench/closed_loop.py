@@ -119,6 +119,11 @@ def prepare(
     the rounds may reach.
     """
     window = TravelWindow.of(drive.limits)
+    if not window.finite:
+        raise UsageError(
+            "closed loop holds the axis inside its travel, and the drive sets none: "
+            "give xmin/xmax in the drive URL, or run with --loop open"
+        )
     base = options.design()
     learnt: dict[str, Any]
     if known is None:

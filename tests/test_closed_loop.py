@@ -180,3 +180,10 @@ def test_the_excitation_is_the_instrument_of_the_command():
             errors[name].append(fit_pairs(pairs, 1e-3, instrumental=True).M / params.M - 1)
     assert np.mean(errors["own"]) < -0.04
     assert abs(np.mean(errors["excitation"])) < 0.01
+
+
+def test_closed_loop_needs_a_travel_to_hold_the_axis_in(tmp_path, capsys):
+    rc = main(["run", "--drive", "sim://", "--loop", "closed", "--out", str(tmp_path / "log.csv")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "give xmin/xmax in the drive URL, or run with --loop open" in err
+    assert not (tmp_path / "log.csv").exists()

@@ -198,7 +198,7 @@ def plan_closed_loop(
        that fits at ``base.amplitude``, found by bisection; while none fits, the
        amplitude is lowered by :data:`AMPLITUDE_STEP`, down to
        :data:`MIN_AMPLITUDE_OVER_FRICTION` times the larger Coulomb level.
-    2. Unless the amplitude is given, the window is then used for information: for
+    2. Unless the amplitude is given (or the room is unlimited), the window is then used for information: for
        lowest lines at :data:`STRETCHES` of that one, the largest amplitude
        up to ``cap`` (and :data:`HOLD_AUTHORITY` short of ``max_u``) that fits, and of
        those the one with the smallest Cramér-Rao bound of ``B`` on its simulated run.
@@ -240,7 +240,7 @@ def plan_closed_loop(
     best = trial(lows[i], amplitude)
     top = min(cap, (1.0 - HOLD_AUTHORITY) * max_u)
     top = top if math.isfinite(top) else UNLIMITED_GROWTH * amplitude
-    if amplitude_given or amplitude < base.amplitude or not top > amplitude:
+    if amplitude_given or amplitude < base.amplitude or not top > amplitude or math.isinf(room):
         return ClosedLoopPlan(best.design, best.controller, room, best.predicted, model)
     spread = best.b_spread(model)
     stretched = {min(lows, key=lambda f: abs(f - k * lows[i])) for k in STRETCHES}
