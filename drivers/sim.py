@@ -6,20 +6,20 @@ wall-clock time like a real drive; ``pace=fast`` (default) runs as fast as
 the host asks, and supports block exchange for batch work.
 Timestamps are the drive's own clock (cycle count times cycle period).
 
-Drive-side position hold: with ``pos_kp`` (and optionally ``pos_ki``,
-``pos_kd``) in the URL the simulated drive has its own position loop, as a
-CiA 402 drive in cyclic synchronous position does, and
+Drive-side position hold: with ``pos_kp``, ``pos_ki`` or ``pos_kd`` in the
+URL the simulated drive has its own position loop -- the served CiA 402
+drive's (:mod:`servobench.sim_backend.servers.can_position_loop`), the keys
+not given from the plant as there -- and
 :attr:`~servobench.drivers.base.Drive.supports_drive_hold` is true. While it
 holds ``x_ref`` (:meth:`~servobench.drivers.base.Drive.hold_position`), each
 cycle applies, from the feedback sampled at the cycle start::
 
     u = kp (x_ref - x) + ki sum((x_ref - x) dt) - kd v + offset
 
-limited to ``max_u`` (the sum frozen while the output saturates outwards),
-``offset`` being the host's command; ``Feedback.applied`` reports the total
-applied over the previous cycle. Gains are in plant units (command units per
-position unit, per position unit and second, per velocity unit), the keys
-of the served CiA 402 drive's loop.
+limited to ``max_u``, ``offset`` being the host's command; ``Feedback.applied``
+reports the total applied over the previous cycle. Gains are in plant units
+(command units per position unit, per position unit and second, per velocity
+unit).
 """
 
 from __future__ import annotations
@@ -33,27 +33,11 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.servers.can_position_loop import Gains, PositionLoop, gains_from_keys
 from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
 
 #: Keys of the simulated drive's own position loop (those of the served CiA 402 drive).
 HOLD_KEYS = ("pos_kp", "pos_ki", "pos_kd")
-
-
-class _PositionLoop:
-    """The simulated drive's own position loop (see the module docstring)."""
-
-    def __init__(self, gains: dict[str, float], x_ref: float, limit: float) -> None:
-        self.kp, self.ki, self.kd = (gains.get(k, 0.0) for k in HOLD_KEYS)
-        self.x_ref, self.limit = x_ref, limit
-        self._sum = 0.0
-
-    def command(self, offset: float, x: float, v: float, dt_s: float) -> float:
-        e = self.x_ref - x
-        total = self._sum + e * dt_s
-        u = self.kp * e + self.ki * total - self.kd * v + offset
-        if -self.limit <= u <= self.limit or (u > self.limit) != (e > 0):
-            self._sum = total
-        return min(max(u, -self.limit), self.limit)
 
 
 class SimDrive(Drive):
@@ -69,16 +53,17 @@ class SimDrive(Drive):
             raise DriveConfigError(f"sim pace must be 'fast' or 'real', got {pace!r}")
         self.realtime = pace == "real"
         self.supports_block = not self.realtime
-        self.hold_gains = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
-        self.supports_drive_hold = "pos_kp" in self.hold_gains
-        if self.hold_gains and not self.supports_drive_hold:
-            raise DriveConfigError("sim position loop: pos_ki and pos_kd need pos_kp")
+        given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
         plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
         self.device = SimulatedDevice(plant_from_url(plant_url))
+        p = self.device.params
+        self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None
+        self.supports_drive_hold = self.hold_gains is not None
         signal_units = units_from_url(plant_url)
         self.units = {"u": signal_units.u, "v": signal_units.v, "x": signal_units.x}
         self._t0_wall: float | None = None
-        self._loop: _PositionLoop | None = None
+        self._loop: PositionLoop | None = None
+        self._x_ref = 0.0
         self._applied = 0.0  # total command of the last held cycle
 
     def _gain(self, key: str) -> float:
@@ -89,7 +74,8 @@ class SimDrive(Drive):
 
     def log_metadata(self) -> dict[str, str]:
         """The base lines, and the gains of the drive's own position loop when it has one."""
-        return {**super().log_metadata(), **{k: format(v, ".10g") for k, v in self.hold_gains.items()}}
+        gains = {} if self.hold_gains is None else self.hold_gains.as_dict()
+        return {**super().log_metadata(), **{k: format(v, ".10g") for k, v in gains.items()}}
 
     def _open(self) -> None:
         self._t0_wall = None
@@ -115,8 +101,9 @@ class SimDrive(Drive):
         self.device.quick_stop()
 
     def _hold_position(self, x_ref: float) -> None:
+        assert self.hold_gains is not None
         self._applied = self.device.command
-        self._loop = _PositionLoop(self.hold_gains, x_ref, self.limits.max_command)
+        self._loop, self._x_ref = PositionLoop(self.hold_gains), x_ref
 
     def _release_hold(self) -> None:
         self._loop = None
@@ -159,7 +146,8 @@ class SimDrive(Drive):
         assert self._loop is not None
         s = self.device.sample()
         self._check_fault(s.fault_code)
-        total = self._loop.command(offset, s.position, s.velocity, self.device.cycle_s)
+        error = self._x_ref - s.position
+        total = self._loop.torque(error, s.velocity, offset, self.limits.max_command, self.device.cycle_s)
         if not (math.isfinite(s.position) and math.isfinite(s.velocity)):
             total = 0.0
         self.device.exchange(total)
