@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,7 @@ PLANTS = {
 KEYS = ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain")
 
 
+@cache
 def make_plan(model: ServoModel, half: float, max_u: float) -> ClosedLoopPlan:
     """The plan sidbe makes for the window (amplitude from twice the friction, as it does)."""
     amplitude = 2.0 * max(model.coulomb_pos, model.coulomb_neg)
