@@ -180,8 +180,9 @@ class _Relay:
         room = self.window.room(self.x0)
         if not room > 0:
             raise UsageError(
-                f"the axis is at {self.x0:.4g}, at or outside the travel {self.window.describe()}; "
-                "move it inside"
+                f"the axis is at {self.x0:.4g}, at or outside the edge of its travel "
+                f"{self.window.describe()}: the relay probe needs room on both sides; move it "
+                "towards the middle"
             )
         level, run = min(start, cap), 1
         while not self.relay(run, level, HYSTERESIS_SHARE * room, ABORT_SHARE * room):
