@@ -17,8 +17,15 @@ auto``, the default) is excited in closed loop instead
 window, the excitation is designed to fit, and step 6 raises the amplitude
 only while the measured travel still fits.
 
+The run folder: each round streams to ``log-<i>.csv`` as its samples arrive
+(``log-1.csv`` the first amplitude, ``log-2.csv`` the next, ...); the round
+whose model is accepted is copied to ``log.csv``, the log ``model.json``
+describes. ``model.json`` says the same in its ``files`` object. A folder
+that already holds a run is refused, never overwritten.
+
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
-:class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`.
+:class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
+:func:`check_run_folder`.
 """
 
 from __future__ import annotations
@@ -33,10 +40,11 @@ from pathlib import Path
 from typing import Any
 
 from servobench.bench import excitation as exc
-from servobench.bench.closed_loop import closed_rounds
+from servobench.bench.closed_loop import HOLD_TRIAL_LOG, closed_rounds
 from servobench.bench.identify.auto import METHODS, identify
 from servobench.bench.logio import read_log
 from servobench.bench.model import IdentificationResult, ServoModel
+from servobench.bench.run.probe import PROBE_LOG
 from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
 from servobench.bench.run.travel import TravelWindow
 from servobench.drivers.base import Drive, Limits
@@ -54,6 +62,42 @@ UNLIMITED_GROWTH_CAP = 8.0
 LOOPS = ("auto", "open", "closed")
 
 Progress = Callable[[int, int], None]
+
+#: Files of a run folder: the accepted round's log and the model.
+LOG_FILE, MODEL_FILE = "log.csv", "model.json"
+#: Logs a closed-loop run writes before its rounds: the relay probe and the drive-hold trial.
+CLOSED_LOOP_LOGS = {
+    PROBE_LOG: "relay probe under the hold: what the axis was learnt from before round 1",
+    HOLD_TRIAL_LOG: "trial under the drive's own hold: its loop gains were fitted to it",
+}
+
+
+def round_log_name(index: int) -> str:
+    """The log of excite-identify round ``index`` (from 1)."""
+    return f"log-{index}.csv"
+
+
+def check_run_folder(out_dir: str | Path) -> None:
+    """Refuse a folder that holds an earlier run (its ``model.json``, ``log.csv``, ``log-N.csv``,
+    or the closed loop's ``probe.csv`` and ``hold-trial.csv``).
+
+    Raises
+    ------
+    UsageError
+        Naming the files found and what to do.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out} is a file, not a folder; choose another --out")
+    if not out.is_dir():
+        return
+    found = sorted(p.name for p in out.iterdir() if p.name in (LOG_FILE, MODEL_FILE, *CLOSED_LOOP_LOGS)
+                   or (p.name.startswith("log-") and p.suffix == ".csv"))  # fmt: skip
+    if found:
+        raise UsageError(
+            f"{out} already holds a run ({', '.join(found)}); choose another --out, or move that "
+            "run away first: nothing was overwritten"
+        )
 
 
 @dataclass(frozen=True)
@@ -207,6 +251,8 @@ class SidbeResult:
     hold : mapping or None
         Closed loop: where the hold loop ran, its parameters, the travel room and
         the share of it used, and what the probe learnt; None in open loop.
+    accepted_log : Path or None
+        The round's log that ``log_path`` copies.
     """
 
     result: IdentificationResult
@@ -219,6 +265,7 @@ class SidbeResult:
     model_path: Path
     plots: tuple[Path, ...] = field(default_factory=tuple)
     hold: Mapping[str, Any] | None = None
+    accepted_log: Path | None = None
 
     @property
     def loop(self) -> str:
@@ -247,10 +294,23 @@ class SidbeResult:
                 "model_file": str(self.model_path),
                 "plots": [str(p) for p in self.plots],
                 "loop": self.loop,
+                "files": self.files(),
             }
         )
         if self.hold is not None:
             out["hold"] = dict(self.hold)
+        return out
+
+    def files(self) -> dict[str, str]:
+        """What each log of the run folder holds (``model.json``'s ``files`` object)."""
+        source = self.accepted_log.name if self.accepted_log is not None else "the best round's log"
+        out = {LOG_FILE: f"copy of {source}: the round this model was identified from "
+                         "(the log to validate or diagnose it with)"}  # fmt: skip
+        for it in self.iterations:
+            fit = "no model" if it.fit_percent is None else f"fit {it.fit_percent:.2f} %"
+            out[it.log_path.name] = f"round {it.index}, amplitude {it.amplitude:g}: {fit}; {it.action}"
+        if self.hold is not None:
+            out.update({k: v for k, v in CLOSED_LOOP_LOGS.items() if (self.out_dir / k).exists()})
         return out
 
 
@@ -269,8 +329,9 @@ def run_sidbe(
         Opened here if it is not open yet (and then closed again).
     options : SidbeOptions
     out_dir : path
-        Created if missing. Each round logs ``log-<i>.csv``; the accepted one
-        is copied to ``log.csv``.
+        Created if missing; refused when it holds an earlier run
+        (:func:`check_run_folder`). Each round logs ``log-<i>.csv``; the
+        accepted one is copied to ``log.csv``.
     progress : callable(iteration, done, total), optional
         Streaming progress, samples done of total, per round.
     known : ServoModel, optional
@@ -286,6 +347,7 @@ def run_sidbe(
     """
     design = options.validate(drive)
     out = Path(out_dir)
+    check_run_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     opened_here = not drive.is_open
     if opened_here:
@@ -304,7 +366,7 @@ def run_sidbe(
         errors = "; ".join(f"round {it.index}: {it.error}" for it in iterations if it.error)
         raise IdentificationError(f"no round produced a model ({errors})")
     result, best_design, best_log = best
-    log_path = out / "log.csv"
+    log_path = out / LOG_FILE
     shutil.copyfile(best_log, log_path)
     passed = result.fit_percent >= options.fit_threshold
     plots: tuple[Path, ...] = ()
@@ -312,7 +374,7 @@ def run_sidbe(
         from servobench.bench.report.plots import write_plots
 
         plots = tuple(write_plots(result, out))
-    model_path = out / "model.json"
+    model_path = out / MODEL_FILE
     sr = SidbeResult(
         result,
         tuple(iterations),
@@ -324,6 +386,7 @@ def run_sidbe(
         model_path,
         plots,
         hold,
+        best_log,
     )
     model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
     return sr
@@ -334,7 +397,7 @@ def _rounds(drive, options, design, cap, out, progress):
     best: tuple[IdentificationResult, exc.ExcitationDesign, Path] | None = None
     redesigned = options.freqs_hz is not None
     for index in range(1, int(options.max_iterations) + 1):
-        log_path = out / f"log-{index}.csv"
+        log_path = out / round_log_name(index)
         excitation = exc.design_excitation(design)
         meta = {**design.metadata(), "loop": "open", "iteration": index}
 

@@ -5,6 +5,7 @@ under ``--yes``); unknown tables or keys are an error, never ignored, so a
 misspelled limit cannot pass silently. See ``examples/bench.toml`` for the
 documented layout::
 
+    [identity]      site, machine, axis, operator (text, for the commissioning record)
     [limits]        max_u, max_v, xmin, xmax      (drive units; +-inf for unlimited travel)
     [bump]          fractions, pulse_s, rest_s, fs_hz, max_speed_fraction, position_tolerance
     [sidbe]         the SIDBE procedure's options (:data:`SIDBE_KEYS`), among them
@@ -39,6 +40,33 @@ DIAGNOSE_KEYS: Mapping[str, type] = {"horizon_s": float}
 #: ``bench.toml``'s wording, with an option table's unknown keys said as
 #: ``bench.toml [sidbe] has unknown key(s) amplitud`` (the words users know).
 _OPTIONS = replace(SENTENCE, unknown="{where} has unknown {noun}(s) {keys} (known: {known})")
+
+
+@dataclass(frozen=True)
+class IdentitySettings:
+    """What the commissioning record names besides the drive: where, which axis, who.
+
+    Attributes
+    ----------
+    site : str
+        The plant or workshop (``"Hall 3, line 2"``).
+    machine : str
+        The machine the axis belongs to (``"press 7"``).
+    axis : str
+        The axis on that machine (``"X"``, ``"spindle"``).
+    operator : str
+        Who commissioned it.
+
+    Every field is optional text; ``""`` where not given (the record then says so).
+    """
+
+    site: str = ""
+    machine: str = ""
+    axis: str = ""
+    operator: str = ""
+
+    def as_dict(self) -> dict[str, str]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass(frozen=True)
@@ -175,6 +203,7 @@ class CompensationSettings:
 class CommissionConfig:
     """The whole configuration; ``source`` names the file ("" for defaults)."""
 
+    identity: IdentitySettings = field(default_factory=IdentitySettings)
     limits: LimitSettings = field(default_factory=LimitSettings)
     bump: BumpSettings = field(default_factory=BumpSettings)
     design: DesignSettings = field(default_factory=DesignSettings)
@@ -185,6 +214,7 @@ class CommissionConfig:
 
 
 _SECTIONS = {
+    "identity": IdentitySettings,
     "limits": LimitSettings,
     "bump": BumpSettings,
     "design": DesignSettings,
@@ -194,14 +224,17 @@ _OPTION_TABLES = {"sidbe": SIDBE_KEYS, "diagnose": DIAGNOSE_KEYS}
 
 
 def _section(table: TomlTable, cls: type) -> object:
-    """The settings ``cls`` from ``table``: numbers (``fractions``: a list of them), all optional."""
+    """The settings ``cls`` from ``table``: numbers (``fractions``: a list of them; the
+    identity: text), all optional."""
     names = [f.name for f in fields(cls)]
     table.allow(names)
     values: dict[str, object] = {}
     for name in names:
         if name not in table:
             continue  # the dataclass default
-        if name == "fractions":
+        if cls is IdentitySettings:
+            values[name] = table.get(name, str).strip()
+        elif name == "fractions":
             values[name] = tuple(float(v) for v in table.sequence(name, float))
         else:
             values[name] = table.number(name, allow_inf=name in ("xmin", "xmax"))
