@@ -70,6 +70,33 @@ def test_sidbe_defaults_on_a_window_of_five_hundredths(tmp_path, capsys):
     assert float(log.metadata["x_ref"]) == 0.0 and float(log.metadata["hold_bandwidth_hz"]) > 0
     probe = read_log(out / "probe.csv")  # the short first run is kept, inside the window too
     assert probe.complete and all(r.x.min() > -0.05 and r.x.max() < 0.05 for r in probe.runs)
+    assert "relay probe" in model["files"]["probe.csv"] and "hold-trial.csv" not in model["files"]
+    check_validate(out, model, capsys)
+
+
+def _validate(model_path, log_path, capsys) -> dict:
+    rc = main(["validate", str(model_path), str(log_path), "--json"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    return json.loads(captured.out)
+
+
+def check_validate(out, model: dict, capsys) -> None:
+    """``servobench validate`` reads the closed-loop log as closed loop (its ``# loop = closed``):
+    identify's fit, and a force error as small as the plant's own on that log (the noise floor),
+    while a model with twice the inertia is clearly worse."""
+    got = _validate(out / "model.json", out / "log.csv", capsys)
+    assert got["loop"] == "closed" and got["samples"] == 2 * 16000
+    assert got["fit_percent"] == pytest.approx(model["fit_percent"], rel=1e-9)
+    plant = {"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
+    heavy = {**plant, "M": 0.2}
+    errors = {}
+    for name, params in (("plant", plant), ("heavy", heavy)):
+        path = out.parent / f"{name}.json"
+        path.write_text(json.dumps(params))
+        errors[name] = _validate(path, out / "log.csv", capsys)["force_error_percent"]
+    assert got["force_error_percent"] == pytest.approx(errors["plant"], abs=0.5)
+    assert errors["heavy"] > 2 * errors["plant"]
 
 
 def test_emps_sized_axis_with_a_tenth_of_a_metre(tmp_path):
@@ -104,7 +131,7 @@ def test_the_drives_own_loop_holds_the_axis(tmp_path):
     e = run.x_ref - run.x
     integral = run.u - run.u_exc - (4.0 * e - 0.2 * run.v)  # ki times the sum of e dt
     np.testing.assert_allclose(np.diff(integral), 4.0 * e[1:] * 1e-3, rtol=0, atol=5e-9)
-    assert (tmp_path / "hold-trial.csv").is_file()
+    assert (tmp_path / "hold-trial.csv").is_file() and "hold-trial.csv" in r.to_json()["files"]
 
 
 def test_open_loop_on_unlimited_travel_is_as_before(tmp_path):
@@ -187,3 +214,13 @@ def test_closed_loop_needs_a_travel_to_hold_the_axis_in(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 1 and "give xmin/xmax in the drive URL, or run with --loop open" in err
     assert not (tmp_path / "log.csv").exists()
+
+
+def test_a_folder_holding_an_earlier_probe_is_refused(tmp_path, capsys):
+    """A closed-loop run that ended in its probe leaves only probe.csv: a new run must not
+    overwrite it (the drive is not even opened: its URL names no reachable drive here)."""
+    (tmp_path / "probe.csv").write_text("# loop = closed\nrun,t,u,v,x\n1,0,0,0,0\n")
+    rc = main(["sidbe", "--drive", "modbus+tcp://127.0.0.1:9?unit=1", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc != 0 and "already holds a run (probe.csv)" in err and "nothing was overwritten" in err
+    assert (tmp_path / "probe.csv").read_text().endswith("1,0,0,0,0\n")
