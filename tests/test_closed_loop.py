@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+import servobench.drivers.registry
 from servobench.bench.cli import main
 from servobench.bench.excitation import design_excitation, freqs_from, make_design
 from servobench.bench.identify.dataset import prepare
@@ -27,7 +28,8 @@ from servobench.bench.run.closed import stream_closed_runs
 from servobench.bench.run.hold import HoldController, HoldLoop, design_hold
 from servobench.bench.run.travel import MARGIN, ClosedLoopPlan
 from servobench.drivers.registry import open_drive
-from servobench.errors import LimitExceededError
+from servobench.drivers.sim import SimDrive
+from servobench.errors import LimitExceededError, notes_of
 from servobench.sim_backend.device import PowerState
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 
@@ -224,3 +226,42 @@ def test_a_folder_holding_an_earlier_probe_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc != 0 and "already holds a run (probe.csv)" in err and "nothing was overwritten" in err
     assert (tmp_path / "probe.csv").read_text().endswith("1,0,0,0,0\n")
+
+
+class CtrlCAfter(SimDrive):
+    """Ctrl-C arrives at the ``AFTER``-th cycle."""
+
+    AFTER = 1000
+    cycles = 0
+
+    def _exchange(self, u):
+        self.cycles += 1
+        if self.cycles == self.AFTER:
+            raise KeyboardInterrupt
+        return super()._exchange(u)
+
+
+def test_ctrl_c_in_a_closed_loop_round_stops_disables_and_names_the_partial_log(tmp_path):
+    drive = CtrlCAfter("sim://?noise=0.01&seed=1" + WINDOW)
+    drive.AFTER = 4000  # past the rest before the first run
+    known = ServoModel(0.1, 1.0, 0.5, 0.4)  # as from a bump test: no probe
+    with pytest.raises(KeyboardInterrupt) as err:
+        run_sidbe(drive, SidbeOptions(plots=False), tmp_path, known=known)
+    assert not drive.enabled and drive.power_state is PowerState.DISABLED
+    log = read_log(tmp_path / "log-1.csv")
+    assert not log.complete and log.metadata["reason"] == "interrupted (Ctrl-C)"
+    assert log.metadata["loop"] == "closed"
+    rows = sum(len(r) for r in log.runs)
+    assert 0 < rows < 4000
+    assert notes_of(err.value) == [f"partial log kept: {tmp_path / 'log-1.csv'} ({rows} samples, marked incomplete)"]
+
+
+def test_ctrl_c_in_the_probe_names_the_probe_log(tmp_path, capsys, monkeypatch):
+    made = []
+    monkeypatch.setattr(servobench.drivers.registry, "open_drive",
+                        lambda url: made.append(CtrlCAfter(url)) or made[-1])  # fmt: skip
+    rc = main(["sidbe", "--drive", "sim://?noise=0.01&seed=1" + WINDOW, "--out", str(tmp_path / "run")])
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert rc == 130 and line.startswith("servobench: interrupted; axis stopped; partial log kept: ")
+    assert str(tmp_path / "run" / "probe.csv") in line and not made[0].enabled
+    assert read_log(tmp_path / "run" / "probe.csv").metadata["reason"] == "interrupted (Ctrl-C)"

@@ -52,6 +52,7 @@ from servobench.bench.run.runner import (
     _stats,
     _stop_quietly,
     _trailer,
+    note_partial_log,
 )
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
 from servobench.bench.run.travel import MARGIN, ClosedLoopPlan
@@ -136,6 +137,7 @@ def stream_closed_runs(
         finally:
             writer.finish("incomplete", reason=_reason(err), samples=writer.rows,
                           **_trailer(drive, timing))  # fmt: skip
+            note_partial_log(err, writer)
         raise
     writer.finish("complete", samples=writer.rows, travel_excursion=cycler.excursion,
                   travel_share=cycler.excursion / plan.room, **_trailer(drive, timing))  # fmt: skip

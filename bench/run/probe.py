@@ -33,7 +33,13 @@ from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.logio import LogWriter, read_log
 from servobench.bench.model import ServoModel
-from servobench.bench.run.runner import LOG_COLUMNS, REST_SAMPLES, _reason, _stop_quietly
+from servobench.bench.run.runner import (
+    LOG_COLUMNS,
+    REST_SAMPLES,
+    _reason,
+    _stop_quietly,
+    note_partial_log,
+)
 from servobench.bench.run.travel import TravelWindow
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
@@ -124,8 +130,11 @@ def run_probe(
     try:
         level = relay.session(start, cap)
     except BaseException as err:
-        _stop_quietly(drive)
-        relay.writer.finish("incomplete", reason=_reason(err), samples=relay.writer.rows)
+        try:
+            _stop_quietly(drive)
+        finally:
+            relay.writer.finish("incomplete", reason=_reason(err), samples=relay.writer.rows)
+            note_partial_log(err, relay.writer)
         raise
     relay.writer.finish("complete", samples=relay.writer.rows, relay_amplitude=level)
     return _identify(log_path, level, relay.x0)
