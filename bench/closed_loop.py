@@ -49,6 +49,7 @@ from servobench.bench.run.travel import (
     plan_closed_loop,
     predict_travel,
 )
+from servobench.bench.run_folder import HOLD_TRIAL_LOG, round_log_name
 from servobench.drivers.base import Drive
 from servobench.errors import IdentificationError, UsageError
 
@@ -61,8 +62,6 @@ PROBE_DOUBLINGS = 10
 UNLIMITED = 8.0
 #: The trial under a drive's own hold: this share of the first round's u1, one period.
 TRIAL_SCALE = 0.5
-#: Its log in the run folder.
-HOLD_TRIAL_LOG = "hold-trial.csv"
 
 Best = tuple[IdentificationResult, exc.ExcitationDesign, Path]
 
@@ -87,7 +86,7 @@ def closed_rounds(
     best: Best | None = None
     for index in range(1, int(options.max_iterations) + 1):
         result, error, share = _round(drive, options, plan, out, index, pace, progress)
-        log_path = out / f"log-{index}.csv"
+        log_path = out / round_log_name(index)
         if result is not None and (best is None or result.fit_percent > best[0].fit_percent):
             best = (result, plan.design, log_path)
         fit = None if result is None else result.fit_percent
@@ -211,7 +210,7 @@ def _round(
             progress(index, done, total)
 
     run = stream_closed_runs(
-        drive, exc.design_excitation(design).runs(), design.fs_hz, out / f"log-{index}.csv", plan,
+        drive, exc.design_excitation(design).runs(), design.fs_hz, out / round_log_name(index), plan,
         metadata={**design.metadata(), "iteration": index}, pace=pace,
         settle_s=options.settle_s, progress=tick,
     )  # fmt: skip

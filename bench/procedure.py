@@ -17,11 +17,10 @@ auto``, the default) is excited in closed loop instead
 window, the excitation is designed to fit, and step 6 raises the amplitude
 only while the measured travel still fits.
 
-The run folder: each round streams to ``log-<i>.csv`` as its samples arrive
-(``log-1.csv`` the first amplitude, ``log-2.csv`` the next, ...); the round
-whose model is accepted is copied to ``log.csv``, the log ``model.json``
-describes. ``model.json`` says the same in its ``files`` object. A folder
-that already holds a run is refused, never overwritten.
+The run folder (:mod:`servobench.bench.run_folder`): each round streams to
+``log-<i>.csv`` as its samples arrive; the round whose model is accepted is
+copied to ``log.csv``, the log ``model.json`` describes. A folder that
+already holds a run is refused, never overwritten.
 
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
 :class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
@@ -40,13 +39,19 @@ from pathlib import Path
 from typing import Any
 
 from servobench.bench import excitation as exc
-from servobench.bench.closed_loop import HOLD_TRIAL_LOG, closed_rounds
+from servobench.bench.closed_loop import closed_rounds
 from servobench.bench.identify.auto import METHODS, identify
 from servobench.bench.logio import read_log
 from servobench.bench.model import IdentificationResult, ServoModel
-from servobench.bench.run.probe import PROBE_LOG
 from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
 from servobench.bench.run.travel import TravelWindow
+from servobench.bench.run_folder import (
+    LOG_FILE,
+    MODEL_FILE,
+    check_run_folder,
+    describe_files,
+    round_log_name,
+)
 from servobench.drivers.base import Drive, Limits
 from servobench.errors import IdentificationError, UsageError
 
@@ -62,42 +67,6 @@ UNLIMITED_GROWTH_CAP = 8.0
 LOOPS = ("auto", "open", "closed")
 
 Progress = Callable[[int, int], None]
-
-#: Files of a run folder: the accepted round's log and the model.
-LOG_FILE, MODEL_FILE = "log.csv", "model.json"
-#: Logs a closed-loop run writes before its rounds: the relay probe and the drive-hold trial.
-CLOSED_LOOP_LOGS = {
-    PROBE_LOG: "relay probe under the hold: what the axis was learnt from before round 1",
-    HOLD_TRIAL_LOG: "trial under the drive's own hold: its loop gains were fitted to it",
-}
-
-
-def round_log_name(index: int) -> str:
-    """The log of excite-identify round ``index`` (from 1)."""
-    return f"log-{index}.csv"
-
-
-def check_run_folder(out_dir: str | Path) -> None:
-    """Refuse a folder that holds an earlier run (its ``model.json``, ``log.csv``, ``log-N.csv``,
-    or the closed loop's ``probe.csv`` and ``hold-trial.csv``).
-
-    Raises
-    ------
-    UsageError
-        Naming the files found and what to do.
-    """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"{out} is a file, not a folder; choose another --out")
-    if not out.is_dir():
-        return
-    found = sorted(p.name for p in out.iterdir() if p.name in (LOG_FILE, MODEL_FILE, *CLOSED_LOOP_LOGS)
-                   or (p.name.startswith("log-") and p.suffix == ".csv"))  # fmt: skip
-    if found:
-        raise UsageError(
-            f"{out} already holds a run ({', '.join(found)}); choose another --out, or move that "
-            "run away first: nothing was overwritten"
-        )
 
 
 @dataclass(frozen=True)
@@ -303,15 +272,7 @@ class SidbeResult:
 
     def files(self) -> dict[str, str]:
         """What each log of the run folder holds (``model.json``'s ``files`` object)."""
-        source = self.accepted_log.name if self.accepted_log is not None else "the best round's log"
-        out = {LOG_FILE: f"copy of {source}: the round this model was identified from "
-                         "(the log to validate or diagnose it with)"}  # fmt: skip
-        for it in self.iterations:
-            fit = "no model" if it.fit_percent is None else f"fit {it.fit_percent:.2f} %"
-            out[it.log_path.name] = f"round {it.index}, amplitude {it.amplitude:g}: {fit}; {it.action}"
-        if self.hold is not None:
-            out.update({k: v for k, v in CLOSED_LOOP_LOGS.items() if (self.out_dir / k).exists()})
-        return out
+        return describe_files(self.out_dir, self.accepted_log, self.iterations, closed=self.hold is not None)
 
 
 def run_sidbe(
