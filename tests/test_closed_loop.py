@@ -24,6 +24,7 @@ from servobench.bench.identify.regression import fit_pairs, select_pairs
 from servobench.bench.logio import ExperimentLog, read_log
 from servobench.bench.model import ServoModel
 from servobench.bench.procedure import SidbeOptions, run_sidbe
+from servobench.bench.report.plot_data import frf_evidence
 from servobench.bench.run.closed import stream_closed_runs
 from servobench.bench.run.hold import HoldController, HoldLoop, design_hold
 from servobench.bench.run.travel import MARGIN, ClosedLoopPlan
@@ -110,6 +111,9 @@ def test_emps_sized_axis_with_a_tenth_of_a_metre(tmp_path):
     check_model(r.to_json(), 95.1, 203.5, 17.2, 23.6)
     log = check_closed_log(tmp_path / "log.csv", -0.1, 0.1)
     assert r.hold["probe"]["relay_amplitude"] > 23.6  # the probe found what breaks friction
+    evidence = frf_evidence(r.result)  # the FRF plot's friction note: against the excitation
+    assert evidence.amplitude == pytest.approx(r.design.amplitude, rel=1e-9)
+    assert evidence.amplitude < np.max(np.abs(log.run(1).u))  # not the total, hold included
     data = prepare(log)
     closed = identify_joint(data)
     as_open = identify_joint(replace(data, closed_loop=False))
