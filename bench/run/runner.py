@@ -167,10 +167,17 @@ def stream_runs(
             writer.finish(
                 "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
             )
-            add_note(err, f"partial log kept: {log_path} ({writer.rows} samples, marked incomplete)")
+            note_partial_log(err, writer)
         raise
     writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
+
+
+def note_partial_log(err: BaseException, writer: LogWriter) -> None:
+    """Name the partial log ``writer`` kept in ``err``'s notes (the CLI ends its one line with
+    them), unless the message names it already."""
+    if str(writer.path) not in str(err):
+        add_note(err, f"partial log kept: {writer.path} ({writer.rows} samples, marked incomplete)")
 
 
 @dataclass(frozen=True)
