@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "diagnose": ("servobench.bench.commands.diagnose", "find, name and add the effect the model lacks"),
     "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
     "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),
+    "fleet": ("servobench.bench.commands.fleet", "re-identify a fleet's logs on Dask and trend each axis"),
 }
 
 
