@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from servobench.bench.commands.progress import count_progress
-    from servobench.bench.fleet.engine import FleetInterrupted, connect, run_on
+    from servobench.bench.fleet.engine import FleetInterrupted, connect, run_on, worker_count
     from servobench.bench.fleet.sources import find_logs
     from servobench.bench.fleet.trend import axis_trends
     from servobench.errors import UsageError
@@ -66,11 +66,11 @@ def run(args: argparse.Namespace) -> int:
     sources = find_logs(args.logs)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        with (
-            connect(args.workers, args.scheduler) as client,
-            count_progress(f"identifying {len(sources)} logs", len(sources)) as progress,
-        ):
-            rows = run_on(client, sources, args.diagnose, progress)
+        with connect(args.workers, args.scheduler) as client:
+            print(f"servobench fleet: {len(sources)} logs on {worker_count(client)} Dask workers "
+                  f"(scheduler {client.scheduler.address})", file=sys.stderr, flush=True)  # fmt: skip
+            with count_progress(f"identifying {len(sources)} logs", len(sources)) as progress:
+                rows = run_on(client, sources, args.diagnose, progress)
     except FleetInterrupted as stop:
         _write_tables(stop.rows, out)
         done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
@@ -83,7 +83,11 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("servobench: interrupted; Dask cluster shut down, nothing written", file=sys.stderr)
         return 130
-    return _report(rows, out, args)
+    try:
+        return _report(rows, out, args)
+    except KeyboardInterrupt:
+        print(f"servobench: interrupted while writing {out}; run fleet again", file=sys.stderr)
+        return 130
 
 
 def _write_tables(rows, out) -> None:
@@ -117,5 +121,5 @@ def _print_text(rows, failed, trends, out, page) -> None:
     for t in flagged:
         print(f"FLAGGED {t.axis}: {'; '.join(t.reasons)}")
     for r in failed:
-        print(f"failed {r.log}: {r.error}")
+        print(f"failed {r.log}: {r.error.removeprefix(r.log + ': ')}")
     print(f"wrote {out / 'fleet.csv'}, {out / 'fleet.parquet'}, {page}")
