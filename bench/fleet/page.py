@@ -59,9 +59,14 @@ def axis_figure(trend: AxisTrend, threshold_percent: float) -> bytes:
         values = trend.values(p)
         ax.plot(days, values, "o-", color="#a00" if trend.flagged else "#036")
         ax.axhline(values[0], ls="--", lw=0.8, color="#555")
+        band = abs(values[0]) * threshold_percent / 100.0
         if p in WATCHED:
-            band = abs(values[0]) * threshold_percent / 100.0
             ax.axhspan(values[0] - band, values[0] + band, color="#ddd", alpha=0.5, lw=0)
+        # at least the threshold band in view: noise must not look like drift
+        low, high = min(*values, values[0] - 1.2 * band), max(*values, values[0] + 1.2 * band)
+        if high > low:
+            ax.set_ylim(low - 0.05 * (high - low), high + 0.05 * (high - low))
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.set_title(_label(p, trend), fontsize=9)
         ax.tick_params(labelsize=7)
     for ax in axes[1]:
