@@ -25,6 +25,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE"
     )
     p.add_argument(
+        "--eds",
+        default=None,
+        metavar="FILE",
+        help="CANopen: serve the drive with this object dictionary (EDS) instead of the generic one",
+    )
+    p.add_argument(
         "--fault",
         action="append",
         default=[],
@@ -40,6 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from servobench.errors import UsageError
+
+    if args.eds and args.transport != "canopen":
+        raise UsageError(f"--eds applies to --transport canopen only, not {args.transport}")
     options = {
         "host": args.host,
         "port": str(args.port),
@@ -49,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
         "map": args.map,
         "dialect": args.dialect,
         "can": args.can,
+        "eds": args.eds or "",
         "fault": ";".join(args.fault),
     }
     run_server(args.transport, args.sim, options, state_file=args.state_file)
