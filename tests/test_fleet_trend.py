@@ -165,3 +165,35 @@ def test_nothing_outside_fleet_imports_dask_or_pyarrow():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
+
+
+def test_batches_keep_order_and_bound_their_size():
+    from servobench.bench.fleet.engine import MAX_BATCH, batches
+    from servobench.bench.fleet.sources import LogSource
+
+    sources = [LogSource(f"{i}.csv", f"/x/{i}.csv") for i in range(203)]
+    for workers in (1, 2, 8, 500):
+        parts = batches(sources, workers)
+        assert [s for part in parts for s in part] == sources
+        assert all(1 <= len(p) <= MAX_BATCH for p in parts)
+    assert len(batches(sources, 2)) >= 8  # several per worker: the load balances
+    assert batches([], 2) == []
+
+
+def test_an_incomplete_log_is_identified_but_reported(tmp_path):
+    from servobench.bench.excitation import make_design
+    from servobench.bench.fleet.job import process_log
+    from servobench.bench.fleet.sources import LogSource
+    from servobench.bench.testing.fleet_logs import write_log
+    from servobench.bench.testing.synthetic import simulate_experiment
+    from servobench.sim_backend.physics.plant import PlantParams
+
+    log = simulate_experiment(PlantParams(), make_design(2.0, periods=3, period_s=1.0))
+    path = write_log(log, tmp_path / "cut.csv", {"axis": "Z"})
+    text = path.read_text().replace(
+        "# status = complete", "# reason = drive fault 0x7500\n# status = incomplete"
+    )
+    path.write_text(text)
+    got = process_log(LogSource("cut.csv", str(path)))
+    assert got.axis == "Z" and got.coulomb_pos == pytest.approx(0.5, rel=1e-3)
+    assert got.error == "incomplete log (drive fault 0x7500): the run was cut short"
