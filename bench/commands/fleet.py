@@ -52,11 +52,18 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from servobench.bench.commands.progress import count_progress
-    from servobench.bench.fleet.engine import FleetInterrupted, connect, run_on, worker_count
+    from servobench.bench.fleet.engine import (
+        FleetInterrupted,
+        connect,
+        require_fleet_extra,
+        run_on,
+        worker_count,
+    )  # fmt: skip
     from servobench.bench.fleet.sources import find_logs
     from servobench.bench.fleet.trend import axis_trends
     from servobench.errors import UsageError
 
+    require_fleet_extra()
     axis_trends([], args.threshold)  # checks the threshold before any work
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {args.workers}")

@@ -41,7 +41,9 @@ def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], 
 
 
 @contextmanager
-def count_progress(description: str, total: int, enabled: bool = True) -> Iterator[Callable[[int, int], None]]:
+def count_progress(
+    description: str, total: int, enabled: bool = True
+) -> Iterator[Callable[[int, int], None]]:
     """Yield ``update(done, total)`` for one bar of ``total`` items, drawn on stderr."""
     if not enabled:
         yield lambda _d, _t: None

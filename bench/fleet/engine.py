@@ -58,13 +58,21 @@ class FleetInterrupted(KeyboardInterrupt):
         self.rows = rows
 
 
-def _distributed() -> Any:
-    try:
-        import distributed
-    except ImportError:
+def require_fleet_extra() -> None:
+    """Raise :class:`FleetEngineError` unless Dask distributed and pyarrow are installed."""
+    import importlib.util
+
+    missing = [m for m in ("distributed", "pyarrow") if importlib.util.find_spec(m) is None]
+    if missing:
         raise FleetEngineError(
-            "servobench fleet needs Dask distributed and pyarrow: pip install 'servobench[fleet]'"
-        ) from None
+            f"servobench fleet needs {' and '.join(missing)}: pip install 'servobench[fleet]'"
+        )
+
+
+def _distributed() -> Any:
+    require_fleet_extra()
+    import distributed
+
     return distributed
 
 
@@ -110,6 +118,7 @@ def _workers_ignore_ctrl_c(distributed: Any) -> Iterator[None]:
     start faster. Where there is no forkserver (Windows), nothing changes.
     """
     import multiprocessing
+    import multiprocessing.forkserver
     import signal
     import threading
 
