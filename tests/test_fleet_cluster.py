@@ -35,6 +35,8 @@ from servobench.bench.testing.fleet_logs import AxisSpec, write_fleet, write_log
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.sim_backend.physics.plant import PlantParams
 
+pytestmark = pytest.mark.slow  # clusters start in seconds
+
 WEAR = 0.5
 STRINGS = ("log", "axis", "time", "method", "effects", "error")
 CLI = [sys.executable, "-m", "servobench"]
