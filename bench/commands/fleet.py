@@ -51,14 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from servobench.bench.commands.progress import count_progress
-    from servobench.bench.fleet.engine import (
-        FleetInterrupted,
-        connect,
-        require_fleet_extra,
-        run_on,
-        worker_count,
-    )  # fmt: skip
+    from servobench.bench.fleet.engine import FleetInterrupted, require_fleet_extra
     from servobench.bench.fleet.sources import find_logs
     from servobench.bench.fleet.trend import axis_trends
     from servobench.errors import UsageError
@@ -73,11 +66,7 @@ def run(args: argparse.Namespace) -> int:
     sources = find_logs(args.logs)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        with connect(args.workers, args.scheduler) as client:
-            print(f"servobench fleet: {len(sources)} logs on {worker_count(client)} Dask workers "
-                  f"(scheduler {client.scheduler.address})", file=sys.stderr, flush=True)  # fmt: skip
-            with count_progress(f"identifying {len(sources)} logs", len(sources)) as progress:
-                rows = run_on(client, sources, args.diagnose, progress)
+        rows, trends, figures = _on_cluster(args, sources, out)
     except FleetInterrupted as stop:
         _write_tables(stop.rows, out)
         done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
@@ -91,10 +80,37 @@ def run(args: argparse.Namespace) -> int:
         print("servobench: interrupted; Dask cluster shut down, nothing written", file=sys.stderr)
         return 130
     try:
-        return _report(rows, out, args)
+        return _report(rows, trends, figures, out, args)
     except KeyboardInterrupt:
         print(f"servobench: interrupted while writing {out}; run fleet again", file=sys.stderr)
         return 130
+
+
+def _on_cluster(args: argparse.Namespace, sources, out) -> tuple:
+    """Rows (written at once to the tables), trends and each axis's figure, on the cluster."""
+    from servobench.bench.commands.progress import count_progress
+    from servobench.bench.fleet.engine import (
+        FleetInterrupted,
+        connect,
+        map_on,
+        run_on,
+        worker_count,
+    )
+    from servobench.bench.fleet.page import axis_figure
+    from servobench.bench.fleet.trend import axis_trends
+
+    with connect(args.workers, args.scheduler) as client:
+        print(f"servobench fleet: {len(sources)} logs on {worker_count(client)} Dask workers "
+              f"(scheduler {client.scheduler.address})", file=sys.stderr, flush=True)  # fmt: skip
+        with count_progress(f"identifying {len(sources)} logs", len(sources)) as progress:
+            rows = run_on(client, sources, args.diagnose, progress)
+        _write_tables(rows, out)
+        trends = axis_trends(rows, args.threshold)
+        try:
+            figures = map_on(client, axis_figure, trends, threshold_percent=args.threshold)
+        except KeyboardInterrupt:
+            raise FleetInterrupted(rows) from None
+    return rows, trends, figures
 
 
 def _write_tables(rows, out) -> None:
@@ -104,14 +120,11 @@ def _write_tables(rows, out) -> None:
     write_parquet(rows, out / PARQUET_FILE)
 
 
-def _report(rows, out, args: argparse.Namespace) -> int:
+def _report(rows, trends, figures, out, args: argparse.Namespace) -> int:
     from servobench.bench.fleet.page import write_page
-    from servobench.bench.fleet.trend import axis_trends
     from servobench.bench.report.summary import print_json
 
-    _write_tables(rows, out)
-    trends = axis_trends(rows, args.threshold)
-    page = write_page(rows, trends, args.threshold, out)
+    page = write_page(rows, trends, args.threshold, out, figures)
     failed = [r for r in rows if not r.ok]
     if args.json:
         print_json(

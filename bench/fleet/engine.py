@@ -24,7 +24,7 @@ import contextlib
 import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 from servobench.bench.fleet.job import process_batch
 from servobench.bench.fleet.sources import LogSource
@@ -44,6 +44,7 @@ FORKSERVER_PRELOAD = ("distributed", "numpy", "scipy.signal", "servobench.bench.
 INTERRUPTED = "not processed: interrupted (Ctrl-C)"
 
 ProgressCallback = Callable[[int, int], None]
+T = TypeVar("T")
 
 
 class FleetEngineError(ServobenchError):
@@ -223,7 +224,7 @@ def worker_count(client: Any) -> int:
     return max(1, len(client.scheduler_info().get("workers", {})))
 
 
-def batches(sources: Sequence[LogSource], workers: int) -> list[list[LogSource]]:
+def batches(sources: Sequence[T], workers: int) -> list[list[T]]:
     """Consecutive batches: about :data:`BATCHES_PER_WORKER` per worker, at most :data:`MAX_BATCH` logs."""
     if not sources:
         return []
@@ -279,6 +280,27 @@ def _assemble(
     for got, part in zip(results, parts, strict=True):
         rows.extend(got if got is not None else [FleetRow(s.name, error=missing) for s in part])
     return rows
+
+
+def map_on(
+    client: Any, function: Callable[..., Any], items: Sequence[Any], **kwargs: Any
+) -> list[Any]:
+    """``function(item, **kwargs)`` of every item on ``client``'s workers, in batches, in order.
+
+    For work after the rows, such as drawing each axis's figure; an error is raised here.
+    """
+    parts = batches(items, worker_count(client))
+    futures = client.map(_apply_all, parts, function=function, pure=False, **kwargs)
+    try:
+        results = client.gather(futures)
+    except BaseException:
+        client.cancel(futures)
+        raise
+    return [out for part in results for out in part]
+
+
+def _apply_all(items: Sequence[Any], function: Callable[..., Any], **kwargs: Any) -> list[Any]:
+    return [function(item, **kwargs) for item in items]
 
 
 def run_fleet(

@@ -102,7 +102,7 @@ def _drift_text(trend: AxisTrend) -> str:
     return ", ".join(parts)
 
 
-def _axis_section(trend: AxisTrend, threshold_percent: float) -> Section:
+def _axis_section(trend: AxisTrend, threshold_percent: float, png: bytes | None) -> Section:
     rows = [
         (f"{r.time}", ", ".join(f"{p}={getattr(r, p):.5g}" for p in PARAMETERS)
          + (f"; effects: {r.effects}" if r.effects else "") + f"; log {r.log}")
@@ -114,14 +114,24 @@ def _axis_section(trend: AxisTrend, threshold_percent: float) -> Section:
         title=f"Axis {trend.axis}",
         paragraphs=[f"{len(trend.records)} records; {verdict}."],
         tables=[("Drift of the latest record against the first", drift), ("Records", rows)],
-        figures=[(f"{trend.axis}: parameters against time", axis_figure(trend, threshold_percent))],
+        figures=[
+            (
+                f"{trend.axis}: parameters against time",
+                png if png is not None else axis_figure(trend, threshold_percent),
+            )
+        ],  # fmt: skip
     )
 
 
 def render_page(
-    rows: Sequence[FleetRow], trends: Sequence[AxisTrend], threshold_percent: float
+    rows: Sequence[FleetRow],
+    trends: Sequence[AxisTrend],
+    threshold_percent: float,
+    figures: Sequence[bytes] | None = None,
 ) -> str:
-    """The whole page as text."""
+    """The whole page as text; ``figures`` are the :func:`axis_figure` of ``trends``, in
+    order, when drawn already (on the cluster), else they are drawn here."""
+    drawn = dict(zip((t.axis for t in trends), figures, strict=True)) if figures else {}
     failed = [r for r in rows if not r.ok]
     ordered = sorted(trends, key=lambda t: (not t.flagged, t.axis))
     summary = [
@@ -133,7 +143,7 @@ def render_page(
         sections[0].figures.append(
             ("Drift of every axis against time", overview_figure(trends, threshold_percent))
         )
-    sections.extend(_axis_section(t, threshold_percent) for t in ordered)
+    sections.extend(_axis_section(t, threshold_percent, drawn.get(t.axis)) for t in ordered)
     if failed:
         sections.append(
             Section("Logs that failed", tables=[("", [(r.log, r.error) for r in failed])])
@@ -150,9 +160,13 @@ def render_page(
 
 
 def write_page(
-    rows: Sequence[FleetRow], trends: Sequence[AxisTrend], threshold_percent: float, out_dir: Path
+    rows: Sequence[FleetRow],
+    trends: Sequence[AxisTrend],
+    threshold_percent: float,
+    out_dir: Path,
+    figures: Sequence[bytes] | None = None,
 ) -> Path:
-    """Write ``out_dir/trend.html``; return its path."""
+    """Write ``out_dir/trend.html`` (see :func:`render_page`); return its path."""
     path = Path(out_dir) / TREND_FILE
-    path.write_text(render_page(rows, trends, threshold_percent), encoding="utf-8")
+    path.write_text(render_page(rows, trends, threshold_percent, figures), encoding="utf-8")
     return path
