@@ -120,6 +120,7 @@ def _workers_ignore_ctrl_c(distributed: Any) -> Iterator[None]:
     """
     import multiprocessing
     import multiprocessing.forkserver
+    import os
     import signal
     import threading
 
@@ -134,11 +135,23 @@ def _workers_ignore_ctrl_c(distributed: Any) -> Iterator[None]:
     with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
         context = distributed.utils.get_mp_context()
         context.set_forkserver_preload(list(FORKSERVER_PRELOAD))
+        # The forkserver loads numpy once for all workers: it must see the worker
+        # environment Dask would give each of them (one BLAS thread per worker).
+        environ = {
+            k: str(v) for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+        }
+        saved = {k: os.environ.get(k) for k in environ}
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
+            os.environ.update(environ)
             multiprocessing.forkserver.ensure_running()
         finally:
             signal.signal(signal.SIGINT, previous)
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
         yield
 
 
