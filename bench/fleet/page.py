@@ -6,7 +6,9 @@ one section per axis (its parameters against time, the first record's
 value dashed, the threshold band on the watched ones, and the drift of each
 record), and the logs that failed with their reasons. The page is built
 with :mod:`servobench.bench.report.html` and the one figure helper
-:mod:`servobench.bench.report.figure`.
+:mod:`servobench.bench.report.figure`. :func:`axis_figure` is a pure
+function of a trend, so ``servobench fleet`` draws the axes' figures on the
+Dask workers and hands them to :func:`write_page`.
 """
 
 from __future__ import annotations
