@@ -13,8 +13,9 @@ Prints:
 - the per-log overhead of the Dask path: (1-worker time - plain sequential
   loop time) / logs;
 - the best of ``--repeat`` reads of a 10^6-row ``run,t,u,v,x`` log;
-- the load average before and after each figure, since other work on the
-  machine lowers the throughput.
+- the CPU time per log and the cores the workers obtained (their CPU time
+  over the wall time), and the load average before and after each figure:
+  other work on the machine lowers the throughput, and these say by how much.
 
 Run: ``python benchmarks/fleet.py [--logs 200] [--repeat 3]``
 """
@@ -54,14 +55,24 @@ def fleet_logs(folder: Path, logs: int, period_s: float, periods: int) -> list:
     return find_logs([folder])[:logs]
 
 
-def throughput(sources: list, workers: int) -> tuple[float, float, list]:
-    """(cluster start [s], processing time [s], rows) on a local cluster of ``workers``."""
+def cpu_seconds() -> float:
+    """CPU time [s] this process has used (user + system)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def throughput(sources: list, workers: int) -> tuple[float, float, float, list]:
+    """(cluster start [s], processing time [s], worker CPU time [s], rows) on ``workers``."""
     t0 = time.perf_counter()
     with connect(workers) as client:
+        before = sum(client.run(cpu_seconds).values())
         t1 = time.perf_counter()
         rows = run_on(client, sources)
         t2 = time.perf_counter()
-    return t1 - t0, t2 - t1, rows
+        cpu = sum(client.run(cpu_seconds).values()) - before
+    return t1 - t0, t2 - t1, cpu, rows
 
 
 def read_figure(folder: Path, rows: int, repeat: int) -> float:
@@ -101,18 +112,20 @@ def main() -> None:
         sources = fleet_logs(folder / "fleet", args.logs, args.period, args.periods)
         rows_per_log = 2 * int(round(args.period * 1000)) * args.periods
         print(f"\n{len(sources)} SIDBE logs of {rows_per_log} rows ({load()})")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), cpu_seconds()
         reference = run_sequential(sources)
-        seq = time.perf_counter() - t0
-        print(f"  plain sequential loop: {seq:.2f} s, {len(sources) / seq:.2f} logs/s; {load()}")
+        seq, seq_cpu = time.perf_counter() - t0, cpu_seconds() - c0
+        print(f"  plain sequential loop: {seq:.2f} s, {len(sources) / seq:.2f} logs/s, "
+              f"{seq_cpu / len(sources) * 1e3:.0f} ms CPU per log; {load()}")  # fmt: skip
         times = {}
         for workers in (1, 2):
-            start, took, rows = throughput(sources, workers)
+            start, took, cpu, rows = throughput(sources, workers)
             times[workers] = took
             same = [r.record() for r in rows] == [r.record() for r in reference]
             print(
-                f"  Dask, {workers} worker(s): {took:.2f} s, {len(sources) / took:.2f} logs/s "
-                f"(cluster start {start:.1f} s; rows {'identical to' if same else 'DIFFER from'} "
+                f"  Dask, {workers} worker(s): {took:.2f} s, {len(sources) / took:.2f} logs/s, "
+                f"{cpu / len(sources) * 1e3:.0f} ms worker CPU per log, {cpu / took:.2f} cores "
+                f"obtained (cluster start {start:.1f} s; rows {'identical to' if same else 'DIFFER from'} "
                 f"the sequential loop); {load()}"
             )
         print(f"  speed-up of 2 workers over 1: {times[1] / times[2]:.2f}x (target >= 1.7x)")
