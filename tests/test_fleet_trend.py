@@ -197,3 +197,25 @@ def test_an_incomplete_log_is_identified_but_reported(tmp_path):
     got = process_log(LogSource("cut.csv", str(path)))
     assert got.axis == "Z" and got.coulomb_pos == pytest.approx(0.5, rel=1e-3)
     assert got.error == "incomplete log (drive fault 0x7500): the run was cut short"
+
+
+def test_trend_page_puts_flagged_axes_first_with_units_and_failed_logs(tmp_path):
+    import base64
+    import re
+
+    from servobench.bench.fleet.page import write_page
+
+    rows = [row("B", 0), row("B", 9), row("A", 0), row("A", 40, fcp=0.7),
+            FleetRow("bad.csv", "bad", "", error="no 'u' column")]  # fmt: skip
+    trends = axis_trends(rows)
+    page = write_page(rows, trends, 20.0, tmp_path).read_text()
+    verdict = re.search(r'<div class="verdict (\w+)" id="verdict">([^<]*)</div>', page)
+    assert verdict.groups() == ("fail", "1 axis flagged; 1 of 5 logs failed.")
+    assert page.index("<h3>Axis A</h3>") < page.index("<h3>Axis B</h3>")  # flagged first
+    assert "FLAGGED: coulomb_pos +40.0 %" in page and "<th>Coulomb + [N m]</th>" in page
+    assert "<th>M [kg m^2]</th>" in page and "<td>no &#x27;u&#x27; column</td>" in page
+    images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert len(images) == 3  # the overview and one per axis
+    assert all(base64.b64decode(i).startswith(b"\x89PNG\r\n\x1a\n") for i in images)
+    calm = write_page(rows[:2], axis_trends(rows[:2]), 20.0, tmp_path).read_text()
+    assert '<div class="verdict pass" id="verdict">No axis flagged.</div>' in calm

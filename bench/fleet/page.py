@@ -2,9 +2,10 @@
 
 Sections: a summary of every axis (flagged ones first, with their
 reasons), an overview plot of the watched drifts of all axes against time,
-one section per axis (its parameters against time, the first record's
-value dashed, the threshold band on the watched ones, and the drift of each
-record), and the logs that failed with their reasons. The page is built
+one section per axis (its parameters against time with the first record's
+value dashed and the threshold band on the watched ones, the drift of its
+latest record, and its records with the units of each parameter), and the
+logs that failed with their reasons. The page is built
 with :mod:`servobench.bench.report.html` and the one figure helper
 :mod:`servobench.bench.report.figure`. :func:`axis_figure` is a pure
 function of a trend, so ``servobench fleet`` draws the axes' figures on the
@@ -21,7 +22,17 @@ from typing import TYPE_CHECKING
 from servobench.bench.fleet.table import FleetRow
 from servobench.bench.fleet.trend import PARAMETERS, WATCHED, AxisTrend
 from servobench.bench.report.figure import new_figure, png_bytes
-from servobench.bench.report.html import Section, render
+from servobench.bench.report.html import (
+    FAIL,
+    PASS,
+    REMARK,
+    Figure,
+    Grid,
+    KeyValues,
+    Section,
+    Verdict,
+    render,
+)
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -96,33 +107,47 @@ def overview_figure(trends: Sequence[AxisTrend], threshold_percent: float) -> by
     return png_bytes(fig, dpi=DPI)
 
 
-def _drift_text(trend: AxisTrend) -> str:
-    parts = []
-    for p in WATCHED:
-        d = trend.drift.get(p)
-        parts.append(f"{p} {'n/a' if d is None else f'{d:+.1f} %'}")
-    return ", ".join(parts)
+def _drift_cell(trend: AxisTrend, parameter: str) -> str:
+    d = trend.drift.get(parameter)
+    return "n/a" if d is None else f"{d:+.1f} %"
+
+
+def _summary(ordered: Sequence[AxisTrend]) -> Grid:
+    """One line per axis, flagged ones first: its status, watched drifts and reasons."""
+    header = ["axis", "records", "status", *(f"{_LABELS[p]} drift" for p in WATCHED), "reasons"]
+    rows = [
+        [t.axis, len(t.records), "FLAGGED" if t.flagged else "ok",
+         *(_drift_cell(t, p) for p in WATCHED), "; ".join(t.reasons)]
+        for t in ordered
+    ]  # fmt: skip
+    classes = [["", "", FAIL if t.flagged else PASS] for t in ordered]
+    return Grid("Every axis, latest record against its first", header, rows, classes)
+
+
+def _records(trend: AxisTrend) -> Grid:
+    """The records of an axis, oldest first, each parameter with its unit in the header."""
+    header = ["time", *(_label(p, trend) for p in PARAMETERS), "fit [%]", "effects", "log"]
+    rows = [
+        [r.time, *(float(getattr(r, p)) for p in PARAMETERS), float(r.fit_percent),
+         r.effects or "–", r.log]
+        for r in trend.records
+    ]  # fmt: skip
+    return Grid("Records", header, rows)
 
 
 def _axis_section(trend: AxisTrend, threshold_percent: float, png: bytes | None) -> Section:
-    rows = [
-        (f"{r.time}", ", ".join(f"{p}={getattr(r, p):.5g}" for p in PARAMETERS)
-         + (f"; effects: {r.effects}" if r.effects else "") + f"; log {r.log}")
-        for r in trend.records
-    ]  # fmt: skip
-    drift = [(p, "n/a" if d is None else f"{d:+.2f} %") for p, d in trend.drift.items()]
     verdict = "FLAGGED: " + "; ".join(trend.reasons) if trend.flagged else "not flagged"
-    return Section(
-        title=f"Axis {trend.axis}",
-        paragraphs=[f"{len(trend.records)} records; {verdict}."],
-        tables=[("Drift of the latest record against the first", drift), ("Records", rows)],
-        figures=[
-            (
-                f"{trend.axis}: parameters against time",
-                png if png is not None else axis_figure(trend, threshold_percent),
-            )
-        ],  # fmt: skip
+    drift = KeyValues(
+        "Drift of the latest record against the first",
+        [(_label(p, trend), _drift_cell(trend, p)) for p in PARAMETERS],
     )
+    figure = Figure(
+        f"{trend.axis}: every parameter against days since its first record (dashed: the "
+        f"first record; grey band: ±{threshold_percent:g} % on the watched parameters).",
+        png if png is not None else axis_figure(trend, threshold_percent),
+    )
+    blocks = [f"{len(trend.records)} records; {verdict}.", drift, figure, _records(trend)]
+    return Section(f"Axis {trend.axis}", blocks, level=3)
 
 
 def render_page(
@@ -136,29 +161,38 @@ def render_page(
     drawn = dict(zip((t.axis for t in trends), figures, strict=True)) if figures else {}
     failed = [r for r in rows if not r.ok]
     ordered = sorted(trends, key=lambda t: (not t.flagged, t.axis))
-    summary = [
-        (t.axis, ("FLAGGED: " + "; ".join(t.reasons)) if t.flagged else f"ok ({_drift_text(t)})")
-        for t in ordered
-    ]
-    sections = [Section("Axes", tables=[("", summary)] if summary else [])]
+    flagged = [t.axis for t in ordered if t.flagged]
+    axes = Section("Axes", [_summary(ordered)] if ordered else ["No log went through."])
     if trends:
-        sections[0].figures.append(
-            ("Drift of every axis against time", overview_figure(trends, threshold_percent))
-        )
-    sections.extend(_axis_section(t, threshold_percent, drawn.get(t.axis)) for t in ordered)
+        axes.blocks.append(Figure(
+            "Drift of the watched parameters of every axis against each axis's first record "
+            f"[%]; red: flagged axes; dashed: ±{threshold_percent:g} %.",
+            overview_figure(trends, threshold_percent),
+        ))  # fmt: skip
+    sections = [axes, *(_axis_section(t, threshold_percent, drawn.get(t.axis)) for t in ordered)]
     if failed:
-        sections.append(
-            Section("Logs that failed", tables=[("", [(r.log, r.error) for r in failed])])
-        )
-    status = "complete" if not failed else f"{len(failed)} of {len(rows)} logs failed"
-    meta = {
-        "logs": str(len(rows)),
-        "failed": str(len(failed)),
-        "axes": str(len(trends)),
-        "flagged": ", ".join(t.axis for t in ordered if t.flagged) or "none",
-        "threshold": f"±{threshold_percent:g} % on coulomb_pos, coulomb_neg and B",
-    }
-    return render("servobench fleet: friction trends", status, sections, meta)
+        table = Grid("", ["log", "error"], [[r.log, r.error] for r in failed])
+        sections.append(Section("Logs that failed", [table]))
+    identity = KeyValues("", [
+        ("logs", len(rows)),
+        ("failed", len(failed)),
+        ("axes", len(trends)),
+        ("flagged", ", ".join(flagged) or "none"),
+        ("threshold", f"±{threshold_percent:g} % on {', '.join(WATCHED)}"),
+    ])  # fmt: skip
+    return render("servobench fleet: friction trends", _verdict(rows, failed, flagged), identity,
+                  sections)  # fmt: skip
+
+
+def _verdict(rows: Sequence[FleetRow], failed: Sequence[FleetRow], flagged: list[str]) -> Verdict:
+    if not rows or len(failed) == len(rows):
+        return Verdict(FAIL, f"No trend: {len(failed)} of {len(rows)} logs failed.")
+    n = len(flagged)
+    words = ["No axis flagged" if n == 0 else f"{n} {'axis' if n == 1 else 'axes'} flagged"]
+    if failed:
+        words.append(f"{len(failed)} of {len(rows)} logs failed")
+    status = FAIL if flagged else (REMARK if failed else PASS)
+    return Verdict(status, "; ".join(words) + ".")
 
 
 def write_page(
