@@ -219,7 +219,7 @@ def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path)
     for i in range(16):
         shutil.copytree(fleet / "worn", logs / f"copy{i}")
     out = tmp_path / "out"
-    cmd = [*CLI, "fleet", str(logs), "--out", str(out), "--workers", "2"]
+    cmd = [*CLI, "fleet", str(logs), "--out", str(out), "--workers", "2", "--json"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)  # fmt: skip
     try:
@@ -228,12 +228,14 @@ def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path)
         family = psutil.Process(proc.pid).children(recursive=True)
         time.sleep(0.5)
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole group
-        _, stderr = proc.communicate(timeout=60)
+        stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, stderr
     assert "interrupted; Dask cluster shut down" in stderr and "Traceback" not in stderr
+    last = stderr.strip().splitlines()[-1]
+    assert json.loads(stdout)["error"] == last.removeprefix("servobench: ")  # one object
     rows = _read_csv(out / "fleet.csv")
     assert len(rows) == 48
     assert all(r["error"] in ("", "not processed: interrupted (Ctrl-C)") for r in rows)

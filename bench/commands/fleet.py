@@ -70,20 +70,27 @@ def run(args: argparse.Namespace) -> int:
     except FleetInterrupted as stop:
         _write_tables(stop.rows, out)
         done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
-        print(
-            f"servobench: interrupted; Dask cluster shut down; {done} of {len(sources)} logs done, "
+        return _interrupted(
+            f"interrupted; Dask cluster shut down; {done} of {len(sources)} logs done, "
             f"kept in {out / 'fleet.csv'}",
-            file=sys.stderr,
+            args,
         )
-        return 130
     except KeyboardInterrupt:
-        print("servobench: interrupted; Dask cluster shut down, nothing written", file=sys.stderr)
-        return 130
+        return _interrupted("interrupted; Dask cluster shut down, nothing written", args)
     try:
         return _report(rows, trends, figures, out, args)
     except KeyboardInterrupt:
-        print(f"servobench: interrupted while writing {out}; run fleet again", file=sys.stderr)
-        return 130
+        return _interrupted(f"interrupted while writing {out}; run fleet again", args)
+
+
+def _interrupted(message: str, args: argparse.Namespace) -> int:
+    """Ctrl-C: one line on stderr (and ``{"error": ...}`` on stdout under ``--json``); 130."""
+    print(f"servobench: {message}", file=sys.stderr, flush=True)
+    if args.json:
+        from servobench.bench.report.summary import print_json
+
+        print_json({"error": message})
+    return 130
 
 
 def _on_cluster(args: argparse.Namespace, sources, out) -> tuple:
