@@ -11,8 +11,10 @@ them back (:func:`log_identity`) to group the records of one axis and to
 order them in time. The axis is the drive's address: the URL's scheme,
 host, port and path and the query keys that select one axis on a shared
 link (``channel``, ``node``, ``unit``, ``axis``), not the limits, timeouts
-or plant keys, which may change between two runs of the same axis. The time
-is ISO 8601 with the local UTC offset, to the second.
+or plant keys, which may change between two runs of the same axis.
+``commission`` names it by its configuration instead when ``[identity]``
+gives an axis (``"Press 7 / Z"``, :func:`configured_axis`). The time is ISO
+8601 with the local UTC offset, to the second.
 
 A log without these lines (written by another tool, or before they existed)
 is named by its file name and dated by its modification time.
@@ -51,6 +53,18 @@ def axis_of_url(url: object) -> str:
     address = "&".join(f"{k}={query[k]}" for k in ADDRESS_KEYS if k in query)
     name = f"{url.scheme}://{where}{getattr(url, 'path', '') or ''}"  # type: ignore[attr-defined]
     return f"{name}?{address}" if address else name
+
+
+def configured_axis(machine: str, axis: str) -> str:
+    """The axis name a configuration gives (``[identity]`` of ``bench.toml``), "" for none.
+
+    ``("Press 7", "Z")`` -> ``"Press 7 / Z"``; ``("", "Z")`` -> ``"Z"``; no axis -> "".
+    The machine goes first because axis letters repeat from machine to machine.
+    """
+    machine, axis = one_line(machine).strip(), one_line(axis).strip()
+    if not axis:
+        return ""
+    return f"{machine} / {axis}" if machine else axis
 
 
 def now_iso() -> str:

@@ -1,8 +1,9 @@
-"""``sidbe`` and ``run`` name the axis and the time of the run in every log they write.
+"""``sidbe``, ``run`` and ``commission`` name the axis and the time of the run in every log.
 
 The axis is the drive URL's address (limits and plant keys left out), the
 time ISO 8601 with an offset, taken when the run starts; a caller's metadata
-may name the axis instead. ``servobench fleet`` groups and orders records by them.
+may name the axis instead (``commission``: its ``[identity]``). ``servobench
+fleet`` groups and orders records by them.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from datetime import datetime, timedelta
 import numpy as np
 
 from servobench.bench.cli import main
-from servobench.bench.logidentity import parse_time
+from servobench.bench.logidentity import configured_axis, parse_time
 from servobench.bench.logio import read_log
 from servobench.bench.run.runner import stream_runs
 from servobench.drivers.registry import open_drive
@@ -42,3 +43,18 @@ def test_a_caller_may_name_the_axis(tmp_path):
         stream_runs(drive, [(1, np.full(50, 1.0))], 1000.0, tmp_path / "l.csv",
                     metadata={"axis": "line 3 / Z"})  # fmt: skip
     assert read_log(tmp_path / "l.csv").metadata["axis"] == "line 3 / Z"
+
+
+def test_commission_names_the_axis_by_its_configuration(tmp_path):
+    config = tmp_path / "bench.toml"
+    config.write_text('[identity]\nmachine = "Press 7"\naxis = "Z"\n\n[limits]\nmax_u = 5.0\n'
+                      "max_v = 20.0\nxmin = -inf\nxmax = inf\n\n[sidbe]\nperiods = 2\n"
+                      "period_s = 0.5\nmax_iterations = 1\n")  # fmt: skip
+    before = datetime.now().astimezone()
+    out = tmp_path / "rec"
+    assert main(["commission", "--drive", "sim://?pace=fast", "--yes", "--config", str(config),
+                 "--out", str(out)]) == 0  # fmt: skip
+    meta = read_log(out / "log.csv").metadata
+    assert meta["axis"] == "Press 7 / Z"
+    assert _within(meta["time"], before, datetime.now().astimezone())
+    assert configured_axis("", " Z ") == "Z" and configured_axis("Press 7", "") == ""

@@ -93,7 +93,7 @@ def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> 
     """
     from servobench.bench.procedure import SidbeOptions
 
-    known = {f.name for f in fields(SidbeOptions)} - {"pace", "plots"}
+    known = {f.name for f in fields(SidbeOptions)} - {"pace", "plots", "axis"}
     unknown = sorted(set(options) - known)
     if unknown:
         raise UsageError(f"[sidbe] has unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
