@@ -100,6 +100,9 @@ class SidbeOptions:
         Let SIDBE fit a series resonance.
     plots : bool
         Write PNG plots.
+    axis : str
+        The logs' ``# axis`` line (``servobench fleet`` groups records by it);
+        "" names the axis by the drive URL's address.
     """
 
     amplitude: float | None = None
@@ -118,6 +121,7 @@ class SidbeOptions:
     settle_s: float = DEFAULT_SETTLE_S
     resonance: bool = False
     plots: bool = True
+    axis: str = ""
 
     def design(self) -> exc.ExcitationDesign:
         """The first round's excitation (validates the options)."""
@@ -361,6 +365,8 @@ def _rounds(drive, options, design, cap, out, progress):
         log_path = out / round_log_name(index)
         excitation = exc.design_excitation(design)
         meta = {**design.metadata(), "loop": "open", "iteration": index}
+        if options.axis:
+            meta["axis"] = options.axis
 
         def tick(done: int, total: int, _i: int = index) -> None:
             if progress is not None:

@@ -21,7 +21,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from servobench.bench.commission import integration
@@ -52,6 +52,7 @@ from servobench.bench.commission.record import (
     write_mat,
 )
 from servobench.bench.commission.ui import Console
+from servobench.bench.logidentity import configured_axis
 from servobench.bench.logio import read_log
 from servobench.bench.model import IdentificationResult, ServoModel
 from servobench.bench.report import commission_record as document
@@ -252,6 +253,7 @@ class Commissioning:
             c.step(4, "SIDBE identification with verification")
             moved_at = max(bump.breakaway_pos, bump.breakaway_neg)
             options = integration.sidbe_options(config.sidbe, limits.max_u, moved_at, _finite(limits))
+            options = replace(options, axis=configured_axis(config.identity.machine, config.identity.axis))
             closed = options.closed(drive.limits)
             known = integration.bump_model(bump.log_path) if closed else None
             c.say(f"closed loop: a hold loop keeps the axis in [{limits.xmin:g}, {limits.xmax:g}], the "

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from servobench.bench.logidentity import run_identity
 from servobench.bench.logio import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
@@ -132,7 +133,9 @@ def stream_runs(
     log_path : path
         CSV log, written as samples arrive.
     metadata : mapping
-        Extra ``# key = value`` header lines (``fs`` is always written).
+        Extra ``# key = value`` header lines. ``fs`` is always written, and so are
+        ``axis`` and ``time`` (:func:`~servobench.bench.logidentity.run_identity`),
+        which ``metadata`` may override.
     pace : {"real", "fast"}, optional
         Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose
         ``realtime`` is False (``sim://``), else ``"real"``.
@@ -152,7 +155,7 @@ def stream_runs(
     """
     plan = _Plan.make(drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway)
     meta = {
-        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace,
+        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace, **run_identity(drive),
         **drive.log_metadata(), **(metadata or {}),
     }  # fmt: skip
     writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
