@@ -43,23 +43,18 @@ BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
 METHOD = "diagnose"
 
 
+#: The ``sim://`` keys of the base parameters (the URL contract of
+#: :mod:`servobench.sim_backend.simurl`, which this module does not import: it reaches the
+#: drive layer, and the diagnosis stays clear of transports).
+URL_KEYS = {"M": "M", "B": "B", "fc_pos": "coulomb_pos", "fc_neg": "coulomb_neg"}
+
+
 def sim_url(cand: Candidate) -> str:
-    """The ``sim://`` URL of a candidate model (noise-free)."""
-    from servobench.sim_backend.simurl import plant_query
-
-    query = plant_query(cand.plant())
-    query.pop("noise", None)
-    query.pop("noise_x", None)
-    query.pop("res_x", None)
-    query.pop("res_v", None)
-    if "position_friction" in cand.effects:  # the unused knots are zero by default
-        n = position_friction.knot_count(cand.effects["position_friction"])
-        query = {k: v for k, v in query.items() if k not in _unused_knot_keys(n)}
+    """The ``sim://`` URL of a candidate model (noise-free; unused spline knots left out)."""
+    plant = cand.plant()  # the levels as the simulator takes them
+    query = {key: float(getattr(plant, name)) for key, name in URL_KEYS.items()}
+    query.update(library.to_query({n: _compact(n, p) for n, p in cand.effects.items()}))
     return "sim://?" + "&".join(f"{k}={v:.10g}" for k, v in query.items())
-
-
-def _unused_knot_keys(n: int) -> set[str]:
-    return {f"posfric_{i}" for i in range(n, position_friction.MAX_KNOTS)}
 
 
 def _compact(name: str, params: Mapping[str, float]) -> dict[str, float]:
