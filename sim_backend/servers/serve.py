@@ -8,7 +8,8 @@ which starts its server around the :class:`~servobench.sim_backend.device.Simula
 calls ``announce(drive_url)`` exactly once when a client can connect, blocks
 until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
-URL, the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
+URL (in wall-clock time, :mod:`servobench.sim_backend.device`: a served axis
+coasts down while nobody polls it), the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
 the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
 handling and printing the URL as the first line on stdout.
 """
@@ -62,7 +63,7 @@ def run_server(
     ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
     """
     serve = load_transport(transport)
-    device = device_from_url(sim_url)
+    device = device_from_url(sim_url, wall_clock=True)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {})}
     injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))
