@@ -13,8 +13,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
-from servobench.errors import ServobenchError
+from servobench.errors import DriveWarning, ServobenchError
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 
@@ -70,8 +71,20 @@ def _command_of(argv: list[str]) -> str:
     return ""
 
 
+_show_warning = warnings.showwarning
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A :class:`DriveWarning` as one line on stderr; other warnings as Python shows them."""
+    if issubclass(category, DriveWarning):
+        print(f"servobench: warning: {message}", file=file or sys.stderr)
+    else:
+        _show_warning(message, category, filename, lineno, file, line)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    warnings.showwarning = _one_line_warning
     parser = build_parser(_command_of(argv))
     if not argv:
         parser.print_help()

@@ -15,6 +15,8 @@
     ├── LogFormatError(ValueError)       a log file is malformed
     └── UsageError(ValueError)           an argument is out of range
 
+    DriveWarning(UserWarning)            a drive works, but with less than asked for
+
 Drivers raise these and never log-and-continue; the runner decides what to
 tolerate, and the CLI turns any ``ServobenchError`` into one line on stderr
 and a non-zero exit status.
@@ -109,3 +111,14 @@ class LogFormatError(ServobenchError, ValueError):
 
 class UsageError(ServobenchError, ValueError):
     """An argument is out of its allowed range."""
+
+
+class DriveWarning(UserWarning):
+    """A drive can be used, but lacks something the user should know about (one line).
+
+    Issued with :func:`warnings.warn`; the CLI prints it as
+    ``servobench: warning: <message>`` on stderr.
+    """
+
+    def __init__(self, message: str) -> None:
+        super().__init__(one_line(message))

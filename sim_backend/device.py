@@ -13,14 +13,18 @@ Wall-clock time (served drives)
 A real axis does not wait for the host: after a quick stop it coasts down
 whether anybody polls it or not. A device made with ``wall_clock=True``
 (every served transport, :func:`servobench.sim_backend.servers.serve.run_server`)
-therefore integrates the wall-clock time the host left unpolled: whenever
-more than :data:`IDLE_AFTER_S` has passed since the last clocked cycle ended,
-the next call first advances the plant and the drive clock by that time,
-with the command the power stage applies over it (zero unless enabled).
-While the host streams, cycles stay lock-step (one clock per cycle, exact
-ZOH), so host jitter below :data:`IDLE_AFTER_S` does not reach the data. A
-watchdog trip is integrated up to the moment it happened. The in-process
-``sim://`` drive keeps ``wall_clock=False``: pure lock-step.
+therefore integrates the wall-clock time the host left unpolled while its
+power stage is off (disabled, quick stop, fault): whenever more than
+:data:`IDLE_AFTER_S` has passed since the last clocked cycle ended, the next
+call first advances the plant and the drive clock by that time with zero
+command, and the axis coasts down as a real one does. While the axis is
+enabled the drive stays lock-step (one clock per cycle, exact ZOH), as the
+host's streaming contract says, so a host that falls behind on a loaded
+machine does not change the data; its silence is still bounded by the
+watchdog, which trips in wall-clock time and is integrated (with the command
+that was applied) up to the moment it tripped. A new host session
+(:meth:`SimulatedDevice.begin_session`) integrates whatever time has passed.
+The in-process ``sim://`` drive keeps ``wall_clock=False``: pure lock-step.
 
 Sessions
 --------
@@ -161,7 +165,7 @@ class SimulatedDevice:
     def begin_session(self) -> None:
         """A host session starts: clock at 0, command dropped, torque off (see the module doc)."""
         with self._lock:
-            self._catch_up()
+            self._catch_up(force=True)
             self.sessions += 1
             self._rebase(0.0)
             self._command = 0.0
@@ -298,10 +302,10 @@ class SimulatedDevice:
         """Integrate the wall-clock time the host left unpolled (``wall_clock`` devices only).
 
         Up to ``until`` (default now), when more than :data:`IDLE_AFTER_S` has
-        passed since the plant was last integrated (or any time with ``force``);
-        the power stage applies :attr:`command` over it.
+        passed since the plant was last integrated and the axis is not enabled
+        (or at any time with ``force``); the power stage applies :attr:`command` over it.
         """
-        if not self.wall_clock:
+        if not self.wall_clock or (self.state is PowerState.ENABLED and not force):
             return
         now = self._clock() if until is None else until
         lag_s = now - self._wall_due

@@ -175,7 +175,7 @@ def _set(doc, dotted, value):
     *parents, last = dotted.split(".")
     node = doc
     for p in parents:
-        node = node[p]
+        node = node.setdefault(p, {})  # [units] is optional: the shipped map gives register units
     if value is _DELETE:
         del node[last]
     else:
