@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from servobench.errors import LogFormatError, one_line
+from servobench.units import SignalUnits
 
 REQUIRED = ("t", "u")
 SIGNALS = ("run", "t", "u", "v", "x")
@@ -103,6 +104,11 @@ class ExperimentLog:
     fs_hz: float
     complete: bool = True
     source: str = ""
+
+    @property
+    def units(self) -> SignalUnits:
+        """The units of ``u``, ``v`` and ``x`` its ``unit_*`` metadata states."""
+        return SignalUnits.from_metadata(self.metadata)
 
     def run(self, number: int) -> RunData:
         for r in self.runs:

@@ -27,6 +27,7 @@ import numpy as np
 from servobench.bench.identify.frequency import model_frf
 from servobench.errors import IdentificationError, UsageError
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
+from servobench.units import SignalUnits
 
 #: Keys of :attr:`IdentificationResult.std`.
 STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
@@ -213,6 +214,8 @@ class IdentificationResult:
         SIDBE's measured differential FRF (for plots).
     verification : Verification or None
         Measured and simulated velocity per run (for plots).
+    units : SignalUnits
+        Units of the log's signals; :meth:`to_json` gives every parameter's unit.
     """
 
     model: ServoModel
@@ -226,10 +229,12 @@ class IdentificationResult:
     notes: tuple[str, ...] = ()
     frf: Any = None
     verification: Any = None
+    units: SignalUnits = SignalUnits()
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON dict with the contract keys (``M``, ``B``, ``pole``, ``dc_gain``,
-        ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``, ``method``, ``std``, ``selection``)."""
+        ``coulomb_pos``, ``coulomb_neg``, ``fit_percent``, ``method``, ``std``, ``selection``,
+        ``units``: the unit of every parameter and signal, see :mod:`servobench.units`)."""
         out = self.model.as_dict()
         out.update(
             {
@@ -241,6 +246,7 @@ class IdentificationResult:
                 "noise_std": _finite(self.noise_std),
                 "validation": {k: _finite(v) for k, v in self.validation.items()},
                 "notes": list(self.notes),
+                "units": self.units.parameters(),
             }
         )
         return out

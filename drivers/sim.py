@@ -16,7 +16,7 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import PowerState, SimulatedDevice
-from servobench.sim_backend.simurl import plant_from_url, sim_query_keys
+from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
 
 
 class SimDrive(Drive):
@@ -24,7 +24,6 @@ class SimDrive(Drive):
 
     query_keys = sim_query_keys()
     drive_clock = True
-    units = {"u": "command units", "v": "units/s", "x": "units"}
 
     def __init__(self, url) -> None:
         super().__init__(url)
@@ -34,6 +33,8 @@ class SimDrive(Drive):
         self.realtime = pace == "real"
         self.supports_block = not self.realtime
         self.device = SimulatedDevice(plant_from_url(self.url))
+        signal_units = units_from_url(self.url)
+        self.units = {"u": signal_units.u, "v": signal_units.v, "x": signal_units.x}
         self._t0_wall: float | None = None
 
     def _open(self) -> None:

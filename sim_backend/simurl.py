@@ -16,6 +16,7 @@ from servobench.errors import DriveConfigError, UsageError
 from servobench.sim_backend.physics import effects
 from servobench.sim_backend.physics.plant import PlantParams
 from servobench.tomlfile import TomlTable, read_toml
+from servobench.units import LINEAR, ROTARY, SignalUnits
 
 #: Base physics keys of ``sim://`` and plant files (a contract), each with the
 #: :class:`~servobench.sim_backend.physics.coulomb.PlantParams` field it sets. The one place
@@ -34,7 +35,9 @@ PLANT_FIELDS: dict[str, str] = {
 }
 PLANT_KEYS = frozenset(PLANT_FIELDS)
 #: Keys that configure the simulated drive rather than the physics.
-DEVICE_KEYS = frozenset({"seed", "pace", "plant"})  # "pace" is also a common key
+DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units"})  # "pace" is also a common key
+#: ``units=`` of ``sim://``: what the simulated axis's signals are in.
+AXIS_UNITS = {"rotary": ROTARY, "linear": LINEAR}
 
 
 def sim_query_keys() -> frozenset[str]:
@@ -116,3 +119,12 @@ def plant_query(params: PlantParams) -> dict[str, float]:
             query[key] = float(value)
     query.update(effects.to_query(params.effects))
     return query
+
+
+def units_from_url(url: DriveURL) -> SignalUnits:
+    """The signal units of a ``sim://`` drive: ``units=rotary`` (N m, rad/s, rad; the
+    default) or ``units=linear`` (N, m/s, m)."""
+    name = url.get_str("units", "rotary")
+    if name not in AXIS_UNITS:
+        raise DriveConfigError(f"sim units must be 'rotary' or 'linear', got {name!r}")
+    return AXIS_UNITS[name]

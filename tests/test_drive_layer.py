@@ -285,10 +285,9 @@ def test_log_metadata_carries_the_known_units_only():
         assert {k: meta[k] for k in ("unit_u", "unit_v", "unit_x")} == {
             f"unit_{k}": v for k, v in drive.units.items()
         }
-    class Bare(type(drive)):
-        units = {"u": "N m", "v": "", "x": "rad"}
-
-    assert Bare("sim://").log_metadata() == {"unit_u": "N m", "unit_x": "rad"}
+    bare = open_drive("sim://")  # not opened: units are a plain attribute
+    bare.units = {"u": "N m", "v": "", "x": "rad"}
+    assert bare.log_metadata() == {"unit_u": "N m", "unit_x": "rad"}
 
 
 def test_feedback_applied_defaults_to_not_reported():

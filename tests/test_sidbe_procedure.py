@@ -34,6 +34,19 @@ def test_default_sim_drive_is_identified_and_files_written(tmp_path):
     saved = json.loads((tmp_path / "model.json").read_text())
     assert saved["M"] == pytest.approx(m.M) and saved["verification"]["passed"] is True
     assert calls and calls[-1][1] == calls[-1][2]
+    # sim:// is a rotary axis in SI unless told otherwise: the log and the model say so
+    assert (log.metadata["unit_u"], log.metadata["unit_v"], log.metadata["unit_x"]) == (
+        "N m", "rad/s", "rad",
+    )  # fmt: skip
+    assert saved["units"]["M"] == "kg m^2" and saved["units"]["B"] == "N m s/rad"
+    assert saved["units"]["coulomb_pos"] == saved["units"]["coulomb_neg"] == "N m"
+
+
+def test_a_linear_sim_axis_gives_a_model_in_kg_and_n(tmp_path):
+    r = run_sidbe(open_drive("sim://?units=linear"), SidbeOptions(plots=False, **FAST), tmp_path)
+    units = json.loads((tmp_path / "model.json").read_text())["units"]
+    assert (units["M"], units["B"], units["coulomb_pos"], units["pole"]) == ("kg", "N s/m", "N", "1/s")
+    assert r.result.units.x == "m"
 
 
 def test_step6_raises_the_amplitude_when_the_first_try_fails(tmp_path):

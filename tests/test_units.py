@@ -40,3 +40,31 @@ def test_metadata_round_trip(units):
     assert all(meta.values())  # unknown units are not written
     assert SignalUnits.from_metadata(meta) == units
     assert SignalUnits.from_metadata({"unit_u": "  N m ", "fs": "1000"}).u == "N m"
+
+
+def test_a_log_without_units_gives_generic_parameter_units(tmp_path):
+    from servobench.bench.identify.auto import identify
+    from servobench.bench.logio import read_log
+
+    rows = []
+    v = 0.0
+    for k in range(4000):  # a noise-free first-order plant, u = +-1 square wave, no friction
+        u = 1.0 if (k // 500) % 2 == 0 else -1.0
+        rows.append(f"{k / 1000:.3f},{u},{v:.12g}")
+        v += (u - v) * (1 - 2.718281828459045 ** -0.01)
+    path = tmp_path / "plain.csv"
+    path.write_text("# fs = 1000\nt,u,v\n" + "\n".join(rows) + "\n")
+    log = read_log(path)
+    assert log.units == SignalUnits()
+    units = identify(log, "joint").to_json()["units"]
+    assert units["B"] == "(command unit)/(velocity unit)" and units["pole"] == "1/s"
+    path.write_text("# fs = 1000\n# unit_u = N\n# unit_v = m/s\nt,u,v\n" + "\n".join(rows) + "\n")
+    assert identify(read_log(path), "joint").to_json()["units"]["M"] == "kg"
+
+
+def test_sim_units_key_is_checked():
+    from servobench.drivers.registry import open_drive
+    from servobench.errors import DriveConfigError
+
+    with pytest.raises(DriveConfigError, match="rotary"):
+        open_drive("sim://?units=imperial")

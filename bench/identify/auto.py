@@ -104,6 +104,7 @@ def identify_data(
         notes=est.notes,
         frf=est.frf if est.frf is not None else frf,
         verification=ver,
+        units=data.units,
     )
 
 

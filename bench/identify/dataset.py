@@ -30,6 +30,7 @@ from servobench.bench.identify.derivative import (
 )
 from servobench.bench.logio import ExperimentLog, RunData
 from servobench.errors import IdentificationError
+from servobench.units import SignalUnits
 
 #: Relative spread of the sample intervals above which per-interval dt is used.
 JITTER_RTOL = 1e-3
@@ -158,6 +159,8 @@ class Dataset:
         Facts worth reporting (derived velocity, irregular sampling).
     closed_loop : bool or None
         From the ``loop`` metadata key (``open``/``closed ...``); None when unknown.
+    units : SignalUnits
+        Units of the signals, from the log's ``unit_*`` metadata.
     """
 
     segments: tuple[Segment, ...]
@@ -166,6 +169,7 @@ class Dataset:
     source: str = ""
     notes: tuple[str, ...] = ()
     closed_loop: bool | None = None
+    units: SignalUnits = SignalUnits()
 
     @property
     def dt_s(self) -> float:
@@ -266,7 +270,7 @@ def prepare(
         design = design.with_periods(shortest // design.samples_per_period)
     loop = log.metadata.get("loop", "").strip().lower()
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
-    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed)
+    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units)
 
 
 def _segment(
