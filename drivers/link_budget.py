@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from servobench.errors import UsageError
+
 #: CAN 2.0A frame without data: SOF, 11-bit id, RTR, IDE, r0, DLC, CRC(15)+del, ACK(2), EOF(7), IFS(3) [bits].
 CAN_FRAME_OVERHEAD_BITS = 47
 #: Bits exposed to stuffing in a base frame with no data (SOF to CRC) [bits].
@@ -152,3 +154,30 @@ def default_rate_hz(
         raise ValueError(f"the link carries {max_rate_hz:.3g} Hz: too slow for a cycle rate")
     decade = 10.0 ** math.floor(math.log10(budget))
     return max(m * decade for m in NICE_RATES if m * decade <= budget)
+
+
+def sample_rate_hz(
+    requested_hz: float | None, max_rate_hz: float, ceiling_hz: float, link: str = "the link"
+) -> float:
+    """The cycle rate to stream at [Hz]: ``requested_hz`` when the link carries it, else refused.
+
+    With ``requested_hz`` None, :func:`default_rate_hz` of the link's limit
+    (at most ``ceiling_hz``). ``link`` names the link in the refusal.
+
+    Raises
+    ------
+    UsageError
+        ``requested_hz`` beyond ``max_rate_hz``, naming the achievable rate.
+    """
+    if requested_hz is None:
+        try:
+            return default_rate_hz(max_rate_hz, ceiling_hz)
+        except ValueError as err:
+            raise UsageError(f"{link}: {err}") from None
+    if requested_hz > max_rate_hz:
+        suggestion = default_rate_hz(max_rate_hz, ceiling_hz) if max_rate_hz >= 1.25 else 1.0
+        raise UsageError(
+            f"--fs {requested_hz:g} Hz is beyond {link}: it carries at most {max_rate_hz:.0f} "
+            f"cycles/s; use --fs {suggestion:g} (the default there) or less"
+        )
+    return float(requested_hz)

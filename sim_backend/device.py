@@ -61,6 +61,8 @@ IDLE_AFTER_S = 0.2
 #: Most integration steps of one catch-up; longer idle spans take longer steps
 #: (the base plant is exact under zero-order hold for any step).
 MAX_CATCH_UP_STEPS = 100_000
+#: A watchdog-thread wake-up this late means the simulator itself was not running [s].
+STALL_S = 0.05
 #: Power states in which the watchdog is checked by default (an axis with torque).
 TORQUE_STATES = frozenset({"enabled", "quick_stop"})
 
@@ -336,6 +338,11 @@ class SimulatedDevice:
             )
             return True
 
+    def excuse_stall(self, stall_s: float) -> None:
+        """The simulator stalled ``stall_s`` [s]: that time does not count as host silence."""
+        with self._lock:
+            self.last_host_activity = min(self.last_host_activity + stall_s, self._clock())
+
     @property
     def is_stopped(self) -> bool:
         """True when no torque is applied and the axis is at rest."""
@@ -343,7 +350,15 @@ class SimulatedDevice:
 
 
 class WatchdogThread(threading.Thread):
-    """Polls :meth:`SimulatedDevice.check_watchdog` every ``period_s`` until stopped."""
+    """Polls :meth:`SimulatedDevice.check_watchdog` every ``period_s`` until stopped.
+
+    A simulator process that was not scheduled for a while (a loaded machine)
+    has not read the requests that arrived meanwhile; a wake-up later than
+    :data:`STALL_S` after the previous one therefore shifts the host's last
+    activity by the stall instead of checking, so the drive does not blame
+    the host for its own stall (a host that really went silent trips the
+    watchdog at the next check that follows an on-time wake-up).
+    """
 
     def __init__(self, device: SimulatedDevice, period_s: float = 0.01) -> None:
         super().__init__(name="sim-watchdog", daemon=True)
@@ -352,8 +367,14 @@ class WatchdogThread(threading.Thread):
         self._stop_event = threading.Event()
 
     def run(self) -> None:
+        last = time.monotonic()
         while not self._stop_event.wait(self.period_s):
-            self.device.check_watchdog()
+            now = time.monotonic()
+            if now - last > max(STALL_S, 5 * self.period_s):
+                self.device.excuse_stall(now - last - self.period_s)
+            else:
+                self.device.check_watchdog()
+            last = now
 
     def stop(self) -> None:
         self._stop_event.set()

@@ -9,6 +9,7 @@ from servobench.bench.commands.excitation_args import (
     add_excitation_arguments,
     check_amplitude,
     design_from_args,
+    link_rate_hz,
 )
 
 
@@ -27,8 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from servobench.bench.run.runner import stream_runs
     from servobench.drivers.registry import open_drive
 
-    design = design_from_args(args)
     drive = open_drive(args.drive)
+    design = design_from_args(args, link_rate_hz(args.fs, drive))
     check_amplitude(design.amplitude, drive.limits.max_command)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -50,11 +51,13 @@ def run(args: argparse.Namespace) -> int:
                 "log": str(res.log_path),
                 "samples": res.samples,
                 "complete": res.complete,
+                "fs_achieved": res.fs_achieved_hz,
                 **design.metadata(),
             }
         )
     else:
         print(
-            f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g})"
+            f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g}, "
+            f"{design.fs_hz:g} Hz, achieved {res.fs_achieved_hz:.6g} Hz)"
         )
     return 0
