@@ -9,6 +9,7 @@ ASCII protocol, not against the code that computes them.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 
@@ -32,9 +33,9 @@ def test_modbus_rtu_limit_is_the_frames_of_one_fc23_cycle():
 
 
 def test_modbus_rtu_limit_without_fc23_and_at_9600_baud(tmp_path):
-    text = open_drive(RTU).regmap.path
+    shipped = Path(open_drive(RTU).regmap.path).read_text()
     path = tmp_path / "nofc23.toml"
-    path.write_text(open(text).read().replace("fc23 = true", "fc23 = false"))
+    path.write_text(shipped.replace("fc23 = true", "fc23 = false"))
     drive = open_drive(RTU.replace("115200", "9600").replace("servobench-sim", str(path)))
     # FC16 write of 2 registers: 13 bytes out, 8 back; FC03 read of 8: 8 out, 21 back
     char_s, gap_s = 10 / 9600, 3.5 * 11 / 9600  # t3.5 of 11-bit characters below 19200 baud
