@@ -172,27 +172,27 @@ class PtyLink:
     def _run(self, dirs: list[_Direction]) -> None:
         _tighten_timer_slack()
         master_a = dirs[0].src
-        hangup = select.poll()
-        hangup.register(master_a, 0)  # POLLHUP is always reported
+        looks = select.poll()
+        looks.register(master_a, select.POLLIN)  # POLLHUP is reported whatever is asked
         hung = True
         while not self._stopping:
-            if hangup.poll(0):
-                if not hung:
-                    for d in dirs:
-                        d.drop()
+            events = looks.poll(0)
+            closed = any(ev & select.POLLHUP for _, ev in events)
+            waiting = any(ev & select.POLLIN for _, ev in events)
+            if closed and not hung:  # the client went: answers in flight have nobody to go to
                 hung = True
-            elif hung:
-                hung = False
-                self.opens += 1
-                if self.on_open is not None:
-                    self.on_open()
-            watch = [d.src for d in dirs if not (hung and d.src == master_a)] + [self._wake_r]
+                for d in dirs:
+                    d.drop()
+            if hung and (not closed or waiting):  # a client opened A (and maybe left already)
+                hung = closed
+                self._opened()
+            watch = [d.src for d in dirs if d.src != master_a or not closed or waiting]
             now = time.monotonic()
             wakes = [w for d in dirs if (w := d.next_wake()) is not None]
-            if hung:
+            if closed and not waiting:
                 wakes.append(now + HANGUP_POLL_S)
             timeout = max(0.0, min(wakes) - now) if wakes else None
-            readable, _, _ = select.select(watch, [], [], timeout)
+            readable, _, _ = select.select([*watch, self._wake_r], [], [], timeout)
             now = time.monotonic()
             for d in dirs:
                 if d.src in readable:
@@ -207,6 +207,11 @@ class PtyLink:
                     if data:
                         d.accept(data, now, self.t_char_s, self.frame_gap_s)
                 d.deliver(now)
+
+    def _opened(self) -> None:
+        self.opens += 1
+        if self.on_open is not None:
+            self.on_open()
 
     def tamper_next(self, rewrite: Tamper) -> None:
         """Rewrite the next frame sent from B to A with ``rewrite(frame) -> frame`` (once)."""

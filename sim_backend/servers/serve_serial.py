@@ -362,18 +362,12 @@ def pump(
     pending = bytearray()
     dropping = False  # inside an over-long line: ignore up to its end
     ends = server.dialect.line_ends
-    hung = True
+    hung = port is not None  # no client has the port open (yet)
     while not stop.is_set():
-        if port is not None:
-            if port.hung_up():
-                hung = True
-                stop.wait(HANGUP_POLL_S)
-                continue
-            if hung:
-                hung, dropping = False, False
-                pending.clear()
-                server.begin_session()
-        ready, _, _ = select.select([fd], [], [], STOP_POLL_S if port is None else HANGUP_POLL_S)
+        if hung and port is not None and not port.hung_up():
+            hung = False  # a client opened the port: a new host session
+            server.begin_session()
+        ready, _, _ = select.select([fd], [], [], STOP_POLL_S)
         if not ready:
             continue
         try:
@@ -381,10 +375,16 @@ def pump(
         except BlockingIOError:
             continue
         except OSError as err:
-            if err.errno != errno.EIO:  # EIO: no client has the port open
+            if err.errno != errno.EIO:  # EIO: no client has the port open, nothing left to read
                 raise
-            time.sleep(HANGUP_POLL_S)
+            if not hung:
+                hung, dropping = True, False
+                pending.clear()
+            stop.wait(HANGUP_POLL_S)
             continue
+        if hung and port is not None:  # lines of a client that came and went between two looks
+            hung = False
+            server.begin_session()
         start = clock.receive(len(data), time.monotonic())
         for k, text in _lines(data, ends):
             if k < 0:
