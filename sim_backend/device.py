@@ -13,11 +13,10 @@ Wall-clock time (served drives)
 A real axis does not wait for the host: after a quick stop it coasts down
 whether anybody polls it or not. A device made with ``wall_clock=True``
 (every served transport, :func:`servobench.sim_backend.servers.serve.run_server`)
-therefore integrates the wall-clock time the host left unpolled while its
-power stage is off (disabled, quick stop, fault): whenever more than
-:data:`IDLE_AFTER_S` has passed since the last clocked cycle ended, the next
-call first advances the plant and the drive clock by that time with zero
-command, and the axis coasts down as a real one does. While the axis is
+therefore integrates wall-clock time while its power stage is off
+(disabled, quick stop, fault): every call first advances the plant and the
+drive clock by the time since the plant was last integrated, with zero
+command, so the axis coasts down as a real one does, polled or not. While the axis is
 enabled the drive stays lock-step (one clock per cycle, exact ZOH), as the
 host's streaming contract says, so a host that falls behind on a loaded
 machine does not change the data; its silence is still bounded by the
@@ -55,9 +54,6 @@ from servobench.sim_backend.physics.plant import Plant, PlantParams
 WATCHDOG_FAULT = 0x8130
 #: Fault code of a generic drive fault injected by tests or the fault injector.
 GENERIC_FAULT = 0x1000
-#: Host silence after which a wall-clock device integrates the elapsed time [s]
-#: rather than treating the next poll as the next lock-step cycle.
-IDLE_AFTER_S = 0.2
 #: Most integration steps of one catch-up; longer idle spans take longer steps
 #: (the base plant is exact under zero-order hold for any step).
 MAX_CATCH_UP_STEPS = 100_000
@@ -303,15 +299,14 @@ class SimulatedDevice:
     def _catch_up(self, until: float | None = None, force: bool = False) -> None:
         """Integrate the wall-clock time the host left unpolled (``wall_clock`` devices only).
 
-        Up to ``until`` (default now), when more than :data:`IDLE_AFTER_S` has
-        passed since the plant was last integrated and the axis is not enabled
-        (or at any time with ``force``); the power stage applies :attr:`command` over it.
+        Up to ``until`` (default now), when the axis is not enabled (or at any
+        time with ``force``); the power stage applies :attr:`command` over it.
         """
         if not self.wall_clock or (self.state is PowerState.ENABLED and not force):
             return
         now = self._clock() if until is None else until
         lag_s = now - self._wall_due
-        if lag_s <= 0 or (lag_s <= IDLE_AFTER_S and not force):
+        if lag_s <= 0:
             return
         n = min(MAX_CATCH_UP_STEPS, max(1, math.ceil(lag_s / self.cycle_s - 1e-9)))
         if self.command != 0.0 or self.plant.state.v != 0.0:
