@@ -155,3 +155,33 @@ def test_a_watchdog_error_an_earlier_host_left_is_cleared_and_said(firmware):
         time.sleep(0.4)  # disarmed on close: idle, it stays clean
         with open_drive(served.url) as again:
             assert again.fault_code() == 0
+
+
+def run_on_a_fresh_drive(keys: str) -> tuple[object, list]:
+    with ServedSim("serial", SIM) as served, open_drive(served.url + keys) as drive:
+        drive.set_cycle(0.002)
+        drive.enable()
+        return drive, [drive.exchange(1.5)[0] for _ in range(60)]
+
+
+def test_units_si_converts_turns_and_says_so():
+    turn, turn_rows = run_on_a_fresh_drive("")
+    rad, rad_rows = run_on_a_fresh_drive("&units=si")
+    assert dict(turn.units) == {"u": "N m", "v": "turn/s", "x": "turn"}
+    assert dict(rad.units) == {"u": "N m", "v": "rad/s", "x": "rad"}
+    meta = rad.log_metadata()
+    assert meta["unit_v"] == "rad/s" and meta["unit_x"] == "rad"
+    assert meta["unit_conversion"] == (
+        "by the host (units=si): x turn -> rad (* 6.28318531), v turn/s -> rad/s (* 6.28318531)"
+    )
+    assert "unit_conversion" not in turn.log_metadata()
+    two_pi = 2 * 3.141592653589793
+    for a, b in zip(turn_rows, rad_rows, strict=True):  # the same plant, the same commands
+        assert b.position == pytest.approx(two_pi * a.position, abs=1e-9)
+        assert b.velocity == pytest.approx(two_pi * a.velocity, abs=1e-9)
+    assert turn_rows[-1].velocity > 0.5
+
+
+def test_units_must_be_drive_or_si():
+    with pytest.raises(DriveConfigError, match="units must be 'drive' or 'si', got 'imperial'"):
+        open_drive("serial:///dev/ttyACM7?units=imperial")
