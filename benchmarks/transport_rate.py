@@ -7,8 +7,9 @@ stack as fast as the link answers (``pace=fast``); then at a fixed 1 kHz or
 the jitter a bench would see. Link limits:
 
 - CANopen at 1 Mbit/s: SYNC + RPDO + TPDOs, with and without worst-case bit
-  stuffing (servobench maps SYNC + 4-byte RPDO + two 8-byte TPDOs; the
-  reference layout SYNC + 4-byte RPDO + one 8-byte TPDO is 237-285 us);
+  stuffing (on the generic served drive servobench maps a 6-byte RPDO:
+  controlword, target torque, torque offset; and two 8-byte TPDOs; a
+  drive-side hold adds a 4-byte RPDO, which ``Drive.max_rate_hz`` counts);
 - Modbus RTU at 115200 baud: the frames of one cycle plus a t3.5 after each;
 - Modbus TCP: the Ethernet frames at 100 Mbit/s (the wire is rarely the limit);
 - serial ASCII at 115200 baud: the bytes actually exchanged, 10 bits each.
@@ -61,8 +62,8 @@ def measure(url: str, n: int, rate_hz: float | None) -> tuple[np.ndarray, object
 def link_limit(transport: str, extra: tuple[float, object]) -> tuple[float, str]:
     bytes_per_cycle, regmap = extra
     if transport == "canopen":
-        best, worst = canopen_cycle_s([0, 4, 8, 8])
-        return worst, f"SYNC+RPDO(4)+2 TPDO(8): {best * 1e6:.0f}-{worst * 1e6:.0f} us"
+        best, worst = canopen_cycle_s([6, 0, 8, 8])
+        return worst, f"RPDO(6)+SYNC+2 TPDO(8): {best * 1e6:.0f}-{worst * 1e6:.0f} us"
     if transport == "modbus-rtu":
         frames = modbus_rtu_frames(regmap["command"].count, regmap.feedback.count, regmap.fc23)
         return modbus_rtu_cycle_s(frames), f"{'FC23' if regmap.fc23 else 'write+read'} {frames} B + t3.5"

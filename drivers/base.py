@@ -328,7 +328,7 @@ class Drive(ABC):
     def command(self, u: float) -> float:
         """Send command ``u`` (clamped to the limits); return the value applied."""
         self._require_open()
-        applied = self.limits.clamp(float(u))
+        applied = self._representable(self.limits.clamp(float(u)))
         self._write_command(applied)
         return applied
 
@@ -343,7 +343,7 @@ class Drive(ABC):
         Returns the feedback and the command actually applied (after clamping).
         """
         self._require_open()
-        applied = self.limits.clamp(float(u))
+        applied = self._representable(self.limits.clamp(float(u)))
         return self._checked(self._exchange(applied)), applied
 
     def exchange_block(self, u: np.ndarray) -> BlockFeedback:
@@ -470,6 +470,15 @@ class Drive(ABC):
 
     def _quick_stop(self) -> None:
         self._write_command(0.0)
+
+    def _representable(self, u: float) -> float:
+        """The command nearest ``u`` that the drive can represent (its command resolution).
+
+        The default is ``u`` itself; a backend whose command travels as an
+        integer (CiA 402 per-mille torque) rounds here, so that the command
+        returned as applied, and logged, is the one the drive received.
+        """
+        return u
 
     def _hold_position(self, x_ref: float) -> None:
         raise NotImplementedError(f"{type(self).__name__} declares a drive-side hold but has none")

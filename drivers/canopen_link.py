@@ -9,6 +9,8 @@ received frames, under one lock, with the send time and direction.
 from __future__ import annotations
 
 import io
+import os
+import socket
 import threading
 import time
 from importlib import resources
@@ -20,16 +22,85 @@ from can.interfaces.socketcand.socketcand import (
     convert_can_message_to_ascii_message,
 )
 
-from servobench.errors import DriveConnectionError
+from servobench.errors import DriveConnectionError, DriveTimeoutError
+
+#: Deadline for reaching a socketcand server over TCP [s] (python-can itself retries for 10 s).
+CONNECT_TIMEOUT_S = 2.0
+#: Deadline for each answer of the socketcand handshake (``< hi >``, ``< ok >``) [s]: python-can
+#: waits for them forever, so a port that is no socketcand server would hang it.
+HANDSHAKE_TIMEOUT_S = 1.0
+
+
+#: The generic CiA 402 EDS servobench ships (types of the standard objects).
+GENERIC_EDS = "cia402"
+
+
+def shipped_eds() -> list[str]:
+    """Names of the EDS files servobench ships (``cia402``, ``zeroerr-edriver``, ...)."""
+    folder = resources.files("servobench.drivers").joinpath("data")
+    return sorted(p.name[:-4] for p in folder.iterdir() if p.name.endswith(".eds"))
 
 
 def load_eds(node_id: int, path: str | None = None) -> canopen.ObjectDictionary:
-    """The object dictionary of ``path`` (default: the shipped generic CiA 402 EDS)."""
-    if path:
+    """The object dictionary of the EDS file ``path``, or of a shipped EDS named by its
+    stem (``eds=zeroerr-edriver``); default the shipped generic CiA 402 EDS."""
+    name = path or GENERIC_EDS
+    if path and (os.path.exists(path) or name not in shipped_eds()):
         return canopen.import_od(path, node_id)
-    stream = io.StringIO(resources.files("drivers").joinpath("data/cia402.eds").read_text("ascii"))
-    stream.name = "cia402.eds"
+    data = resources.files("servobench.drivers").joinpath(f"data/{name}.eds")
+    stream = io.StringIO(data.read_text("ascii"))
+    stream.name = f"{name}.eds"
     return canopen.import_od(stream, node_id)
+
+
+def _expect(sock: socket.socket, want: str, where: str, deadline: float) -> None:
+    """Read one ``< ... >`` answer before ``deadline`` and check that it is ``want``."""
+    text = b""
+    while b">" not in text:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise DriveTimeoutError(
+                f"{where} is no socketcand server: no '{want}' within {HANDSHAKE_TIMEOUT_S} s"
+                + (f" (got {text[:40]!r})" if text else "")
+            )
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(256)
+        except TimeoutError:
+            continue
+        if not chunk:
+            raise DriveConnectionError(f"{where} closed the connection before '{want}'")
+        text += chunk
+    answer = text[text.find(b"<") : text.find(b">") + 1].decode("ascii", "replace")
+    if " ".join(answer.split()) != want:
+        raise DriveConnectionError(f"{where} answered {answer!r} where socketcand says '{want}'")
+
+
+def probe_socketcand(host: str, port: int, channel: str) -> None:
+    """Check that ``host:port`` is a socketcand server serving ``channel``, under deadlines.
+
+    Connects (:data:`CONNECT_TIMEOUT_S`), expects the greeting ``< hi >``, opens
+    the bus and expects ``< ok >`` (:data:`HANDSHAKE_TIMEOUT_S` each), then
+    closes. python-can's own client waits for these answers without a
+    time-out; this makes a wrong port a one-line error instead of a hang.
+    """
+    where = f"{host}:{port}"
+    try:
+        sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
+    except OSError as err:
+        raise DriveConnectionError(
+            f"cannot reach the socketcand server {where}: {err.strerror or err}"
+        ) from err
+    try:
+        _expect(sock, "< hi >", where, time.monotonic() + HANDSHAKE_TIMEOUT_S)
+        sock.sendall(f"< open {channel} >".encode("ascii"))
+        _expect(sock, "< ok >", f"{where} (bus {channel})", time.monotonic() + HANDSHAKE_TIMEOUT_S)
+    except OSError as err:
+        if isinstance(err, (DriveConnectionError, DriveTimeoutError)):
+            raise
+        raise DriveConnectionError(f"socketcand handshake with {where} failed: {err}") from err
+    finally:
+        sock.close()
 
 
 class CounterUnwrap:

@@ -113,6 +113,35 @@ COMMAND_NAMES: dict[int, str] = {
 }
 
 
+#: Modes of operation (0x6060) servobench uses.
+MODE_PROFILE_TORQUE = 4
+MODE_CSP = 8  # cyclic synchronous position
+MODE_CST = 10  # cyclic synchronous torque
+#: The bit of 0x6502 (supported drive modes) that announces each standard mode.
+SUPPORTED_MODE_BITS: dict[int, int] = {
+    1: 0,  # profile position
+    2: 1,  # velocity
+    3: 2,  # profile velocity
+    4: 3,  # profile torque
+    6: 5,  # homing
+    7: 6,  # interpolated position
+    8: 7,  # cyclic synchronous position
+    9: 8,  # cyclic synchronous velocity
+    10: 9,  # cyclic synchronous torque
+}
+
+
+def supports_mode(supported_drive_modes: int, mode: int) -> bool:
+    """True when 0x6502 ``supported_drive_modes`` announces mode of operation ``mode``."""
+    bit = SUPPORTED_MODE_BITS.get(mode)
+    return bit is not None and bool(supported_drive_modes >> bit & 1)
+
+
+def supported_drive_modes(modes: list[int] | tuple[int, ...]) -> int:
+    """The 0x6502 value announcing ``modes`` (drive side)."""
+    return sum(1 << SUPPORTED_MODE_BITS[m] for m in set(modes))
+
+
 class Step(NamedTuple):
     """One step of a :func:`plan`: send ``controlword`` (``None``: wait), expect ``next_state``."""
 

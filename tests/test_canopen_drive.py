@@ -7,18 +7,15 @@ socketcand client and canopen, as across processes.
 
 from __future__ import annotations
 
-import queue
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import can
 import canopen
 import numpy as np
 import pytest
 
-from servobench.drivers.canopen402 import CANopen402Drive, load_eds
+from servobench.bench.testing.served_canopen import served, station
+from servobench.drivers.canopen402 import CANopen402Drive
 from servobench.drivers.registry import open_drive
 from servobench.drivers.url import parse_drive_url
 from servobench.errors import (
@@ -27,72 +24,9 @@ from servobench.errors import (
     DriveTimeoutError,
     StateTransitionError,
 )
-from servobench.sim_backend.device import (
-    PowerState,
-    SimulatedDevice,
-    WatchdogThread,
-    device_from_url,
-)
+from servobench.sim_backend.device import PowerState
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 from servobench.sim_backend.servers import serve_canopen
-
-SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
-
-
-@contextmanager
-def served(sim_url: str = SIM, **options: str) -> Iterator[tuple[SimulatedDevice, str]]:
-    """Serve a simulated drive in a thread; yield the device and its drive URL."""
-    device = device_from_url(sim_url)
-    stop, urls = threading.Event(), queue.Queue()
-    errors: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            serve_canopen.serve(device, stop, urls.put, {"node": "2", **options})
-        except BaseException as err:
-            errors.append(err)
-            urls.put(None)
-
-    watchdog = WatchdogThread(device)
-    watchdog.start()
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    url = urls.get(timeout=10)
-    try:
-        if url is None:
-            raise errors[0]
-        yield device, url
-    finally:
-        stop.set()
-        thread.join(5)
-        watchdog.stop()
-    assert not thread.is_alive()
-    assert not errors, errors
-
-
-@contextmanager
-def station(url: str) -> Iterator[canopen.RemoteNode]:
-    """A second host on the same bus: a plain canopen RemoteNode of the served node.
-
-    For NMT, or SDO while no driver is open: two SDO clients on the default
-    channel see each other's responses, as on a real bus.
-    """
-    q = parse_drive_url(url)
-    network = canopen.Network()
-    network.NOTIFIER_CYCLE = 0.05  # quick disconnect
-    network.connect(
-        interface="socketcand",
-        channel=q.host,
-        host=q.get_str("host"),
-        port=q.get_int("port"),
-        tcp_tune=True,
-    )
-    try:
-        node = network.add_node(q.get_int("node"), load_eds(q.get_int("node")))
-        network.send_message(0x77E, b"\x05")  # speak once: the hub forwards to us at once
-        yield node
-    finally:
-        network.disconnect()
 
 
 def square(n: int, period: int = 100, amp: float = 1.0) -> np.ndarray:
@@ -297,7 +231,7 @@ def test_bad_urls_are_refused(url: str, match: str) -> None:
         (
             "socketcan:can0",
             {"interface": "socketcan", "channel": "can0"},
-            "canopen://can0?interface=socketcan&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://can0?interface=socketcan&node=3",
         ),
         (
             "socketcand://127.0.0.1:29536",
@@ -308,12 +242,12 @@ def test_bad_urls_are_refused(url: str, match: str) -> None:
                 "port": 29536,
                 "tcp_tune": True,
             },
-            "canopen://vcan0?interface=socketcand&host=127.0.0.1&port=29536&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://vcan0?interface=socketcand&host=127.0.0.1&port=29536&node=3",
         ),
         (
             "slcan:/dev/ttyACM0",
             {"interface": "slcan", "channel": "/dev/ttyACM0"},
-            "canopen://?interface=slcan&channel=%2Fdev%2FttyACM0&node=3&pos_scale=1e-06&vel_scale=1e-06",
+            "canopen://?interface=slcan&channel=%2Fdev%2FttyACM0&node=3",
         ),
     ],
 )
@@ -324,6 +258,7 @@ def test_link_options_and_announced_urls(link: str, kwargs: dict | None, url: st
             kwargs["interface"], kwargs["channel"], 3, kwargs.get("host"), kwargs.get("port")
         )
         assert built == url
+        assert "scale" not in built  # the drive's factor group tells the units
         drive = open_drive(built)  # the driver accepts what the server announces
         assert (drive.interface, drive.channel, drive.node_id) == (
             kwargs["interface"],

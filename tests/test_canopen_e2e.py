@@ -17,6 +17,7 @@ import pytest
 
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.registry import open_drive
+from servobench.drivers.url import parse_drive_url
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
@@ -25,6 +26,7 @@ PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 STREAMING_HOST = """
 import sys
 from servobench.drivers.registry import open_drive
+from servobench.drivers.url import parse_drive_url
 drive = open_drive(sys.argv[1]).open()
 drive.set_cycle(0.001)
 drive.enable()
@@ -45,7 +47,9 @@ def served() -> Iterator[ServedSim]:
 
 def test_announced_url(served: ServedSim) -> None:
     assert served.url.startswith("canopen://vcan0?interface=socketcand&host=127.0.0.1&port=")
-    assert "&node=2&" in served.url
+    query = parse_drive_url(served.url).query
+    assert query["node"] == "2"
+    assert not {"pos_scale", "vel_scale"} & set(query)  # the drive's factor group tells the units
 
 
 def test_square_wave_matches_the_plant(served: ServedSim) -> None:

@@ -22,6 +22,8 @@ from servobench.drivers.cia402 import (
     encode_statusword,
     next_state,
     plan,
+    supported_drive_modes,
+    supports_mode,
 )
 from servobench.errors import DriveError, StateTransitionError
 
@@ -167,3 +169,19 @@ def test_plan_is_the_shortest_standard_path(
     src: CiA402State, dst: CiA402State, controlwords: list[int | None]
 ) -> None:
     assert [step.controlword for step in plan(src, dst)] == controlwords
+
+
+# 0x6502 values real drives publish: ZeroErr eDriver 909 (its EDS), an MD80
+# controller 0x00030287 (its object dictionary: PP, VL, PV, CSP, CST and two
+# manufacturer-specific modes in bits 16 and 17).
+@pytest.mark.parametrize(
+    ("supported", "offered", "absent"),
+    [
+        (909, {1, 3, 4, 8, 9, 10}, {2, 6, 7}),
+        (0x00030287, {1, 2, 3, 8, 10}, {4, 6, 7, 9}),
+    ],
+)
+def test_supported_drive_modes_of_published_drives(supported, offered, absent) -> None:
+    assert {m for m in offered | absent if supports_mode(supported, m)} == offered
+    assert supported_drive_modes(sorted(offered)) == supported & 0x3FF
+    assert not supports_mode(supported, 0) and not supports_mode(supported, 11)

@@ -32,6 +32,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE"
     )
     p.add_argument(
+        "--eds",
+        default=None,
+        metavar="FILE",
+        help="CANopen: serve the drive with this object dictionary (EDS) instead of the generic one",
+    )
+    p.add_argument(
         "--fault",
         action="append",
         default=[],
@@ -47,6 +53,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from servobench.errors import UsageError
+
+    if args.eds and args.transport != "canopen":
+        raise UsageError(f"--eds applies to --transport canopen only, not {args.transport}")
     options = {
         "host": args.host,
         "port": str(args.port),
@@ -57,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
         "dialect": args.dialect,
         "firmware": args.firmware,
         "can": args.can,
+        "eds": args.eds or "",
         "fault": ";".join(args.fault),
     }
     run_server(args.transport, args.sim, options, state_file=args.state_file)

@@ -1,66 +1,89 @@
 """The simulated drive as a CANopen CiA 402 slave.
 
 :class:`ServedCiA402Drive` puts a :class:`~servobench.sim_backend.device.SimulatedDevice`
-behind a :class:`canopen.LocalNode` loaded from the shipped EDS. canopen's
-LocalNode answers SDOs; this module adds what it lacks:
+behind a :class:`canopen.LocalNode` loaded from an EDS: the shipped generic one,
+or any other (``serve-sim --eds FILE``), whose object set it then has and no
+more: SDO access to an object the EDS lacks aborts with 0x06020000, and the
+drive leaves out whatever needs an object it lacks. canopen's LocalNode
+answers SDOs; this module adds what it lacks:
 
 * the CiA 402 power state machine, stepped by every controlword (SDO or
   RPDO) with :func:`servobench.drivers.cia402.next_state`, the same tables the host plans
   with, and mirrored onto the device (``enable``, ``disable``,
   ``quick_stop``, ``reset_fault``);
-* PDOs: RPDO payloads are written into the object dictionary (controlword,
-  target torque -> ``device.set_command``); on each SYNC the device is
-  clocked once (``device.step()``: feedback sampled at the SYNC, then the
-  latched torque held for one cycle) and the synchronous TPDOs are sent;
+* the modes of operation it implements and its 0x6502 announces: profile
+  torque (4), cyclic synchronous torque (10) (target torque 0x6071 plus the
+  torque offset 0x60B2), and cyclic synchronous position (8), where its own
+  position loop (:mod:`servobench.sim_backend.servers.can_position_loop`)
+  holds the target position 0x607A at every SYNC;
+* PDOs and the SYNC (:mod:`servobench.sim_backend.servers.can_sync`);
+* units: the plant is in SI, the objects speak the drive's factor group
+  (:mod:`servobench.sim_backend.servers.can_factor`); 0x1013 is the device
+  clock in µs; 0x6077 reports the torque applied over the cycle before the
+  SYNC, as a drive samples its actual value;
 * NMT: PDOs and SYNC only in OPERATIONAL; leaving OPERATIONAL while the
   axis is enabled quick-stops it; a heartbeat goes out at once on a change;
+  0x1006 and 0x60C2 (both set the device's cycle) are written in
+  PRE-OPERATIONAL only (abort 0x08000022 in OPERATIONAL, as many drives do);
 * the heartbeat consumer 0x1016: host heartbeats feed the device watchdog,
   set to the consumer time when 0x6007 (abort connection option) is 1,
-  so host silence faults the axis with 0x8130 (the sim_backend watchdog
-  thread does the tripping); an EMCY goes out on every fault.
-
-Units served: 0x6071/0x6072/0x6077 per-mille of the rated torque, the
-device's command unit being one rated torque; 0x6064 in :data:`POS_SCALE`
-position units per increment, 0x606C in :data:`VEL_SCALE` velocity units per
-LSB; 0x1013 the device clock in µs. The quick stop (0x605A) keeps QUICK STOP
-ACTIVE; profile torque ignores torque slopes (the torque steps).
+  or always when the drive has no 0x6007, so host silence faults the axis
+  with 0x8130 (the sim_backend watchdog thread does the tripping); an EMCY
+  goes out on every fault.
 
 Simplifications: synchronous RPDOs act on receipt (the device latches the
 torque for the next SYNC anyway, but a controlword changes the state at
 once); event-driven TPDOs (types 254/255) are not produced; SDO is also
-answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only.
+answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only; the
+quick stop (0x605A) keeps QUICK STOP ACTIVE; profile torque ignores torque
+slopes (the torque steps).
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import threading
-from collections.abc import Callable
+from collections.abc import Mapping
 
 import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
-from servobench.drivers.cia402 import CiA402State, encode_statusword, next_state
-from servobench.sim_backend.device import DeviceSample, PowerState, SimulatedDevice
-from servobench.sim_backend.faults.can import BUSOFF_FAULT, CanFaultHook
+from servobench.drivers.cia402 import (
+    MODE_CSP,
+    MODE_CST,
+    MODE_PROFILE_TORQUE,
+    CiA402State,
+    encode_statusword,
+    next_state,
+    supports_mode,
+)
+from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.faults.can import CanFaultHook
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import FaultPlan
 from servobench.sim_backend.servers import can_pdo
+from servobench.sim_backend.servers.can_factor import ServedFactors
+from servobench.sim_backend.servers.can_heartbeat import HeartbeatConsumer
+from servobench.sim_backend.servers.can_position_loop import PositionLoop, gains_from_keys
+from servobench.sim_backend.servers.can_sync import SyncEngine
 
 S = CiA402State
 
-#: Position units per increment of 0x6064, and velocity units/s per LSB of 0x606C.
-POS_SCALE = 1e-6
-VEL_SCALE = 1e-6
-#: Modes of operation the simulated drive runs (0x6060 values).
-SUPPORTED_MODES = {4: "profile torque", 10: "cyclic synchronous torque"}
+#: Modes of operation the simulated drive implements (0x6060 values).
+IMPLEMENTED_MODES = {
+    MODE_PROFILE_TORQUE: "profile torque",
+    MODE_CSP: "cyclic synchronous position",
+    MODE_CST: "cyclic synchronous torque",
+}
 #: 0x6007 values the simulated drive implements: 0 no action, 1 fault.
 ABORT_OPTIONS = (0, 1)
-#: SDO abort: attempt to write a read only object.
+#: SDO aborts: attempt to write a read only object; not in the present device state.
 ABORT_READ_ONLY = 0x06010002
-#: EMCY: PDO not processed due to length error.
-EMCY_PDO_LENGTH = 0x8210
+ABORT_DEVICE_STATE = 0x08000022
+#: Objects written only in NMT PRE-OPERATIONAL (they change the drive's cycle).
+PRE_OPERATIONAL_ONLY = (0x1006, 0x60C2)
 
 NMT_OPERATIONAL = "OPERATIONAL"
 NMT_STATE_CODES = {"INITIALISING": 0, "STOPPED": 4, "OPERATIONAL": 5, "PRE-OPERATIONAL": 127}
@@ -69,11 +92,11 @@ _I16 = (-(2**15), 2**15 - 1)
 _I32 = (-(2**31), 2**31 - 1)
 
 
-def _clamp(value: float, bounds: tuple[int, int]) -> int:
+def clamp(value: float, bounds: tuple[int, int]) -> int:
     return min(max(round(value), bounds[0]), bounds[1])
 
 
-def _wrap_i32(value: float) -> int:
+def wrap_i32(value: float) -> int:
     return (round(value) + 2**31) % 2**32 - 2**31
 
 
@@ -83,11 +106,13 @@ class ServedCiA402Drive:
     Parameters
     ----------
     device : SimulatedDevice
-        The simulated drive.
+        The simulated drive, its plant in SI units.
     node : canopen.LocalNode
-        The node, with the shipped EDS; this class registers its callbacks.
+        The node, with its EDS; this class registers its callbacks.
     injector : FaultInjector, optional
         Faults to inject (:mod:`servobench.sim_backend.faults`); SYNCs are its cycles.
+    keys : mapping, optional
+        The served drive's ``sim://`` keys (:data:`~servobench.sim_backend.servers.can_factor.SIM_KEYS`).
     """
 
     def __init__(
@@ -95,81 +120,111 @@ class ServedCiA402Drive:
         device: SimulatedDevice,
         node: canopen.LocalNode,
         injector: FaultInjector | None = None,
+        keys: Mapping[str, str] | None = None,
     ) -> None:
+        keys = dict(keys or {})
         self.device = device
         self.node = node
+        self.od = node.object_dictionary
+        self.factors = ServedFactors.from_config(keys, self.od)
+        self.lsb = self.factors.command_per_lsb()  # plant command per LSB of 0x6071/0x6077
+        gains = {k: float(v) for k, v in keys.items() if k.startswith("pos_k")}
+        self.loop = PositionLoop(gains_from_keys(gains, device.params.M, device.params.B))
         self.injector = injector or FaultInjector(device, FaultPlan("canopen"))
         self.hook = CanFaultHook(self.injector)
         self._reject_modes = self.injector.plan.setting("reject_mode")
         self._ignore_modes = self.injector.plan.setting("ignore_mode")
+        announced = self._default(0x6502)
+        self.modes = {
+            m for m in IMPLEMENTED_MODES if announced is None or supports_mode(announced, m)
+        }
         self.network: canopen.Network | None = None
-        self._lock = threading.RLock()
-        self._state = S.NOT_READY_TO_SWITCH_ON
+        self.lock = threading.RLock()
+        self.state = S.NOT_READY_TO_SWITCH_ON
+        self.mode = 0
+        self.nmt = "INITIALISING"
+        self.sync = SyncEngine(self)
         self._controlword = 0
-        self._mode = 0
-        self._nmt = "INITIALISING"
-        self._sync_cob: int | None = None
-        self._rpdo_handlers: dict[int, Callable[[int, bytearray, float], None]] = {}
-        self._tpdos: list[can_pdo.PdoChannel] = []
-        self._pdo_dirty = True
-        self._sync_count = 0
-        self._frozen: DeviceSample | None = None
-        self._consumer_cob: int | None = None
-        self._consumer_s: float | None = None
-        self._abort_option = 1
+        self.consumer = HeartbeatConsumer(device)
         self._initial_max_command = device.max_command
         node.add_read_callback(self._on_read)
         node.add_write_callback(self._on_write)
 
+    def has(self, index: int, sub: int = 0) -> bool:
+        """True when the served object dictionary has ``index:sub``."""
+        if index not in self.od:
+            return False
+        obj = self.od[index]
+        return sub == 0 if isinstance(obj, ODVariable) else sub in obj
+
+    def _default(self, index: int, sub: int = 0) -> int | None:
+        if not self.has(index, sub):
+            return None
+        try:
+            return int.from_bytes(self.node.get_data(index, sub), "little", signed=False)
+        except SdoAbortedError:  # no value in the EDS
+            return None
+
+    def _store(self, index: int, sub: int, value: int) -> None:
+        obj = self.od[index]
+        var = obj if isinstance(obj, ODVariable) else obj[sub]
+        self.node.data_store.setdefault(index, {})[sub] = var.encode_raw(value)
+
+    def _int(self, index: int, fmt: str, sub: int = 0, default: int = 0) -> int:
+        """The stored value of ``index:sub``; ``default`` when the EDS gives none and none was written."""
+        try:
+            return struct.unpack("<" + fmt, self.node.get_data(index, sub))[0]
+        except SdoAbortedError:
+            return default
+
     # --------------------------------------------------------------- lifecycle
     def attach(self, network: canopen.Network) -> None:
         """Join ``network`` (NMT, SYNC, RPDO and heartbeat subscriptions)."""
-        self.network = network
+        self.network = self.consumer.network = network
         network.add_node(self.node)
         network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
         self._load_settings()
 
     def boot(self) -> None:
         """Power-on: boot-up message, PRE-OPERATIONAL, then SWITCH ON DISABLED (transition 1)."""
-        with self._lock:
+        with self.lock:
             if self.device.state is PowerState.FAULT:
                 self._enter_fault()
             else:
-                self._state = S.SWITCH_ON_DISABLED
+                self.state = S.SWITCH_ON_DISABLED
             self.node.nmt.send_command(0x81)  # INITIALISING: sends the boot-up message
             self.node.nmt.send_command(0x80)  # PRE-OPERATIONAL, starts the 0x1017 heartbeat
-            self._nmt = self.node.nmt.state
+            self.nmt = self.node.nmt.state
 
     def poll(self) -> None:
         """Periodic housekeeping: notice device faults (watchdog) and send their EMCY."""
-        with self._lock:
-            self._sync_device()
-            if self.hook.recovered() and self._state is S.FAULT:
-                self._send_emcy(self.device.fault_code, self._error_register())  # lost in bus-off
+        with self.lock:
+            self.sync_device()
+            if self.hook.recovered() and self.state is S.FAULT:
+                self._send_emcy(self.device.fault_code, self.error_register())  # lost in bus-off
 
     def close(self) -> None:
         self.hook.close()
         self.node.nmt.stop_heartbeat()
 
     # ------------------------------------------------------------- 402 states
-    def _sync_device(self) -> None:
+    def sync_device(self) -> None:
         """Follow what the device did by itself (fault, watchdog, external disable)."""
         dev = self.device.state
-        if dev is PowerState.FAULT and self._state is not S.FAULT:
+        if dev is PowerState.FAULT and self.state is not S.FAULT:
             self._enter_fault()  # transitions 13 and 14 at once
-        elif dev is PowerState.DISABLED and self._state in (
+        elif dev is PowerState.DISABLED and self.state in (
             S.OPERATION_ENABLED,
             S.QUICK_STOP_ACTIVE,
         ):
-            self._state = S.SWITCH_ON_DISABLED
+            self.state = S.SWITCH_ON_DISABLED
 
     def _enter_fault(self) -> None:
-        self._state = S.FAULT
-        code = self.device.fault_code
-        self._send_emcy(code, self._error_register())
+        self.state = S.FAULT
+        self._send_emcy(self.device.fault_code, self.error_register())
 
-    def _error_register(self) -> int:
-        if self._state is not S.FAULT:
+    def error_register(self) -> int:
+        if self.state is not S.FAULT:
             return 0
         comm = 0x10 if (self.device.fault_code & 0xFF00) == 0x8100 else 0
         return 0x01 | comm
@@ -180,141 +235,162 @@ class ServedCiA402Drive:
 
     def _apply_controlword(self, controlword: int) -> None:
         previous, self._controlword = self._controlword, controlword
-        self._sync_device()
-        target = next_state(self._state, controlword, previous)
-        if target is self._state:
+        self.sync_device()
+        target = next_state(self.state, controlword, previous)
+        if target is self.state:
             return
         if target is S.OPERATION_ENABLED:
             self.device.enable()
+            self.loop.reset()
             self.device.set_command(self._torque_command())
         elif target is S.QUICK_STOP_ACTIVE:
             self.device.quick_stop()
-        elif self._state is S.FAULT:
+        elif self.state is S.FAULT:
             self.device.reset_fault()  # transition 15
             self._send_emcy(0, 0)  # error reset
         else:
             self.device.disable()
-        self._state = target
+        self.state = target
 
     def _torque_command(self) -> float:
-        """Latched target torque [rated torques], 0 outside the torque modes."""
-        if self._mode not in SUPPORTED_MODES:
-            return 0.0
-        permille = struct.unpack("<h", self.node.get_data(0x6071, 0))[0]
-        return permille / 1000.0
+        """Latched command [plant units] in the torque modes: target torque + torque offset."""
+        if self.mode not in (MODE_CST, MODE_PROFILE_TORQUE):
+            return 0.0 if self.mode != MODE_CSP else self.device.command
+        offset = self._int(0x60B2, "h") if self.has(0x60B2) else 0
+        return (self._int(0x6071, "h") + offset) * self.lsb
+
+    def mode_is_csp(self) -> bool:
+        """True while the drive's own position loop runs (CSP, operation enabled)."""
+        return self.mode == MODE_CSP and self.state is S.OPERATION_ENABLED
+
+    def csp_torque(self, position: float, velocity: float) -> float | None:
+        """The position loop's torque for this SYNC [plant units], ``None`` outside CSP."""
+        if not self.mode_is_csp():
+            return None
+        per_unit = self.factors.position_raw(1.0)
+        error_raw = wrap_i32(self._int(0x607A, "i") - wrap_i32(self.factors.position_raw(position)))
+        offset = (self._int(0x60B2, "h") if self.has(0x60B2) else 0) * self.lsb
+        limit = min(self.device.max_command, _I16[1] * self.lsb)
+        return self.loop.torque(error_raw / per_unit, velocity, offset, limit, self.device.cycle_s)
 
     # ---------------------------------------------------------- OD callbacks
     def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | None:
-        with self._lock:
+        with self.lock:
             if index == 0x6041:
-                self._sync_device()
-                return encode_statusword(self._state)
+                self.sync_device()
+                return encode_statusword(self.state)
             if index == 0x603F:
-                self._sync_device()
-                return self.device.fault_code if self._state is S.FAULT else 0
+                self.sync_device()
+                return self.device.fault_code if self.state is S.FAULT else 0
             if index == 0x6077:
-                return _clamp(self.device.command * 1000.0, _I16)
+                return clamp(self.sync.torque_actual() / self.lsb, _I16)
             if index == 0x6061:
-                return self._mode
+                return self.mode
             if index == 0x1001:
-                return self._error_register()
+                return self.error_register()
             if index not in (0x6064, 0x606C, 0x1013):
                 return None
             # at a SYNC the sample it took, otherwise the present one (no clocking)
-            sample = self._frozen or self.injector.sample()
+            sample = self.sync.frozen or self.injector.sample()
             if index == 0x6064:
-                return _wrap_i32(sample.position / POS_SCALE)
+                return wrap_i32(self.factors.position_raw(sample.position))
             if index == 0x606C:
-                return _clamp(sample.velocity / VEL_SCALE, _I32)
+                return clamp(self.factors.velocity_raw(sample.velocity), _I32)
             return round(sample.t_s * 1e6) & 0xFFFFFFFF
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         value = od.decode_raw(data)
-        with self._lock:
+        with self.lock:
+            if index in PRE_OPERATIONAL_ONLY and self.nmt == NMT_OPERATIONAL:
+                raise SdoAbortedError(ABORT_DEVICE_STATE)
             if index == 0x6040:
                 self._apply_controlword(value)
-            elif index == 0x6071:
-                if self._state is S.OPERATION_ENABLED and self._mode in SUPPORTED_MODES:
-                    self.device.set_command(value / 1000.0)
+            elif index in (0x6071, 0x60B2):
+                self._set_torque(index, value)
             elif index == 0x6060:
                 self._set_mode(value)
             elif index == 0x6072:
-                self.device.max_command = value / 1000.0
+                self.device.max_command = value * self.lsb
             elif index == 0x1006:
                 if value > 0:
                     self.device.set_cycle(value * 1e-6)
+            elif index == 0x60C2:
+                self._set_interpolation_period(subindex, value)
             elif index == 0x1013:
                 raise SdoAbortedError(ABORT_READ_ONLY)  # the clock is the plant's
             elif index == 0x1016:
-                self._set_consumer(value)
+                self.consumer.configure(value)
             elif index == 0x6007:
                 if value not in ABORT_OPTIONS:
                     raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
-                self._abort_option = value
-                self._apply_watchdog()
+                self.consumer.set_abort_option(value)
             elif can_pdo.is_mapping_parameter(index):
                 can_pdo.check_mapping_write(self.node, index, subindex, value)
             if can_pdo.is_pdo_parameter(index) or index == 0x1005:
-                self._pdo_dirty = True
+                self.sync.dirty = True
+
+    def _set_torque(self, index: int, value: int) -> None:
+        if self.state is not S.OPERATION_ENABLED or self.mode not in (
+            MODE_CST,
+            MODE_PROFILE_TORQUE,
+        ):
+            return  # in CSP the offset acts at the next SYNC
+        other = 0x60B2 if index == 0x6071 else 0x6071
+        rest = self._int(other, "h") if self.has(other) else 0
+        self.device.set_command((value + rest) * self.lsb)
+
+    def _set_interpolation_period(self, subindex: int, value: int) -> None:
+        """0x60C2 = value x 10^index s sets the cycle, as on drives without 0x1006."""
+        units = value if subindex == 1 else self._int(0x60C2, "B", 1)
+        exponent = value if subindex == 2 else self._int(0x60C2, "b", 2, -3)
+        if subindex in (1, 2) and units > 0 and -7 <= exponent <= 0:
+            self.device.set_cycle(units * 10.0**exponent)
 
     def _set_mode(self, mode: int) -> None:
-        if mode in self._reject_modes or (mode not in SUPPORTED_MODES and mode != 0):
+        if mode in self._reject_modes or (mode not in self.modes and mode != 0):
             raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
         if mode in self._ignore_modes:
             return
-        self._mode = mode
-        if self._state is S.OPERATION_ENABLED:
+        self.mode = mode
+        self.loop.reset()
+        if self.state is S.OPERATION_ENABLED and mode != MODE_CSP:
             self.device.set_command(self._torque_command())
-
-    def _set_consumer(self, value: int) -> None:
-        node_id, time_ms = (value >> 16) & 0x7F, value & 0xFFFF
-        if self.network is not None and self._consumer_cob is not None:
-            self.network.unsubscribe(self._consumer_cob, self._on_host_heartbeat)
-            self._consumer_cob = None
-        if node_id and time_ms:
-            self._consumer_cob = 0x700 + node_id
-            self._consumer_s = time_ms / 1000.0
-            if self.network is not None:
-                self.network.subscribe(self._consumer_cob, self._on_host_heartbeat)
-        else:
-            self._consumer_s = None
-        self._apply_watchdog()
-
-    def _apply_watchdog(self) -> None:
-        self.device.set_watchdog(self._consumer_s if self._abort_option == 1 else None)
 
     def _load_settings(self) -> None:
         """Apply the object dictionary's settings to the device (at start and after a reset)."""
-        with self._lock:
-            if self._initial_max_command < float("inf"):
-                permille = min(round(self._initial_max_command * 1000.0), 0xFFFF)
-                self.node.data_store.setdefault(0x6072, {})[0] = struct.pack("<H", permille)
-            self.device.max_command = struct.unpack("<H", self.node.get_data(0x6072, 0))[0] / 1000.0
-            cycle_us = round(self.device.cycle_s * 1e6)  # 0x1006 tells the device's cycle
-            self.node.data_store.setdefault(0x1006, {})[0] = struct.pack("<I", cycle_us)
-            self._abort_option = struct.unpack("<h", self.node.get_data(0x6007, 0))[0]
-            self._set_consumer(int.from_bytes(self.node.get_data(0x1016, 1), "little"))
-            self._mode = struct.unpack("<b", self.node.get_data(0x6060, 0))[0]
-            self._pdo_dirty = True
+        with self.lock:
+            for (index, sub), value in self.factors.od_values().items():
+                if self.has(index, sub):
+                    self._store(index, sub, value)
+            if self.has(0x6072):
+                if self._initial_max_command < math.inf:
+                    self._store(0x6072, 0, min(round(self._initial_max_command / self.lsb), 0xFFFF))
+                self.device.max_command = self._int(0x6072, "H") * self.lsb
+            if self.has(0x1006):  # 0x1006 tells the device's cycle
+                self._store(0x1006, 0, round(self.device.cycle_s * 1e6))
+            self.consumer.abort_option = self._int(0x6007, "h", 0, 1) if self.has(0x6007) else 1
+            self.consumer.configure(self._int(0x1016, "I", 1) if self.has(0x1016, 1) else 0)
+            self.mode = self._int(0x6060, "b")
+            self.sync.dirty = True
 
     # ------------------------------------------------------------------ NMT
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2 or data[1] not in (0, self.node.id):
             return
-        with self._lock:
-            old, new = self._nmt, self.node.nmt.state
+        with self.lock:
+            old, new = self.nmt, self.node.nmt.state
             if new == "INITIALISING":  # reset node (0x81) or reset communication (0x82)
                 self._reset(application=data[0] == 0x81)
                 return
-            self._nmt = new
+            self.nmt = new
             if new == old:
                 return
-            if old == NMT_OPERATIONAL and self._state is S.OPERATION_ENABLED:
+            if old == NMT_OPERATIONAL and self.state is S.OPERATION_ENABLED:
                 self._apply_controlword(0x0002)  # leaving OPERATIONAL stops the axis
             if new == NMT_OPERATIONAL:
-                self._pdo_dirty = True
-                self._rebuild_pdos()
-            if self.node.get_data(0x1017, 0) != b"\x00\x00":
+                self.sync.dirty = True
+                self.sync.rebuild()
+            if self.has(0x1017) and self.node.get_data(0x1017, 0) != b"\x00\x00":
                 self.network.send_message(0x700 + self.node.id, [NMT_STATE_CODES.get(new, 0)])
 
     def _reset(self, application: bool) -> None:
@@ -322,83 +398,10 @@ class ServedCiA402Drive:
         for index in list(self.node.data_store):
             if application or 0x1000 <= index <= 0x1FFF:
                 del self.node.data_store[index]
-        if application and self._state is not S.FAULT:
+        if application and self.state is not S.FAULT:
             self.device.disable()
-            self._state = S.SWITCH_ON_DISABLED
+            self.state = S.SWITCH_ON_DISABLED
         self._load_settings()
         self.node.nmt.send_command(0x81)  # boot-up message
         self.node.nmt.send_command(0x80)
-        self._nmt = self.node.nmt.state
-
-    def _on_host_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self.device.feed()
-
-    # ------------------------------------------------------------------ PDOs
-    def _rebuild_pdos(self) -> None:
-        if not self._pdo_dirty or self.network is None:
-            return
-        self._pdo_dirty = False
-        for cob, handler in self._rpdo_handlers.items():
-            self.network.unsubscribe(cob, handler)
-        self._rpdo_handlers = {}
-        for channel in can_pdo.read_channels(self.node, can_pdo.RPDO_COMM, can_pdo.RPDO_MAP):
-            handler = self._rpdo_handler(channel)
-            self._rpdo_handlers[channel.cob_id] = handler
-            self.network.subscribe(channel.cob_id, handler)
-        self._tpdos = can_pdo.read_channels(self.node, can_pdo.TPDO_COMM, can_pdo.TPDO_MAP)
-        sync_cob = int.from_bytes(self.node.get_data(0x1005, 0), "little") & 0x7FF
-        if sync_cob != self._sync_cob:
-            if self._sync_cob is not None:
-                self.network.unsubscribe(self._sync_cob, self._on_sync)
-            self._sync_cob = sync_cob
-            self.network.subscribe(sync_cob, self._on_sync)
-
-    def _rpdo_handler(self, channel: can_pdo.PdoChannel) -> Callable[[int, bytearray, float], None]:
-        def on_rpdo(can_id: int, data: bytearray, timestamp: float) -> None:
-            with self._lock:
-                if self._nmt != NMT_OPERATIONAL:
-                    return
-                if len(data) < channel.length:
-                    self._send_emcy(EMCY_PDO_LENGTH, self._error_register())
-                    return
-                for entry, chunk in channel.unpack(data):
-                    self.node.set_data(entry.index, entry.subindex, chunk)
-
-        return on_rpdo
-
-    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        with self._lock:
-            if self._nmt != NMT_OPERATIONAL:
-                return
-            self._rebuild_pdos()
-            self._sync_count += 1
-            wire = self.injector.next_cycle()  # drive faults (fault, freeze) applied here
-            for spec in wire:
-                if spec.kind == "busoff":
-                    self.hook.bus_off(spec)
-                    if self._abort_option == 1:  # abort connection: fault
-                        self.device.fault(BUSOFF_FAULT, f"CAN bus-off (--fault {spec})")
-            self._sync_device()
-            self._frozen = self.injector.step()
-            try:
-                frames = [
-                    (ch.cob_id, ch.pack(self.node.get_data))
-                    for ch in self._tpdos
-                    if ch.due(self._sync_count)
-                ]
-            finally:
-                self._frozen = None
-            transmissions = self.hook.transmissions(wire, frames, self.node.id)
-        for tx in transmissions:
-            if tx.delay_s > 0:
-                self.hook.send_later(tx.delay_s, lambda f=tx.frames: self._send_frames(f))
-            else:
-                self._send_frames(tx.frames)
-
-    def _send_frames(self, frames) -> None:
-        send_batch = getattr(self.network, "send_messages", None)
-        if send_batch is not None:  # the hub: all TPDOs of this SYNC in one TCP write
-            send_batch(list(frames))
-            return
-        for cob_id, payload in frames:
-            self.network.send_message(cob_id, payload)
+        self.nmt = self.node.nmt.state

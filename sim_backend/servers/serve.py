@@ -4,7 +4,10 @@ Each transport module ``sim_backend.serve_<name>`` exposes::
 
     def serve(device, stop, announce, options) -> None
 
-which starts its server around the :class:`~servobench.sim_backend.device.SimulatedDevice`,
+and may define ``SIM_KEYS``, the ``sim://`` keys that configure the served
+drive itself rather than its plant (CANopen: its factor group); they are
+taken out of the URL and handed over as ``options["sim_keys"]``. ``serve``
+starts its server around the :class:`~servobench.sim_backend.device.SimulatedDevice`,
 calls ``announce(drive_url)`` exactly once when a client can connect, blocks
 until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
@@ -21,6 +24,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Mapping
+from urllib.parse import urlencode
 
 from servobench.errors import DriveConfigError
 from servobench.sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
@@ -49,6 +53,26 @@ def load_transport(name: str) -> ServeFunction:
     return module.serve
 
 
+#: ``sim://`` keys a transport may read that stay in the plant's URL too.
+SHARED_KEYS = frozenset({"units"})
+
+
+def split_served_keys(transport: str, sim_url: str) -> tuple[str, str]:
+    """``sim_url`` without the transport's own ``SIM_KEYS``, and those keys as a query string."""
+    from servobench.drivers.url import parse_drive_url
+
+    own = getattr(importlib.import_module(TRANSPORTS[transport]), "SIM_KEYS", frozenset())
+    parsed = parse_drive_url(sim_url)
+    served = {k: v for k, v in parsed.query.items() if k in own}
+    if not served:
+        return sim_url, ""
+    # units= belongs to the plant too (what its signals are in): it stays in both
+    plant = urlencode({k: v for k, v in parsed.query.items() if k not in own - SHARED_KEYS})
+    return f"{parsed.scheme}://{parsed.host}{parsed.path}" + (
+        f"?{plant}" if plant else ""
+    ), urlencode(served)
+
+
 def run_server(
     transport: str,
     sim_url: str,
@@ -63,9 +87,10 @@ def run_server(
     ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
     """
     serve = load_transport(transport)
+    sim_url, served_keys = split_served_keys(transport, sim_url)
     device = device_from_url(sim_url, wall_clock=True)
     stop = stop or threading.Event()
-    opts = {"transport": transport, **(options or {})}
+    opts = {"transport": transport, **(options or {}), "sim_keys": served_keys}
     injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))
     reporter = StateReporter(device, injector, state_file) if state_file else None
 

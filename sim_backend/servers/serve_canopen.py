@@ -15,8 +15,15 @@ The CAN link comes from ``options["can"]``:
     Any python-can interface: ``socketcan:can0`` for a bench with a real
     CAN adapter, ``virtual:NAME`` for in-process unit tests.
 
-The announced URL names everything a host needs, e.g.
-``canopen://vcan0?interface=socketcand&host=127.0.0.1&port=40123&node=2&pos_scale=1e-06&vel_scale=1e-06``.
+``options["eds"]`` serves that object dictionary instead of the shipped
+generic one (``serve-sim --eds FILE``): the node has exactly the EDS's
+objects. ``options["sim_keys"]`` holds the served drive's own ``sim://`` keys
+as a query string (:data:`SIM_KEYS`: its factor group and position loop
+gains; ``serve-sim`` takes them out of ``--sim``).
+
+The announced URL names everything a host needs and no unit scale (the
+drive's factor group tells them), with the EDS when one was given, e.g.
+``canopen://vcan0?interface=socketcand&host=127.0.0.1&port=40123&node=2``.
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ import re
 import threading
 import time
 from collections.abc import Callable, Mapping
-from urllib.parse import quote
+from pathlib import Path
+from urllib.parse import parse_qsl, quote
 
 import can
 import canopen
@@ -36,7 +44,8 @@ from servobench.errors import DriveConfigError, DriveConnectionError
 from servobench.sim_backend.device import SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import parse_plan
-from servobench.sim_backend.servers.can_drive import POS_SCALE, VEL_SCALE, ServedCiA402Drive
+from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
+from servobench.sim_backend.servers.can_factor import SIM_KEYS
 from servobench.sim_backend.servers.can_wire import CanFrame
 from servobench.sim_backend.servers.socketcand_server import DEFAULT_CHANNEL, SocketcandHub
 
@@ -44,8 +53,7 @@ from servobench.sim_backend.servers.socketcand_server import DEFAULT_CHANNEL, So
 POLL_S = 0.005
 #: Receive-thread wake-up period of python-can links; stopping waits up to this long [s].
 NOTIFIER_CYCLE_S = 0.05
-#: Scale keys every announced URL carries (see :mod:`servobench.sim_backend.servers.can_drive`).
-SCALE_QUERY = f"pos_scale={POS_SCALE:g}&vel_scale={VEL_SCALE:g}"
+__all__ = ["SIM_KEYS", "drive_url", "link_bus_kwargs", "serve"]
 
 
 class _PeriodicSend:
@@ -153,16 +161,25 @@ def link_bus_kwargs(link: str) -> dict[str, object] | None:
 
 
 def drive_url(
-    interface: str, channel: str, node_id: int, host: str | None = None, port: int | None = None
+    interface: str,
+    channel: str,
+    node_id: int,
+    host: str | None = None,
+    port: int | None = None,
+    eds: str | None = None,
 ) -> str:
-    """The ``canopen://`` URL a host uses to reach the served node."""
+    """The ``canopen://`` URL a host uses to reach the served node (``eds``: its EDS file)."""
     if re.fullmatch(r"[a-z0-9_.-]+", channel):
         url = f"canopen://{channel}?interface={interface}"
     else:  # not a valid URL host (case, slashes): pass it as a query key
         url = f"canopen://?interface={interface}&channel={quote(channel, safe='')}"
     if host is not None:
         url += f"&host={host}&port={port}"
-    return f"{url}&node={node_id}&{SCALE_QUERY}"
+    url += f"&node={node_id}"
+    if not eds:
+        return url
+    where = str(Path(eds).resolve()) if Path(eds).exists() else eds  # a file, or a shipped name
+    return f"{url}&eds={quote(where, safe='/')}"
 
 
 def _connect(
@@ -174,13 +191,14 @@ def _connect(
 ):
     """``(network, announced URL, hub or None)`` for ``options["can"]``."""
     kwargs = link_bus_kwargs(link)
+    eds = options.get("eds") or None
     if kwargs is None:
         host = options.get("host") or "127.0.0.1"
         hub = stack.enter_context(SocketcandHub(host, _int(options, "port", 0)))
         network = HubNetwork(hub, gate)
         stack.callback(network.disconnect)
         h, p = hub.address
-        return network, drive_url("socketcand", hub.channel, node_id, h, p), hub
+        return network, drive_url("socketcand", hub.channel, node_id, h, p, eds), hub
     network = GatedNetwork(gate)
     network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
     try:
@@ -194,6 +212,7 @@ def _connect(
         node_id,
         kwargs.get("host"),
         kwargs.get("port"),
+        eds,
     )
     return network, url, None
 
@@ -223,8 +242,14 @@ def serve(
         raise DriveConfigError(f"CANopen node id must be 1..127, got {node_id}")
     if injector is None:
         injector = FaultInjector(device, parse_plan(options.get("fault") or "", "canopen"))
+    eds = options.get("eds") or None
+    try:
+        od = load_eds(node_id, eds)
+    except (OSError, ValueError, KeyError) as err:
+        raise DriveConfigError(f"--eds {eds}: cannot read it as an EDS ({err})") from None
+    keys = dict(parse_qsl(options.get("sim_keys") or "", keep_blank_values=True))
     with contextlib.ExitStack() as stack:
-        drive = ServedCiA402Drive(device, canopen.LocalNode(node_id, load_eds(node_id)), injector)
+        drive = ServedCiA402Drive(device, canopen.LocalNode(node_id, od), injector, keys)
         network, url, hub = _connect(
             options.get("can") or "socketcand", options, node_id, stack, drive.hook.muted
         )

@@ -1,0 +1,160 @@
+"""One ``canopen://`` control cycle: RPDOs and a SYNC out, the SYNC's TPDOs in, scaled.
+
+:class:`CycleIO` keeps what the RPDOs carry (controlword, target torque,
+torque offset, target position), sends them with the SYNC, waits for the
+TPDOs of that SYNC and turns them into a :class:`~servobench.drivers.base.Feedback`
+in the drive's SI units. It also keeps the drive clock: the time stamp
+0x1013 of each TPDO pair when the layout maps it (unwrapped across its 32-bit
+roll-over), else the SYNC count times the cycle period. A pair whose time
+stamp was already consumed (a duplicate, or a late answer to an earlier SYNC)
+is dropped; without 0x1013 such a pair cannot be told from the answer.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+from dataclasses import dataclass
+
+from servobench.drivers.base import Feedback
+from servobench.drivers.canopen_link import CounterUnwrap, HeartbeatProducer, TappedNetwork
+from servobench.drivers.canopen_mapping import Layout
+from servobench.drivers.canopen_sdo import SdoAccess
+from servobench.drivers.canopen_url import CanopenOptions
+from servobench.drivers.cia402_units import Scaling
+from servobench.errors import DriveTimeoutError
+
+#: Cycle period assumed for the SYNC-count clock until the host or 0x1006 tells one [s].
+DEFAULT_CYCLE_S = 1e-3
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """What one SYNC brought back: the statusword and the scaled feedback."""
+
+    statusword: int
+    feedback: Feedback
+
+
+def _wrap_i32(value: int) -> int:
+    return (value + 2**31) % 2**32 - 2**31
+
+
+class CycleIO:
+    """The cyclic frames of one node (see the module docstring).
+
+    ``layout``, ``scaling`` and ``max_lsb`` are set by the bring-up before the
+    first cycle; ``heartbeat`` once the watchdog is armed.
+    """
+
+    def __init__(self, options: CanopenOptions, network: TappedNetwork, sdo: SdoAccess) -> None:
+        self.options, self.network, self.sdo = options, network, sdo
+        self.layout: Layout | None = None
+        self.scaling: Scaling | None = None
+        self.max_lsb = 0x7FFF  #: largest |0x6071| / |0x60B2| sent (0x6072, else INTEGER16)
+        self.heartbeat: HeartbeatProducer | None = None
+        self.values = {0x6040: 0, 0x6071: 0, 0x60B2: 0, 0x607A: 0}  #: RPDO contents
+        self.emcy: tuple[int, int] | None = None  #: (error code, error register) pending
+        self.period_s: float | None = None  #: cycle period for the SYNC-count clock [s]
+        self._rx1: bytes | None = None
+        self._rx2: bytes | None = None
+        self._rx_event = threading.Event()
+        self._last_stamp: int | None = None  # 0x1013 of the last TPDO pair consumed
+        self._position, self._clock = CounterUnwrap(32), CounterUnwrap(32)
+        self._sync_time_s = 0.0  # SYNC count x cycle period, when the drive has no 0x1013
+
+    # ------------------------------------------------------------- commands
+    def _lsb(self, u: float) -> int:
+        return max(-self.max_lsb, min(self.max_lsb, round(u / self.scaling.u.scale)))
+
+    def representable(self, u: float) -> float:
+        """``u`` rounded to the torque object's resolution [command units]."""
+        return self._lsb(u) * self.scaling.u.scale
+
+    def set_torque(self, u: float, holding: bool) -> None:
+        """The host's command: target torque 0x6071, or the torque offset 0x60B2 in a hold."""
+        raw = self._lsb(u)
+        self.values[0x6071], self.values[0x60B2] = (0, raw) if holding else (raw, 0)
+
+    def set_target(self, x_ref: float) -> None:
+        """Target position 0x607A = ``x_ref`` [position units], by SDO now and by RPDO each cycle."""
+        raw = _wrap_i32(round(x_ref / self.scaling.x.scale))
+        self.values[0x607A] = raw
+        self.sdo.write(0x607A, 0, raw)
+
+    def _frames(self, holding: bool, sync: bool) -> list[tuple[int, bytes]]:
+        pdos = self.layout.rpdos if holding else (self.layout.rpdo_command,)
+        frames = [(p.cob_id, p.pack(self.values)) for p in pdos]
+        return frames + [(self.options.sync_cob, b"")] if sync else frames
+
+    def send_rpdos(self, holding: bool) -> None:
+        """The RPDOs alone, without a SYNC (the drive is not clocked)."""
+        with self.sdo.translated("RPDO"):
+            self.network.send_messages(self._frames(holding, sync=False))
+
+    # ---------------------------------------------------------------- cycle
+    def cycle(self, holding: bool) -> Cycle:
+        """RPDOs + SYNC, then this SYNC's TPDOs, decoded and scaled."""
+        if self.heartbeat is not None:
+            self.heartbeat.check()
+        n, timeout_s = self.options.node_id, self.options.pdo_timeout_s
+        self._rx1 = self._rx2 = None
+        self._rx_event.clear()
+        t_sync = self._sync_time_s
+        self._sync_time_s += self.period_s or DEFAULT_CYCLE_S
+        with self.sdo.translated("RPDO + SYNC"):
+            self.network.send_messages(self._frames(holding, sync=True))
+        if not self._rx_event.wait(timeout_s):
+            raise DriveTimeoutError(
+                f"no TPDO from node {n} within {timeout_s * 1e3:.0f} ms of SYNC"
+            )
+        rx1, rx2 = self._rx1, self._rx2
+        state = None if rx1 is None else self.layout.tpdo_state.unpack(rx1)
+        motion = None if rx2 is None else self.layout.tpdo_motion.unpack(rx2)
+        if state is None or motion is None:
+            raise DriveTimeoutError(
+                f"incomplete TPDOs from node {n} at this SYNC: {rx1!r}, {rx2!r}"
+            )
+        if self.layout.has_clock:
+            self._last_stamp = state[0x1013]
+            t_s = self._clock(state[0x1013]) * 1e-6
+        else:
+            t_s = t_sync
+        feedback = self._feedback(t_s, motion[0x606C], motion[0x6064], state.get(0x6077))
+        return Cycle(state[0x6041], feedback)
+
+    def _feedback(self, t_s: float, velocity: int, position: int, torque: int | None) -> Feedback:
+        s = self.scaling
+        applied = math.nan if torque is None else torque * s.u.scale
+        x = self._position(position) * s.x.scale
+        return Feedback(t_s, velocity * s.v.scale, x, applied=applied)
+
+    def read_feedback(self) -> Feedback:
+        """One sample over SDO (no SYNC: the drive is not clocked)."""
+        if self.layout.has_clock:
+            t_s = self._clock(self.sdo.read(0x1013)) * 1e-6
+        else:
+            t_s = self._sync_time_s
+        torque = self.sdo.read(0x6077) if self.layout.has_torque_actual else None
+        return self._feedback(t_s, self.sdo.read(0x606C), self.sdo.read(0x6064), torque)
+
+    # ------------------------------------------------------------ reception
+    def on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._rx1 = bytes(data)
+
+    def on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        rx1, layout = self._rx1, self.layout
+        if rx1 is not None and layout is not None and layout.has_clock:
+            state = layout.tpdo_state.unpack(rx1)
+            if state is not None and state[0x1013] == self._last_stamp:
+                self._rx1 = None  # a duplicate or a late pair of a SYNC already answered
+                return
+        self._rx2 = bytes(data)
+        self._rx_event.set()
+
+    def on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) >= 3:
+            code, register = struct.unpack_from("<HB", data)
+            if code:  # 0x0000 is "error reset / no error"
+                self.emcy = (code, register)
