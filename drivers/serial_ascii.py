@@ -88,9 +88,8 @@ from servobench.errors import (
 )
 
 DEFAULT_BAUD = 115200
-#: Deadline for one reply line [s] (as Modbus's response timeout: a drive answers in
-#: milliseconds, the rest is room for a loaded host).
-REPLY_TIMEOUT_S = 0.25
+#: Deadline for one reply line [s].
+REPLY_TIMEOUT_S = 0.1
 #: Deadline for the closed-loop / idle state to be reached [s].
 STATE_TIMEOUT_S = 2.0
 #: Pause between state reads while waiting for a transition [s].

@@ -14,9 +14,10 @@ A real axis does not wait for the host: after a quick stop it coasts down
 whether anybody polls it or not. A device made with ``wall_clock=True``
 (every served transport, :func:`servobench.sim_backend.servers.serve.run_server`)
 therefore integrates wall-clock time while its power stage is off
-(disabled, quick stop, fault): every call first advances the plant and the
-drive clock by the time since the plant was last integrated, with zero
-command, so the axis coasts down as a real one does, polled or not. While the axis is
+(disabled, quick stop, fault): every call first advances the plant by the
+time since it was last integrated, with zero command, so the axis coasts
+down as a real one does, polled or not. (The drive clock counts clocked
+cycles, as before: it stands while nobody clocks the drive.) While the axis is
 enabled the drive stays lock-step (one clock per cycle, exact ZOH), as the
 host's streaming contract says, so a host that falls behind on a loaded
 machine does not change the data; its silence is still bounded by the
@@ -311,7 +312,6 @@ class SimulatedDevice:
         n = min(MAX_CATCH_UP_STEPS, max(1, math.ceil(lag_s / self.cycle_s - 1e-9)))
         if self.command != 0.0 or self.plant.state.v != 0.0:
             self.plant.step_block(np.full(n, self.command), lag_s / n)
-        self._rebase(self._t_s + lag_s)
         self._wall_due = now
         self.idle_s += lag_s
 

@@ -72,6 +72,7 @@ def test_quick_stop_then_the_axis_coasts_down_in_wall_clock_time():
     assert rest.velocity == 0.0
     assert rest.position == pytest.approx(x0 + distance, rel=1e-9)
     assert device.idle_s == pytest.approx(0.5 * t_stop + 2.0 - DT, rel=1e-9)  # the last cycle ran ahead
+    assert rest.t_s == half.t_s  # the drive clock counts clocked cycles: nobody clocked it
 
 
 def test_the_in_process_drive_stays_lock_step():
@@ -132,12 +133,21 @@ def test_set_cycle_rebases_the_clock_instead_of_jumping():
     assert device.exchange(0.0).t_s == pytest.approx(1.01)
 
 
-def test_polls_while_disabled_follow_the_wall_clock():
+def test_polls_while_disabled_see_the_plant_in_wall_clock_time():
     clock = FakeClock()
-    device = streamed(clock, n=50)
+    device = streamed(clock, n=200)
     device.disable()
+    v0, x0 = device.plant.state.v, device.plant.state.x
     t0 = device.sample().t_s
     for _ in range(10):
         clock.now += 0.005  # a host reading the state every 5 ms
         device.step()
-    assert device.sample().t_s == pytest.approx(t0 + 0.05)  # 50 ms of wall time, not 10 cycles
+    # the clock counts the cycles it was clocked ...
+    assert device.sample().t_s == pytest.approx(t0 + 10 * DT)
+    # ... the plant coasted the 50 ms of wall time: M dv/dt = -B v - Fc, solved by hand
+    tau, v_inf, t = PARAMS.M / PARAMS.B, -PARAMS.coulomb_pos / PARAMS.B, 0.05
+    assert t < coast_to_rest(v0)[0]
+    v_hand = v_inf + (v0 - v_inf) * math.exp(-t / tau)
+    x_hand = x0 + v_inf * t + (v0 - v_inf) * tau * (1 - math.exp(-t / tau))
+    assert device.plant.state.v == pytest.approx(v_hand, rel=1e-9)
+    assert device.plant.state.x == pytest.approx(x_hand, rel=1e-9)
