@@ -29,7 +29,10 @@ ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
 raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
-protocol carries no drive clock).
+protocol carries no drive clock), except on a lock-step drive (one that
+took the cycle extension): it integrates exactly one cycle per feedback
+query, so its clock is the count of them times the cycle, and
+:attr:`SerialAsciiDrive.drive_clock` is True.
 
 Line I/O (terminators, checksums, deadlines, duplicated replies, getting
 back in step) is :class:`servobench.drivers.ascii_link.AsciiLink`.
@@ -56,9 +59,10 @@ disarms; :meth:`close` disarms once more. :meth:`reset_fault` is ``sc`` from
 fw-v0.5.2 on; on older firmware, which has no ``sc``, it writes 0 to
 ``axis0.error``, ``axis0.motor.error``, ``axis0.encoder.error`` and
 ``axis0.controller.error`` (the dialect's ``[firmware.fallback.clear_errors]``).
-:meth:`set_cycle` uses the dialect's servobench extension and, if the drive
-rejects it (a stock ODrive), records the drive as free-running
-(:attr:`SerialAsciiDrive.lockstep` is False).
+:meth:`open` probes the dialect's servobench cycle extension (``r
+axis0.config.servobench_cycle``); a drive that rejects it (a stock ODrive) is
+free-running (:attr:`SerialAsciiDrive.lockstep` is False) and :meth:`set_cycle`
+tells it nothing. The log's ``drive_clock`` line says which clock ``t`` is.
 
 Not confirmed against hardware (no ODrive here; the served simulator follows
 the firmware source): see the caveats at the top of
@@ -130,13 +134,14 @@ class SerialAsciiDrive(Drive):
         self.link = AsciiLink(
             self.port, self.baud, self.dialect, self.axis, self.use_checksum, self.reply_timeout_s
         )
-        #: False once a drive rejected the cycle extension (it runs its own loop).
+        #: Whether the drive took the cycle extension at open (False: it runs its own loop).
         self.lockstep: bool | None = None
         #: Firmware (major, minor, revision) read at open; None when the drive does not tell.
         self.firmware_version: tuple[int, ...] | None = None
         #: What open() found and cleared, for the log (empty when nothing).
         self.cleared_at_open = ""
         self._next_poll = 0.0
+        self._cycles = 0  # feedback queries since the cycle was set (a lock-step drive's clock)
 
     def _unit_scales(self, mode: str) -> dict[str, float]:
         """Factors from the drive's position and velocity to the logged ones; sets :attr:`units`."""
@@ -188,6 +193,11 @@ class SerialAsciiDrive(Drive):
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
         meta["link_max_rate_hz"] = f"{self.max_rate_hz():.1f}"
+        if self.lockstep is not None:
+            meta["drive_clock"] = (
+                "feedback query count x cycle period (lock-step drive)" if self.lockstep
+                else "none: host reception time (the drive runs its own loop)"
+            )  # fmt: skip
         if self._scale["x"] != 1.0 or self._scale["v"] != 1.0:
             own = self.dialect.units
             meta["unit_conversion"] = (
@@ -215,6 +225,7 @@ class SerialAsciiDrive(Drive):
             code = self._error_code()  # proves the drive speaks the dialect
             self._disarm()  # a watchdog an earlier host left armed would fault the idle axis
             self.firmware_version = self._read_version()
+            self.lockstep = self._has_cycle_extension()
             if code and code == self.dialect.watchdog_error:
                 self._clear_stale_watchdog(code)
         except BaseException:
@@ -273,21 +284,26 @@ class SerialAsciiDrive(Drive):
                     f"{self.port}: watchdog timeout reads back {got} s, wrote {timeout_s} s"
                 )
 
-    def _set_cycle(self, period_s: float) -> None:
-        """Tell a lock-step drive the cycle (dialect extension); free-running drives need not know."""
-        if not self.dialect.has("set_cycle"):
-            self.lockstep = False
-            return
+    def _has_cycle_extension(self) -> bool:
+        """True when the drive knows the dialect's cycle extension (a lock-step simulator)."""
+        if not (self.dialect.has("set_cycle") and self.dialect.has("cycle_readback")):
+            return False
         try:
             self._query("cycle_readback")
         except CommandRejectedError:
-            self.lockstep = False  # a stock drive: it does not know the extension property
+            return False  # a stock drive: it does not know the extension property
+        return True
+
+    def _set_cycle(self, period_s: float) -> None:
+        """Tell a lock-step drive the cycle (dialect extension); free-running drives need not know."""
+        if not self.lockstep:
             return
         self._command("set_cycle", period_s=period_s)
         got = self._query("cycle_readback").fields["period_s"]
         if not math.isclose(got, period_s, rel_tol=READBACK_RTOL, abs_tol=1e-6):
             raise CommandRejectedError(f"{self.port}: cycle reads back {got} s, wrote {period_s} s")
-        self.lockstep = True
+        self.drive_clock = True  # one cycle per feedback query: the count is its clock
+        self._cycles = 0
 
     # ---------------------------------------------------------------- power
     def _state(self) -> int:
@@ -360,24 +376,32 @@ class SerialAsciiDrive(Drive):
             self._next_poll = now + self.poll_s
         self.link.send(*lines)
         fb = self.link.read_reply("feedback").fields
-        t_s = time.monotonic()
+        t_s = self._now()
+        self._cycles += 1
         code = int(self.link.read_reply("error").fields["code"]) if poll else 0
         if code:
             self._raise_fault(code, "faulted while streaming")
         return self._feedback(t_s, float(fb["v"]), float(fb["x"]), code)
+
+    def _now(self) -> float:
+        """Sample time [s]: the lock-step drive's cycle count times the cycle, else host time."""
+        if self.lockstep and self.cycle_s is not None:
+            return self._cycles * self.cycle_s
+        return time.monotonic()
 
     def _feedback(self, t_s: float, v: float, x: float, code: int) -> Feedback:
         return Feedback(t_s, v * self._scale["v"], x * self._scale["x"], code)
 
     def _read_feedback(self) -> Feedback:
         """Position and velocity without clocking the drive (property reads where the dialect has them)."""
+        t_s = self._now()
         if self.dialect.has("position") and self.dialect.has("velocity"):
             x = float(self._query("position").fields["x"])
             v = float(self._query("velocity").fields["v"])
-        else:
+        else:  # the feedback query clocks a lock-step drive: sampled at t_k
             fb = self._query("feedback").fields
             x, v = float(fb["x"]), float(fb["v"])
-        t_s = time.monotonic()
+            self._cycles += 1
         code = self._error_code()
         if code:
             self._raise_fault(code, "is in fault")

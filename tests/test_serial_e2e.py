@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from servobench.bench.logio import read_log
+from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.ascii_line import MalformedReplyError
 from servobench.drivers.dialect import DIALECT_DIR, CommandRejectedError
@@ -60,6 +62,7 @@ def test_square_wave_matches_the_plant(cycle_s):
         drive.enable()
         rows = [drive.exchange(uk) for uk in u]
         drive.disable()
+    t = np.array([fb.t_s for fb, _ in rows])
     v = np.array([fb.velocity for fb, _ in rows])
     x = np.array([fb.position for fb, _ in rows])
     applied = np.array([a for _, a in rows])
@@ -70,6 +73,24 @@ def test_square_wave_matches_the_plant(cycle_s):
     np.testing.assert_allclose(x, x_ref, atol=1e-6)
     assert np.ptp(v) > 0.3  # it did move both ways
     assert drive.lockstep is True
+    # one cycle per feedback query: the sample times are the drive's, not the host's receptions
+    assert drive.drive_clock is True
+    np.testing.assert_array_equal(t, np.arange(len(u)) * cycle_s)
+
+
+def test_a_lock_step_drive_streamed_in_real_time_keeps_its_own_clock(tmp_path):
+    fs = 200.0
+    u = square(60, 10, 0.8)
+    with served() as url, open_drive(url) as drive:
+        assert drive.log_metadata()["drive_clock"].startswith("feedback query count")
+        stream_runs(drive, [(1, u)], fs, tmp_path / "log.csv", pace="real")
+    log = read_log(tmp_path / "log.csv")
+    (run,) = log.runs
+    assert log.metadata["drive_clock"].startswith("feedback query count")
+    assert np.ptp(np.diff(run.extra["t_host"])) > 0  # the host's receptions jitter ...
+    np.testing.assert_allclose(run.t, np.arange(len(u)) / fs, rtol=0, atol=1e-9)
+    v_ref, _ = simulate(u, fs, PARAMS)  # ... the drive's clock and samples do not
+    np.testing.assert_allclose(run.v, v_ref, atol=1e-6)
 
 
 def test_info_units_and_state():
@@ -215,10 +236,14 @@ def test_a_stock_drive_without_the_cycle_extension_is_free_running(tmp_path):
         open_drive(url.replace(f"dialect={stock}", "dialect=odrive")) as drive,
     ):
         assert "dialect=odrive" in drive.url.raw
-        drive.set_cycle(0.001)  # the drive answers "unknown command" to the probe
-        assert drive.lockstep is False
+        assert drive.lockstep is False  # it answered "unknown command" to the probe at open
+        assert drive.log_metadata()["drive_clock"].startswith("none: host reception time")
+        drive.set_cycle(0.001)
+        assert drive.drive_clock is False
         drive.enable()
-        drive.exchange(0.2)
+        before = time.monotonic()
+        fb, _ = drive.exchange(0.2)
+        assert before <= fb.t_s <= time.monotonic()  # the host's reception time
 
 
 def test_enable_that_never_arrives_is_a_state_transition_error(tmp_path):
