@@ -11,6 +11,9 @@
 =============  ==============================================================
 
 At this level: the excitation design (:mod:`.excitation`), the log format
-(:mod:`.logio`), the identified model (:mod:`.model`), the SIDBE procedure
+(:mod:`.logio`, with :mod:`.logtable` parsing the CSV text and :mod:`.logmap`
+naming the signals of other tools' files), the identified model
+(:mod:`.model`) and its files (:mod:`.modelfile`), validation of a model
+against another log (:mod:`.validate`), the SIDBE procedure
 (:mod:`.procedure`) and the command line (:mod:`.cli`).
 """

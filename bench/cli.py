@@ -6,16 +6,20 @@ when its subcommand runs (``servobench --help`` imports none). With no
 arguments, ``servobench`` prints its usage. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
+The notes an error carries (where the partial log of an interrupted run is
+kept) end that line. Under ``--json``, an error also prints one JSON object
+``{"error": "..."}`` on stdout, so that stdout always holds exactly one object.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 import warnings
 
-from servobench.errors import DriveWarning, ServobenchError
+from servobench.errors import DriveWarning, ServobenchError, notes_of
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 
@@ -26,14 +30,25 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "identify": ("servobench.bench.commands.identify", "identify the model from a log"),
     "serve-sim": ("servobench.bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
     "diagnose": ("servobench.bench.commands.diagnose", "find, name and add the effect the model lacks"),
+    "validate": ("servobench.bench.commands.validate", "check a saved model against another log"),
+    "list": ("servobench.bench.commands.list", "list shipped maps, dialects, effects and URL keys"),
     "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
     "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),
 }
 
 
 class _Parser(argparse.ArgumentParser):
+    #: Set by :func:`main` when the command line asks for ``--json``.
+    json_errors = False
+
     def error(self, message: str) -> None:  # one line, exit 2
+        if _Parser.json_errors:
+            _print_json_error(message)
         self.exit(2, f"servobench: error: {message}\n")
+
+
+def _print_json_error(message: str) -> None:
+    print(json.dumps({"error": message}), flush=True)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -84,6 +99,7 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    _Parser.json_errors = "--json" in argv
     warnings.showwarning = _one_line_warning
     parser = build_parser(_command_of(argv))
     if not argv:
@@ -93,18 +109,29 @@ def main(argv: list[str] | None = None) -> int:
     module = getattr(args, "_module", None)
     if module is None:
         parser.error(f"command {args.command!r} is not available in this build")
+    as_json = bool(getattr(args, "json", False))
     try:
         return int(module.run(args) or 0)
     except ServobenchError as err:
-        print(f"servobench: error: {err}", file=sys.stderr)
-        return 1
+        return _fail(str(err), err, as_json)
     except OSError as err:
-        where = f" {err.filename}" if getattr(err, "filename", None) else ""
-        print(f"servobench: error:{where} {err.strerror or err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("servobench: interrupted; axis stopped, partial log kept", file=sys.stderr)
+        where = f"{err.filename}: " if getattr(err, "filename", None) else ""
+        return _fail(f"{where}{err.strerror or err}", err, as_json)
+    except KeyboardInterrupt as err:
+        message = "; ".join(["interrupted; axis stopped", *notes_of(err)])
+        print(f"servobench: {message}", file=sys.stderr)
+        if as_json:
+            _print_json_error(message)
         return 130
+
+
+def _fail(message: str, err: BaseException, as_json: bool) -> int:
+    """One line on stderr (and one JSON object on stdout under ``--json``); exit status 1."""
+    message = "; ".join([message, *notes_of(err)])
+    print(f"servobench: error: {message}", file=sys.stderr)
+    if as_json:
+        _print_json_error(message)
+    return 1
 
 
 if __name__ == "__main__":

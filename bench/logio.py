@@ -17,42 +17,54 @@ a trailer with the status and timing statistics; a later line wins). The
 writer opens every log with ``# status = running``, so a log whose writer
 died before the trailer (a killed host) reads as incomplete; a log without
 any ``status`` line (written by other tools) is taken as complete. Lines end
-in ``\n``, ``\r\n`` or ``\r``.
+in ``\n``, ``\r\n`` or ``\r``; a last line without its line break is a row
+cut short by a crash, and is dropped (the log then reads as incomplete).
+
+Files of other tools: a header whose separator is ``;`` (or a tab) and
+numbers with a decimal comma are read as they are (see
+:mod:`servobench.bench.logtable`); header names of other tools are mapped to
+the signals with ``columns="t=Time,u=Input,v=Velocity,x=Position"``, the
+syntax of ``.mat`` variable mappings (:mod:`servobench.bench.logmap`).
 
 MATLAB ``.mat`` files are read with a variable mapping such as
-``t=t,u=vir*gtau,x=qm`` (a factor may be a number or a scalar variable).
+``t=t,u=vir*gtau,x=qm`` (a factor may be a number or a scalar variable);
+without one, a file lacking variables ``t`` and ``u`` answers with the
+variables it holds.
 """
 
 from __future__ import annotations
 
-import io
 import math
 import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from servobench.bench.logmap import (
+    REQUIRED,
+    SIGNALS,
+    apply_map,
+    format_map,
+    parse_map,
+    read_mat,
+    sources,
+)
+from servobench.bench.logtable import parse_table, show
 from servobench.errors import LogFormatError, one_line
 from servobench.units import SignalUnits
 
-REQUIRED = ("t", "u")
-SIGNALS = ("run", "t", "u", "v", "x")
+__all__ = [
+    "REQUIRED", "SIGNALS", "MAX_RUN", "RunData", "ExperimentLog", "LogWriter",
+    "read_log", "parse_log_text", "parse_map", "parse_mat_map",
+]  # fmt: skip
+
 #: Largest run number accepted [-].
 MAX_RUN = 2**31 - 1
-_META = re.compile(r"^#\s*([A-Za-z_][\w.\-]*)\s*=\s*(.*?)\s*$")
 _KEY_BAD = re.compile(r"[^\w.\-]")
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
-#: Line breaks other than CR/LF (vertical tab, form feed, separators, ...): never in a data row.
-_ODD_BREAK = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
-
-
-def _show(text: str, limit: int = 60) -> str:
-    """A short, one-line rendering of untrusted text for an error message."""
-    shown = repr(text[:limit])
-    return shown + ("..." if len(text) > limit else "")
 
 
 @dataclass(frozen=True)
@@ -224,114 +236,115 @@ def _meta_key(key: object) -> str:
 
 # --------------------------------------------------------------------- reading
 def read_log(
-    path: str | os.PathLike[str], mat_map: str | Mapping[str, str] | None = None
+    path: str | os.PathLike[str],
+    mat_map: str | Mapping[str, str] | None = None,
+    *,
+    columns: str | Mapping[str, str] | None = None,
 ) -> ExperimentLog:
-    """Read a servobench CSV log or a MATLAB ``.mat`` file.
+    """Read a servobench CSV log (or a CSV of another tool) or a MATLAB ``.mat`` file.
 
     Parameters
     ----------
     path : path-like
         The log.
-    mat_map : str or mapping, optional
-        For ``.mat`` files: ``"t=t,u=vir*gtau,x=qm"`` or ``{"u": "vir*gtau", ...}``.
-        Without it, variables named ``t``, ``u``, ``v``, ``x`` (and ``run``) are used.
+    mat_map, columns : str or mapping, optional
+        Which column or variable holds each signal, ``"t=Time,u=Input*35.15,x=Position"``
+        (see :mod:`servobench.bench.logmap`); the two names are one option, for
+        ``.mat`` variables and CSV columns alike. Without it, CSV columns and
+        ``.mat`` variables named ``run``, ``t``, ``u``, ``v``, ``x`` are used.
 
     Raises
     ------
     LogFormatError
         Missing file, malformed content, missing columns.
     """
+    spec = _one_mapping(mat_map, columns)
     path = Path(path)
     where = one_line(str(path))
     try:
         if not path.is_file():
             raise LogFormatError(f"no such log file: {where}")
         if path.suffix.lower() == ".mat":
-            return _read_mat(path, mat_map)
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise LogFormatError(f"{where} is not a text log (not UTF-8)") from None
+            signals, used = read_mat(path, spec)
+            metadata = {"source": f"{one_line(path.name)} (MATLAB)", "mat_map": used}
+            return _assemble(signals, metadata, True, where)
+        data = path.read_bytes()
     except OSError as err:
         raise LogFormatError(f"cannot read {where}: {err.strerror or err}") from None
-    return parse_log_text(text, source=where)
+    return parse_log_text(data, source=where, columns=spec)
 
 
-def parse_log_text(text: str, source: str = "log") -> ExperimentLog:
-    """Parse the text of a CSV log (see the module docstring for the format)."""
+def _one_mapping(mat_map, columns):
+    if mat_map is not None and columns is not None and parse_map(mat_map) != parse_map(columns):
+        raise LogFormatError("--mat-map and --columns disagree; give one mapping")
+    return columns if columns is not None else mat_map
+
+
+def parse_log_text(
+    text: str | bytes,
+    source: str = "log",
+    columns: str | Mapping[str, str] | None = None,
+    engine: str | None = None,
+) -> ExperimentLog:
+    """Parse the text of a CSV log, or its UTF-8 bytes (see the module docstring for the format).
+
+    ``columns`` maps signals to header names (:mod:`servobench.bench.logmap`);
+    ``engine`` forces the number reader (``"numpy"`` or ``"pyarrow"``, see
+    :mod:`servobench.bench.logtable`).
+    """
     source = one_line(source)
-    metadata: dict[str, str] = {}
-    header: list[str] | None = None
-    rows: list[str] = []
-    text = text.removeprefix("\ufeff")  # a byte-order mark from a spreadsheet
-    truncated = bool(text) and not text.endswith(("\n", "\r"))
-    lines = _LINE_BREAK.split(text)
-    # Odd line breaks are searched once in the whole text, not row by row.
-    odd_lines = sorted({len(_LINE_BREAK.findall(text, 0, m.start())) for m in _ODD_BREAK.finditer(text)})
-    if truncated:
-        lines = lines[:-1]  # a crash mid-write: the last partial row is dropped
-    for lineno, raw in enumerate(lines, start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if line.startswith("#"):
-            m = _META.match(line)
-            if m:
-                metadata[m.group(1)] = m.group(2)
-            continue
-        if header is None:
-            header = [h.strip() for h in line.split(",")]
-            _check_header(header, source)
-            continue
-        rows.append(line)
-        if line.count(",") != len(header) - 1:
-            raise LogFormatError(
-                f"{source}:{lineno}: expected {len(header)} fields, got {line.count(',') + 1}"
-            )
-    for index in (i for i in odd_lines if i < len(lines)):  # a dropped partial row is no row
-        row = lines[index]
-        if header is not None and not row.lstrip().startswith("#") and row.strip() != ",".join(header):
-            raise LogFormatError(f"{source}:{index + 1}: control character in row {_show(row)}")
-    if header is None:
-        raise LogFormatError(f"{source}: no CSV header (expected columns like run,t,u,v,x)")
-    if not rows:
-        raise LogFormatError(f"{source}: no data rows")
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
-    except ValueError as err:
-        raise LogFormatError(f"{source}: malformed number in data ({one_line(str(err))})") from None
-    if not np.all(np.isfinite(data)):
-        bad = int(np.flatnonzero(~np.all(np.isfinite(data), axis=1))[0])
-        raise LogFormatError(f"{source}: data row {bad + 1} holds a non-finite value")
-    columns = {name: data[:, i] for i, name in enumerate(header)}
-    complete = metadata.get("status", "complete") == "complete" and not truncated
-    return _assemble(columns, metadata, complete, source)
+    mapping = parse_map(columns)
+    table = parse_table(text, source, partial(_check_header, mapping=mapping, source=source), engine)
+    named = dict(zip(table.header, table.columns, strict=True))
+    metadata = dict(table.metadata)
+    if mapping:
+        used = sources(mapping)
+        named = {k: v for k, v in named.items() if k not in used or k in mapping}
+        named.update(apply_map(dict(zip(table.header, table.columns, strict=True)), mapping, source, "column"))
+        metadata["columns"] = format_map(mapping)
+    complete = metadata.get("status", "complete") == "complete" and not table.truncated
+    return _assemble(named, metadata, complete, source)
 
 
-def _check_header(header: list[str], source: str) -> None:
-    got = _show(",".join(header))
+def _check_header(header: list[str], mapping: Mapping[str, str], source: str) -> None:
+    got = show(",".join(header))
     if len(set(header)) != len(header):
         raise LogFormatError(f"{source}: repeated column in header {got}")
-    missing = [c for c in REQUIRED if c not in header]
+    names = set(header)
+    for signal, expr in mapping.items():
+        for name in sorted(sources({signal: expr}) - names):
+            raise LogFormatError(f"{source}: no column {name!r} for {signal} in header {got}")
+    names = (names - sources(mapping)) | set(mapping)
+    missing = [c for c in REQUIRED if c not in names]
+    hint = "; name them with --columns t=NAME,u=NAME,v=NAME,x=NAME"
     if missing:
-        raise LogFormatError(f"{source}: header lacks column(s) {', '.join(missing)} (got {got})")
-    if "v" not in header and "x" not in header:
-        raise LogFormatError(f"{source}: header needs a v or an x column (got {got})")
+        raise LogFormatError(
+            f"{source}: header lacks column(s) {', '.join(missing)} (got {got}){hint}"
+        )
+    if "v" not in names and "x" not in names:
+        raise LogFormatError(f"{source}: header needs a v or an x column (got {got}){hint}")
 
 
 def _assemble(
     columns: Mapping[str, np.ndarray], metadata: Mapping[str, str], complete: bool, source: str
 ) -> ExperimentLog:
     n = len(columns["t"])
+    if n == 0:
+        raise LogFormatError(f"{source}: the log holds no samples")
+    for key, arr in columns.items():
+        if len(arr) != n:
+            raise LogFormatError(f"{source}: {key} has {len(arr)} samples, t has {n}")
+        if not np.all(np.isfinite(arr)):
+            raise LogFormatError(f"{source}: {key} holds a non-finite value")
     run_col = columns.get("run", np.ones(n))
     if np.any(run_col != np.round(run_col)) or np.any(np.abs(run_col) > MAX_RUN):
         raise LogFormatError(f"{source}: column run must hold integers (|run| <= {MAX_RUN})")
     runs: list[RunData] = []
-    for number in dict.fromkeys(run_col.astype(int).tolist()):
-        idx = run_col == number
+    for number, idx in _run_rows(run_col):
         extra = {k: v[idx] for k, v in columns.items() if k not in SIGNALS}
         runs.append(
             RunData(
-                run=int(number),
+                run=number,
                 t=columns["t"][idx],
                 u=columns["u"][idx],
                 v=columns["v"][idx] if "v" in columns else None,
@@ -344,6 +357,18 @@ def _assemble(
             raise LogFormatError(f"{source}: run {r.run}: time stamps t are not increasing")
     fs_hz = _sample_rate(metadata, runs, source)
     return ExperimentLog(tuple(runs), dict(metadata), fs_hz, complete, source)
+
+
+def _run_rows(run_col: np.ndarray) -> list[tuple[int, slice | np.ndarray]]:
+    """Each run number in file order with its rows: a slice when they are contiguous (as the
+    writer leaves them), else a mask gathering the run's rows wherever they stand."""
+    edges = np.flatnonzero(np.diff(run_col)) + 1
+    starts = np.concatenate(([0], edges)).astype(int)
+    ends = np.concatenate((edges, [len(run_col)])).astype(int)
+    numbers = run_col[starts].astype(int).tolist()
+    if len(set(numbers)) == len(numbers):
+        return [(k, slice(a, b)) for k, a, b in zip(numbers, starts, ends, strict=True)]
+    return [(k, run_col == k) for k in dict.fromkeys(numbers)]
 
 
 def _sample_rate(metadata: Mapping[str, str], runs: list[RunData], source: str) -> float:
@@ -371,75 +396,5 @@ def _sample_rate(metadata: Mapping[str, str], runs: list[RunData], source: str) 
     return fs
 
 
-def parse_mat_map(spec: str | Mapping[str, str] | None) -> dict[str, str]:
-    """``"t=t,u=vir*gtau"`` -> ``{"t": "t", "u": "vir*gtau"}``."""
-    if spec is None:
-        return {}
-    if isinstance(spec, Mapping):
-        return dict(spec)
-    out: dict[str, str] = {}
-    for item in filter(None, (s.strip() for s in spec.split(","))):
-        key, sep, expr = item.partition("=")
-        if not sep or not key.strip() or not expr.strip():
-            raise LogFormatError(f"bad variable mapping {item!r}; expected name=variable[*factor]")
-        out[key.strip()] = expr.strip()
-    return out
-
-
-def _read_mat(path: Path, spec: str | Mapping[str, str] | None) -> ExperimentLog:
-    from scipy.io import loadmat
-
-    where = one_line(str(path))
-    mapping_spec = parse_mat_map(spec)
-    try:
-        mat = loadmat(str(path), squeeze_me=True)
-    except Exception as err:  # scipy raises several types for a bad file
-        raise LogFormatError(
-            f"{where}: not a readable MATLAB file ({one_line(str(err))[:200]})"
-        ) from None
-    mapping = mapping_spec or {k: k for k in SIGNALS if k in mat}
-
-    def value(expr: str) -> np.ndarray | float:
-        out: np.ndarray | float = 1.0
-        for factor in expr.split("*"):
-            factor = factor.strip()
-            try:
-                out = out * float(factor)
-                continue
-            except ValueError:
-                pass
-            if factor not in mat:
-                raise LogFormatError(
-                    f"{where}: no variable {factor!r} (has {', '.join(_mat_vars(mat))})"
-                )
-            try:
-                out = out * np.asarray(mat[factor], dtype=float)
-            except (TypeError, ValueError):
-                raise LogFormatError(f"{where}: variable {factor!r} is not numeric") from None
-        return out
-
-    columns: dict[str, np.ndarray] = {}
-    for key, expr in mapping.items():
-        columns[key] = np.atleast_1d(np.asarray(value(expr), dtype=float)).ravel()
-    missing = [c for c in REQUIRED if c not in columns]
-    if missing:
-        raise LogFormatError(
-            f"{where}: mapping lacks {', '.join(missing)}; pass e.g. --mat-map t=t,u=vir*gtau,x=qm"
-        )
-    n = len(columns["t"])
-    for key, arr in columns.items():
-        if len(arr) != n:
-            raise LogFormatError(f"{where}: variable for {key} has {len(arr)} samples, t has {n}")
-        if not np.all(np.isfinite(arr)):
-            raise LogFormatError(f"{where}: variable for {key} holds a non-finite value")
-    if n == 0:
-        raise LogFormatError(f"{where}: the variables hold no samples")
-    metadata = {
-        "source": f"{one_line(path.name)} (MATLAB)",
-        "mat_map": ",".join(f"{k}={v}" for k, v in mapping.items()),
-    }
-    return _assemble(columns, metadata, True, where)
-
-
-def _mat_vars(mat: Mapping[str, object]) -> list[str]:
-    return sorted(k for k in mat if not k.startswith("__"))
+#: The mapping reader, under its first name.
+parse_mat_map = parse_map

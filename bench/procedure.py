@@ -11,8 +11,15 @@
    redesign the spectrum around the identified corner frequency
    ``B / (2 pi M)``; then run again, at most ``max_iterations`` times.
 
+The run folder: each round streams to ``log-<i>.csv`` as its samples arrive
+(``log-1.csv`` the first amplitude, ``log-2.csv`` the next, ...); the round
+whose model is accepted is copied to ``log.csv``, the log ``model.json``
+describes. ``model.json`` says the same in its ``files`` object. A folder
+that already holds a run is refused, never overwritten.
+
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
-:class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`.
+:class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
+:func:`check_run_folder`.
 """
 
 from __future__ import annotations
@@ -44,6 +51,36 @@ DEFAULT_GROWTH = 2.0
 UNLIMITED_GROWTH_CAP = 8.0
 
 Progress = Callable[[int, int], None]
+
+#: Files of a run folder: the accepted round's log and the model.
+LOG_FILE, MODEL_FILE = "log.csv", "model.json"
+
+
+def round_log_name(index: int) -> str:
+    """The log of excite-identify round ``index`` (from 1)."""
+    return f"log-{index}.csv"
+
+
+def check_run_folder(out_dir: str | Path) -> None:
+    """Refuse a folder that holds an earlier run (its ``model.json``, ``log.csv`` or ``log-N.csv``).
+
+    Raises
+    ------
+    UsageError
+        Naming the files found and what to do.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out} is a file, not a folder; choose another --out")
+    if not out.is_dir():
+        return
+    found = sorted(p.name for p in out.iterdir() if p.name in (LOG_FILE, MODEL_FILE)
+                   or (p.name.startswith("log-") and p.suffix == ".csv"))  # fmt: skip
+    if found:
+        raise UsageError(
+            f"{out} already holds a run ({', '.join(found)}); choose another --out, or move that "
+            "run away first: nothing was overwritten"
+        )
 
 
 @dataclass(frozen=True)
@@ -187,6 +224,8 @@ class SidbeResult:
     fit_threshold : float
     out_dir, log_path, model_path : Path
     plots : tuple of Path
+    accepted_log : Path or None
+        The round's log that ``log_path`` copies.
     fs_achieved_hz : float
         Cycle rate the host achieved streaming the accepted round [Hz].
     """
@@ -200,6 +239,7 @@ class SidbeResult:
     log_path: Path
     model_path: Path
     plots: tuple[Path, ...] = field(default_factory=tuple)
+    accepted_log: Path | None = None
     fs_achieved_hz: float = math.nan
 
     def to_json(self) -> dict[str, Any]:
@@ -225,8 +265,19 @@ class SidbeResult:
                 "log": str(self.log_path),
                 "model_file": str(self.model_path),
                 "plots": [str(p) for p in self.plots],
+                "files": self.files(),
             }
         )
+        return out
+
+    def files(self) -> dict[str, str]:
+        """What each log of the run folder holds (``model.json``'s ``files`` object)."""
+        source = self.accepted_log.name if self.accepted_log is not None else "the best round's log"
+        out = {LOG_FILE: f"copy of {source}: the round this model was identified from "
+                         "(the log to validate or diagnose it with)"}  # fmt: skip
+        for it in self.iterations:
+            fit = "no model" if it.fit_percent is None else f"fit {it.fit_percent:.2f} %"
+            out[it.log_path.name] = f"round {it.index}, amplitude {it.amplitude:g}: {fit}; {it.action}"
         return out
 
 
@@ -244,8 +295,9 @@ def run_sidbe(
         Opened here if it is not open yet (and then closed again).
     options : SidbeOptions
     out_dir : path
-        Created if missing. Each round logs ``log-<i>.csv``; the accepted one
-        is copied to ``log.csv``.
+        Created if missing; refused when it holds an earlier run
+        (:func:`check_run_folder`). Each round logs ``log-<i>.csv``; the
+        accepted one is copied to ``log.csv``.
     progress : callable(iteration, done, total), optional
         Streaming progress, samples done of total, per round.
 
@@ -259,6 +311,7 @@ def run_sidbe(
     options = options.for_drive(drive)
     design = options.validate(drive)
     out = Path(out_dir)
+    check_run_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     cap = options.amplitude_cap(drive)
     opened_here = not drive.is_open
@@ -273,7 +326,7 @@ def run_sidbe(
         errors = "; ".join(f"round {it.index}: {it.error}" for it in iterations if it.error)
         raise IdentificationError(f"no round produced a model ({errors})")
     result, best_design, best_log, achieved_hz = best
-    log_path = out / "log.csv"
+    log_path = out / LOG_FILE
     shutil.copyfile(best_log, log_path)
     passed = result.fit_percent >= options.fit_threshold
     plots: tuple[Path, ...] = ()
@@ -281,7 +334,7 @@ def run_sidbe(
         from servobench.bench.report.plots import write_plots
 
         plots = tuple(write_plots(result, out))
-    model_path = out / "model.json"
+    model_path = out / MODEL_FILE
     sr = SidbeResult(
         result,
         tuple(iterations),
@@ -292,6 +345,7 @@ def run_sidbe(
         log_path,
         model_path,
         plots,
+        best_log,
         achieved_hz,
     )
     model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
@@ -303,7 +357,7 @@ def _rounds(drive, options, design, cap, out, progress):
     best: tuple[IdentificationResult, exc.ExcitationDesign, Path, float] | None = None
     redesigned = options.freqs_hz is not None
     for index in range(1, int(options.max_iterations) + 1):
-        log_path = out / f"log-{index}.csv"
+        log_path = out / round_log_name(index)
         excitation = exc.design_excitation(design)
         meta = {**design.metadata(), "loop": "open", "iteration": index}
 

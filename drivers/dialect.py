@@ -269,6 +269,11 @@ class Dialect:
 
 
 # ---------------------------------------------------------------- loading
+def shipped_dialects() -> list[str]:
+    """Names of the dialects shipped in ``drivers/data/dialects``."""
+    return sorted(p.stem for p in DIALECT_DIR.glob("*.toml"))
+
+
 def dialect_path(name_or_path: str) -> Path:
     """The file of a shipped dialect name, or ``name_or_path`` itself when it is a path."""
     if "/" in name_or_path or "\\" in name_or_path or name_or_path.endswith(".toml"):
@@ -277,7 +282,7 @@ def dialect_path(name_or_path: str) -> Path:
         raise DriveConfigError(f"not a dialect name or file: {name_or_path!r}")
     path = DIALECT_DIR / f"{name_or_path}.toml"
     if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in DIALECT_DIR.glob("*.toml"))) or "none"
+        known = ", ".join(shipped_dialects()) or "none"
         raise DriveConfigError(f"unknown serial dialect {name_or_path!r} (shipped: {known})")
     return path
 

@@ -270,7 +270,7 @@ def words_of(block: Block, reg: Register, words: Sequence[int]) -> list[int]:
 # -------------------------------------------------------------- parsing
 def shipped_maps() -> list[str]:
     """Names of the maps shipped in ``drivers/data/maps``."""
-    folder = resources.files("servobench.drivers") / "data" / "maps"
+    folder = resources.files(__package__) / "data" / "maps"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
@@ -286,7 +286,7 @@ def resolve_map(name_or_path: str) -> Path:
             f"unknown register map {name_or_path!r}; shipped: {', '.join(shipped_maps())} "
             "(or give a path to a .toml file)"
         )
-    return Path(str(resources.files("servobench.drivers") / "data" / "maps" / f"{name_or_path}.toml"))
+    return Path(str(resources.files(__package__) / "data" / "maps" / f"{name_or_path}.toml"))
 
 
 def load_map(name_or_path: str) -> RegisterMap:

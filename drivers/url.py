@@ -8,6 +8,7 @@ silently ignored.
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from urllib.parse import parse_qsl, unquote, urlsplit
@@ -48,8 +49,10 @@ class DriveURL:
         unknown = sorted(set(self.query) - allowed)
         if unknown:
             known = ", ".join(sorted(allowed)) or "none"
+            guesses = [g for k in unknown for g in difflib.get_close_matches(k, allowed, n=2)]
+            hint = f"; did you mean {' or '.join(dict.fromkeys(guesses))}?" if guesses else ""
             raise DriveConfigError(
-                f"{self.scheme}:// does not take query key(s) {', '.join(unknown)} (known: {known})"
+                f"{self.scheme}:// does not take query key(s) {', '.join(unknown)}{hint} (known: {known})"
             )
 
     def get_float(self, key: str, default: float | None = None) -> float | None:

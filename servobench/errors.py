@@ -24,6 +24,7 @@ and a non-zero exit status.
 
 from __future__ import annotations
 
+import contextlib
 import re
 
 #: Every character ``str.splitlines`` breaks at.
@@ -122,3 +123,28 @@ class DriveWarning(UserWarning):
 
     def __init__(self, message: str) -> None:
         super().__init__(one_line(message))
+
+
+def add_note(err: BaseException, note: str) -> None:
+    """Attach a one-line note to ``err`` (PEP 678 ``__notes__``), e.g. where the partial log is.
+
+    The CLI prints the notes after the message, on the same line.
+    """
+    note = one_line(note)
+    if hasattr(err, "add_note"):  # Python >= 3.11
+        err.add_note(note)
+        return
+    with contextlib.suppress(AttributeError):  # an exception type that takes no attributes
+        err.__notes__ = [*getattr(err, "__notes__", []), note]  # type: ignore[attr-defined]
+
+
+def notes_of(err: BaseException) -> list[str]:
+    """The notes of ``err`` and of the errors it was raised from, outermost first, each once."""
+    out: list[str] = []
+    seen: set[int] = set()
+    cur: BaseException | None = err
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        out.extend(n for n in getattr(cur, "__notes__", ()) if isinstance(n, str) and n not in out)
+        cur = cur.__cause__ or cur.__context__
+    return out

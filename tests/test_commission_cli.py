@@ -94,11 +94,14 @@ def check_record(out: Path, plant=PLANT) -> dict:
     page.feed((out / "report.html").read_text())
     pngs = [s for s in page.images if s.startswith("data:image/png;base64,")]
     assert len(pngs) >= 7 and len(pngs) == len(page.images)  # bump, excitation, velocity, FRF, friction, compensation, ...
+    assert model["identity"]["transport"] == model["commissioning"]["drive"]["transport"]
     assert page.external == []
     html = (out / "report.html").read_text()
+    for heading in ("Summary", "Values to program into the drive", "Evidence"):
+        assert f"<h2>{heading}</h2>" in html
     for heading in ("Excitation", "Velocities", "Frequency response", "Friction-velocity map", "Diagnosis",
                     "Friction compensation and velocity-loop PI"):  # fmt: skip
-        assert f"<h2>{heading}" in html
+        assert f"<h3>{heading}" in html
 
     from scipy.io import loadmat
 
@@ -120,7 +123,8 @@ def test_end_to_end_on_sim(tmp_path, config, drives, capsys):
                "--out", str(out), "--record-bus", str(tmp_path / "bus.log")])  # fmt: skip
     captured = capsys.readouterr()
     assert rc == 0, captured.err
-    check_record(out)
+    model = check_record(out)
+    assert model["units"]["B"] == "N m s/rad" and model["units"]["coulomb_pos"] == "N m"  # sim:// is rotary SI
     assert "cannot record bus traffic" in captured.out and "continuing without" in captured.out
     assert len(drives) == 2  # read-only check, then the connection with the limits
     assert drives[1].limits.max_command == 5.0 and drives[1].limits.max_velocity == 20.0

@@ -117,3 +117,14 @@ def test_end_of_input_refuses_instead_of_looping():
     prompter = TerminalPrompter(Console(file=io.StringIO()), io.StringIO("3\n"))
     with pytest.raises(CommissionRefused, match="end of input"):
         confirm_at_terminal(LimitSettings(), prompter)
+
+
+def test_identity_keys_for_the_record():
+    cfg = parse_config({"identity": {"site": " Hall 3 ", "machine": "Press 7", "axis": "Z", "operator": "A. T."}})
+    assert cfg.identity.as_dict() == {"site": "Hall 3", "machine": "Press 7", "axis": "Z", "operator": "A. T."}
+    assert load_config(EXAMPLE).identity.axis == "X"  # documented in the shipped example
+    assert parse_config({}).identity.site == ""
+    with pytest.raises(UsageError, match=r"\[identity\]: unknown key\(s\) opertor"):
+        parse_config({"identity": {"opertor": "x"}}, "t.toml")
+    with pytest.raises(UsageError, match="axis must be a string"):
+        parse_config({"identity": {"axis": 3}}, "t.toml")

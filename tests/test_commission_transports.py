@@ -12,6 +12,7 @@ import pytest
 from test_commission_cli import CONFIG, check_record
 
 from servobench.bench.cli import main
+from servobench.bench.logio import read_log
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.registry import open_drive
 
@@ -51,6 +52,18 @@ def test_commission_over_a_served_drive(tmp_path, transport, capsys):
     assert drive["transport"] == url.split("://")[0]
     if transport == "canopen":
         assert drive["firmware"] and drive["serial_number"]
+        assert model["identity"]["serial_number"] == drive["serial_number"]
+        # the values to program in the drive's own units: per mille of its rated torque (0x6076,
+        # 1000 mN m served by default) and its velocity unit, from the driver's scale factors
+        meta = read_log(out / "log.csv").metadata
+        assert float(meta["scale_u"]) == pytest.approx(1e-3)
+        program = {p["name"]: p for p in model["program"]}
+        ff = program["friction feed-forward, positive motion (Coulomb +)"]
+        assert ff["unit"] == "N m" and ff["drive_value"] == pytest.approx(model["coulomb_pos"] * 1000)
+        kp = program["velocity PI: proportional gain Kp"]
+        assert kp["drive_value"] == pytest.approx(kp["value"] * float(meta["scale_v"]) / 1e-3)
+        html = (out / "report.html").read_text()
+        assert f"1 drive u unit = 0.001 N m ({meta['scale_u_source']})" in html
         lines = bus.read_text(errors="replace").splitlines()
         assert len(lines) > 1000
         assert all(CANDUMP_LINE.match(line) for line in lines), "interleaved or corrupt lines"

@@ -64,9 +64,10 @@ def test_log_without_motion_is_an_identification_error(tmp_path, capsys):
         w.append_block(np.ones(n), np.arange(n) / 500, np.zeros(n), np.zeros(n), np.zeros(n))
     assert main(["diagnose", str(path), "--json"]) == 1
     captured = capsys.readouterr()
-    assert captured.out == ""
     err = captured.err.strip().splitlines()
     assert len(err) == 1 and "does not move" in err[0]
+    # under --json stdout holds exactly one object: the error, as stderr words it (issue 13)
+    assert json.loads(captured.out) == {"error": err[0].removeprefix("servobench: error: ")}
 
 
 def test_bad_horizon_is_a_usage_error(deadzone_log, capsys):

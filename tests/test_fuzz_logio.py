@@ -96,3 +96,71 @@ def test_whatever_the_writer_writes_reads_back(tmp_path_factory, meta, rows) -> 
     log = read_log(path)
     assert log.complete and len(log.runs[0]) == len(rows)
     np.testing.assert_allclose(log.runs[0].u, [u for u, _ in rows], rtol=1e-9)
+
+
+# ------------------------------------------------------------ fast pass = reference
+def _reference(text: str):
+    """What the line-by-line reference parser makes of ``text`` (result or error message)."""
+    from servobench.bench import logtable
+
+    text = text.removeprefix("\ufeff")
+    truncated = bool(text) and not text.endswith(("\n", "\r"))
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    if truncated:
+        lines = lines[:-1]
+    try:
+        meta, header, columns = logtable.checked_parse(lines, "fuzz", lambda h: None)
+    except LogFormatError as err:
+        return str(err)
+    return meta, header, columns
+
+
+def _fast(text: str, engine: str):
+    from servobench.bench import logtable
+
+    try:
+        table = logtable.parse_table(text, "fuzz", lambda h: None, engine)
+    except LogFormatError as err:
+        return str(err)
+    return table.metadata, table.header, table.columns
+
+
+def _same(a, b) -> None:
+    assert type(a) is type(b), (a, b)
+    if isinstance(a, str):
+        assert a == b
+        return
+    assert a[0] == b[0] and a[1] == b[1]
+    assert len(a[2]) == len(b[2])
+    for x, y in zip(a[2], b[2], strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+@FUZZ
+@given(st.one_of(log_like(), st.text(max_size=300)), st.sampled_from(["numpy", "pyarrow"]))
+@example("t,u,v\n0,1,2\n 1,1,2 \n", "pyarrow")
+@example("t,u,v\n0,1,2\n1,1,2#3\n", "numpy")
+@example("t;u;v\n0;1,5;2\n1;1;2\n# status = complete\n", "pyarrow")
+@example("t,u,v\n0,1,2\n\n1,1,nan\n", "pyarrow")
+@example("t,u,v\n0,1,2\n1,1,\n", "pyarrow")
+def test_fast_readers_agree_with_the_line_by_line_reference(text: str, engine: str) -> None:
+    """numpy's and pyarrow's C readers return exactly what the reference parser does."""
+    _same(_fast(text, engine), _reference(text))
+    _same(_fast(text.encode("utf-8"), engine), _reference(text))  # read_log hands bytes
+
+
+def test_a_clean_log_never_needs_the_reference(monkeypatch) -> None:
+    """The fast pass really runs: with the reference disabled, clean logs (',' and ';') still read."""
+    from servobench.bench import logtable
+
+    def no_reference(*_args):
+        raise AssertionError("the line-by-line reference ran")
+
+    monkeypatch.setattr(logtable, "checked_parse", no_reference)
+    rows = "".join(f"1,{k / 100:.2f},1.5,{k},0\n" for k in range(50))
+    text = "# fs = 100\nrun,t,u,v,x\n" + rows + "# status = complete\n"
+    for engine in logtable.ENGINES:
+        for variant in (text, text.replace(",", ";").replace(".", ",").replace("# fs = 100", "# fs = 100")):
+            log = parse_log_text(variant.encode(), engine=engine)
+            assert len(log.runs[0]) == 50 and log.complete and log.fs_hz == 100.0
+            np.testing.assert_array_equal(log.runs[0].v, np.arange(50.0))

@@ -11,16 +11,13 @@ from __future__ import annotations
 
 import argparse
 
+from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", metavar="LOG", help="servobench CSV log or MATLAB .mat file")
+    add_log_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.add_argument("--out", metavar="DIR", help="write comparison.csv, plots and report.md here")
-    p.add_argument(
-        "--mat-map",
-        metavar="MAP",
-        help="variable mapping for .mat logs, e.g. t=t,u=vir*gtau,x=qm",
-    )
     p.add_argument(
         "--horizon",
         type=float,
@@ -34,10 +31,9 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from servobench.bench.diagnose.workflow import diagnose
-    from servobench.bench.logio import read_log
     from servobench.bench.report.diagnose import to_json, write_report
 
-    log = read_log(args.log, args.mat_map)
+    log = read_log_of(args)
     result = diagnose(log, horizon_s=args.horizon)
     report = write_report(result, args.out) if args.out else None
     if args.json:

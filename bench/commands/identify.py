@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 
+from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", metavar="LOG", help="servobench CSV log or MATLAB .mat file")
+    add_log_arguments(p)
     p.add_argument(
         "--method",
         choices=("auto", "sidbe", "joint"),
@@ -15,12 +17,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "the better on held-out data)",
     )
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
-    p.add_argument(
-        "--mat-map",
-        default=None,
-        metavar="MAP",
-        help="variables of a .mat file, e.g. t=t,u=vir*gtau,x=qm",
-    )
     p.add_argument("--resonance", action="store_true", help="let SIDBE fit a series resonance")
     p.add_argument(
         "--cutoff",
@@ -44,10 +40,9 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from servobench.bench.identify.auto import identify
-    from servobench.bench.logio import read_log
     from servobench.bench.report.summary import print_json, print_result
 
-    log = read_log(args.log, mat_map=args.mat_map)
+    log = read_log_of(args)
     if args.loop:
         log = replace(log, metadata={**log.metadata, "loop": args.loop})
     result = identify(log, args.method, resonance=args.resonance, velocity_cutoff_hz=args.cutoff)

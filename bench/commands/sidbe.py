@@ -56,12 +56,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         default=None,
         metavar="DIR",
-        help=f"output folder (default: a new folder ./{RUNS_DIR}/<timestamp>)",
+        help=f"output folder, new or empty: a folder holding an earlier run is refused "
+        f"(default: a new folder ./{RUNS_DIR}/<timestamp>)",
     )
 
 
 def default_out_dir(base: Path | None = None) -> Path:
-    """A new ``./servobench-runs/<YYYYmmdd-HHMMSS>[-n]`` folder name."""
+    """A new ``./servobench-runs/<YYYYmmdd-HHMMSS>[-n]`` folder name (the checkout's
+    ``.gitignore`` lists ``servobench-runs/``)."""
     root = (base or Path.cwd()) / RUNS_DIR
     stamp = time.strftime("%Y%m%d-%H%M%S")
     path = root / stamp
@@ -74,7 +76,7 @@ def default_out_dir(base: Path | None = None) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.procedure import SidbeOptions, run_sidbe
+    from servobench.bench.procedure import SidbeOptions, check_run_folder, run_sidbe
     from servobench.bench.report.summary import print_json, print_result, rate_text
     from servobench.drivers.registry import open_drive
 
@@ -93,9 +95,10 @@ def run(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
     )
     options.validate()
+    out_dir = Path(args.out) if args.out else default_out_dir()
+    check_run_folder(out_dir)  # before the drive is even opened
     drive = open_drive(args.drive)
     options.validate(drive)
-    out_dir = Path(args.out) if args.out else default_out_dir()
     with drive, stream_progress() as progress:
         result = run_sidbe(drive, options, out_dir, progress=progress)
     if args.json:

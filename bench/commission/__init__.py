@@ -5,7 +5,8 @@ drive, confirms the limits, bump-tests the axis, runs SIDBE with its
 verification loop and the diagnosis, designs friction feed-forward and a
 velocity-loop PI from the identified model, checks both in simulation and
 writes the commissioning record (``model.json``, the log, ``report.html``,
-``commission.mat``).
+``commission.mat``): verdict and identity first, then the values to program
+into the drive, then the evidence.
 
 Modules
 -------
@@ -17,6 +18,7 @@ bump         the bump test: does it move, in the right direction, with sane feed
 integration  the one adapter to the SIDBE procedure, the model and the diagnosis
 design       friction feed-forward and PI design (pure)
 closedloop   velocity-loop simulation of the design on the identified plant
+program      the values to program into the drive, in the log's and the drive's own units
 record       model.json, the .mat export, commission.json
 figures      the plots only commissioning draws (excitation, bump, compensation)
 report       the self-contained HTML page

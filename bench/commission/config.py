@@ -5,6 +5,7 @@ under ``--yes``); unknown tables or keys are an error, never ignored, so a
 misspelled limit cannot pass silently. See ``examples/bench.toml`` for the
 documented layout::
 
+    [identity]      site, machine, axis, operator (text, for the commissioning record)
     [limits]        max_u, max_v, xmin, xmax      (drive units; +-inf for unlimited travel)
     [bump]          fractions, pulse_s, rest_s, fs_hz, max_speed_fraction, position_tolerance
     [sidbe]         passed to the SIDBE procedure as its options
@@ -25,6 +26,33 @@ from servobench.tomlfile import SENTENCE, TomlTable, read_toml
 
 #: The four limit keys, as in the drive URL query.
 LIMIT_KEYS = ("max_u", "max_v", "xmin", "xmax")
+
+
+@dataclass(frozen=True)
+class IdentitySettings:
+    """What the commissioning record names besides the drive: where, which axis, who.
+
+    Attributes
+    ----------
+    site : str
+        The plant or workshop (``"Hall 3, line 2"``).
+    machine : str
+        The machine the axis belongs to (``"press 7"``).
+    axis : str
+        The axis on that machine (``"X"``, ``"spindle"``).
+    operator : str
+        Who commissioned it.
+
+    Every field is optional text; ``""`` where not given (the record then says so).
+    """
+
+    site: str = ""
+    machine: str = ""
+    axis: str = ""
+    operator: str = ""
+
+    def as_dict(self) -> dict[str, str]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass(frozen=True)
@@ -161,6 +189,7 @@ class CompensationSettings:
 class CommissionConfig:
     """The whole configuration; ``source`` names the file ("" for defaults)."""
 
+    identity: IdentitySettings = field(default_factory=IdentitySettings)
     limits: LimitSettings = field(default_factory=LimitSettings)
     bump: BumpSettings = field(default_factory=BumpSettings)
     design: DesignSettings = field(default_factory=DesignSettings)
@@ -171,6 +200,7 @@ class CommissionConfig:
 
 
 _SECTIONS = {
+    "identity": IdentitySettings,
     "limits": LimitSettings,
     "bump": BumpSettings,
     "design": DesignSettings,
@@ -180,14 +210,17 @@ _FREE_SECTIONS = ("sidbe", "diagnose")
 
 
 def _section(table: TomlTable, cls: type) -> object:
-    """The settings ``cls`` from ``table``: numbers (``fractions``: a list of them), all optional."""
+    """The settings ``cls`` from ``table``: numbers (``fractions``: a list of them; the
+    identity: text), all optional."""
     names = [f.name for f in fields(cls)]
     table.allow(names)
     values: dict[str, object] = {}
     for name in names:
         if name not in table:
             continue  # the dataclass default
-        if name == "fractions":
+        if cls is IdentitySettings:
+            values[name] = table.get(name, str).strip()
+        elif name == "fractions":
             values[name] = tuple(float(v) for v in table.sequence(name, float))
         else:
             values[name] = table.number(name, allow_inf=name in ("xmin", "xmax"))

@@ -2,10 +2,14 @@
 
 ``model.json`` holds, at its top level, exactly the keys of
 ``servobench identify --json`` (M, B, pole, dc_gain, coulomb_pos,
-coulomb_neg, fit_percent, method), then ``std`` (1-sigma of every
-parameter), the friction feed-forward, the suggested PI, the simulation
-check, and the facts of the commissioning (drive, limits, bump test,
-diagnosis). ``commission.mat`` carries the log arrays and the same numbers
+coulomb_neg, fit_percent, method, and ``units``: the unit of every
+parameter), then ``std`` (1-sigma of every parameter), the friction
+feed-forward, the suggested PI, the simulation check, ``program`` (the
+values to program into the drive, in the log's and the drive's own units,
+:mod:`servobench.bench.commission.program`), ``identity`` (site, machine,
+axis, operator from the config; vendor, product, firmware, serial number
+from the drive) and the facts of the commissioning (drive, limits, bump
+test, diagnosis). ``commission.mat`` carries the log arrays and the same numbers
 for MATLAB. ``commission.json`` is written whatever happens (success,
 refusal, Ctrl-C) and says how far commissioning got.
 """
@@ -23,10 +27,14 @@ from typing import Any
 import numpy as np
 
 from servobench.bench.commission.closedloop import CompensationCheck
+from servobench.bench.commission.config import IdentitySettings
 from servobench.bench.commission.design import FrictionFeedForward, PIDesign
 from servobench.bench.commission.integration import IDENTIFY_KEYS
+from servobench.bench.commission.program import ProgramValue
 from servobench.bench.logio import ExperimentLog
 from servobench.bench.model import STD_KEYS, IdentificationResult
+from servobench.bench.report.summary import derived_std
+from servobench.drivers.base import DriveInfo
 
 MODEL_FILE = "model.json"
 MAT_FILE = "commission.mat"
@@ -84,31 +92,44 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def identity_record(given: IdentitySettings, info: DriveInfo) -> dict[str, str]:
+    """``identity`` of ``model.json``: site, machine, axis, operator from the config, then what
+    the drive reports of itself (``""`` where the protocol tells nothing)."""
+    return {
+        **given.as_dict(),
+        "transport": info.transport,
+        "vendor": info.vendor,
+        "product": info.product,
+        "firmware": info.firmware,
+        "serial_number": info.serial_number,
+    }
+
+
 def write_json(path: Path, data: Mapping[str, Any]) -> Path:
     path.write_text(json.dumps(_clean(data), indent=2) + "\n", encoding="utf-8")
     return path
 
 
-def derived_std(result: IdentificationResult) -> dict[str, float]:
-    """1-sigma of the pole ``-B/M`` [1/s] and the DC gain ``1/B``, first-order propagation (M, B uncorrelated)."""
-    m = result.model
-    sm, sb = result.std.get("M", math.nan), result.std.get("B", math.nan)
-    return {"pole": math.hypot(sb / m.M, m.B * sm / m.M**2), "dc_gain": sb / m.B**2}
-
-
 def model_record(
-    result: IdentificationResult, design: Design | None, facts: Mapping[str, Any], units: Mapping[str, str]
+    result: IdentificationResult,
+    design: Design | None,
+    facts: Mapping[str, Any],
+    program: tuple[ProgramValue, ...] = (),
+    identity: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """The content of ``model.json``: the ``identify --json`` object, then the commissioning."""
     ident = result.to_json()
     record: dict[str, Any] = {key: ident[key] for key in IDENTIFY_KEYS}
     record.update({k: v for k, v in ident.items() if k not in record})
     record["std"] = {**{k: result.std.get(k, math.nan) for k in STD_KEYS}, **derived_std(result)}
-    record["units"] = dict(units)
     if design is not None:
         record["feed_forward"] = design.feed_forward.as_dict()
         record["velocity_pi"] = design.pi.as_dict()
         record["simulation_check"] = design.check.as_dict()
+    if program:
+        record["program"] = [p.as_dict() for p in program]
+    if identity is not None:
+        record["identity"] = dict(identity)
     record["commissioning"] = dict(facts)
     return record
 

@@ -39,12 +39,14 @@ from servobench.bench.commission.limits import (
     merge_limits,
     url_with_limits,
 )
+from servobench.bench.commission.program import DriveScale, program_values
 from servobench.bench.commission.record import (
     MAT_FILE,
     MODEL_FILE,
     STATUS_FILE,
     Design,
     Progress,
+    identity_record,
     model_record,
     write_json,
     write_mat,
@@ -56,7 +58,13 @@ from servobench.bench.report import commission_record as document
 from servobench.bench.report.html import REPORT_FILE, write_report
 from servobench.drivers.base import Drive
 from servobench.drivers.url import parse_drive_url
-from servobench.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
+from servobench.errors import (
+    DriveError,
+    DriveUnavailableError,
+    LimitExceededError,
+    UsageError,
+    add_note,
+)
 
 BUMP_LOG = "bump.csv"
 DIAGNOSE_DIR = "diagnose"
@@ -141,19 +149,24 @@ class Commissioning:
         self._prepare_out_dir()
         try:
             result = self._steps()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             self.progress.status, self.progress.reason = "interrupted", "Ctrl-C"
+            add_note(err, self._kept())
             raise
         except CommissionRefused as err:
             self.progress.status, self.progress.reason = "refused", str(err)
             raise
         except BaseException as err:
             self.progress.status, self.progress.reason = "error", str(err) or type(err).__name__
+            add_note(err, self._kept())
             raise
         finally:
             self._keep_files()
             write_json(self.out / STATUS_FILE, self.progress.as_dict())
         return result
+
+    def _kept(self) -> str:
+        return f"the record so far is kept in {self.out} ({STATUS_FILE} says how far it got)"
 
     def _prepare_out_dir(self) -> None:
         if (self.out / STATUS_FILE).exists():
@@ -179,7 +192,7 @@ class Commissioning:
         config = self.o.config
         settings = merge_limits(config.limits, parse_drive_url(self.o.drive_url))
         preset = limits_from_config(settings) if self.o.assume_yes else None
-        check, units = self._check_step()
+        check = self._check_step()
         limits, limited_url = self._limits_step(preset or settings, check)
         if self.o.dry_run:
             self._say_plan(limited_url, limits)
@@ -196,19 +209,18 @@ class Commissioning:
         self.console.step(5, "compensation, PI and the record")
         design = self._design(sidbe.result.model, limits, sidbe.fs_hz)
         self._done("design")
-        self._write_record(check, limits, limited_url, bump, sidbe, diag, design, units)
+        self._write_record(check, limits, limited_url, bump, sidbe, diag, design)
         self.progress.status = "complete"
         self.console.ok(f"commissioning record in {self.out}")
         return CommissionResult("complete", self.out, sidbe.result, design)
 
-    def _check_step(self) -> tuple[DriveCheck, dict[str, str]]:
+    def _check_step(self) -> DriveCheck:
         """Step 1 on a read-only connection with the URL as given."""
         self.console.step(1, "link and drive")
         with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
             check = check_drive(drive, self.console, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
-            units = dict(check.info.units) or dict(drive.units)
         self._done("check", drive_info=check.as_dict())
-        return check, units
+        return check
 
     def _limits_step(self, given: ConfirmedLimits | LimitSettings, check: DriveCheck) -> tuple[ConfirmedLimits, str]:
         """Step 2: the confirmed limits and the drive URL that carries them."""
@@ -342,7 +354,7 @@ class Commissioning:
         )
         return Design(ff, pi, check)
 
-    def _write_record(self, check, limits, url, bump, sidbe, diag, design, units) -> None:
+    def _write_record(self, check, limits, url, bump, sidbe, diag, design) -> None:
         facts = {
             "drive": check.as_dict(),
             "drive_url": url,
@@ -353,19 +365,16 @@ class Commissioning:
                          "gap_after": diag.gap_after, **diag.details},  # fmt: skip
             "log": sidbe.log_path.name,
         }
-        write_json(self.out / MODEL_FILE, model_record(sidbe.result, design, facts, units))
         log = read_log(sidbe.log_path)
+        scale = DriveScale.from_metadata(log.metadata, str(sidbe.log_path))
+        model = sidbe.result.model
+        program = program_values(model, design.feed_forward, design.pi, sidbe.result.units, scale)
+        who = identity_record(self.o.config.identity, check.info)
+        write_json(self.out / MODEL_FILE, model_record(sidbe.result, design, facts, program, who))
         write_mat(self.out / MAT_FILE, log, sidbe.result, design)
-        sections = [
-            document.drive_section(check, limits, url),
-            document.bump_section(bump),
-            document.model_section(sidbe),
-            *document.plot_sections(log, sidbe),
-            document.diagnose_section(diag),
-            document.design_section(design, units),
-        ]
-        meta = {"drive": url, "started": self.progress.started, "servobench": _version()}
-        write_report(self.out / REPORT_FILE, "servobench commissioning record", "complete", sections, meta)
+        inputs = document.RecordInputs(self.o.config, check, limits, url, bump, sidbe, diag, design, log,
+                                       program, scale, self.progress.started, _version())  # fmt: skip
+        write_report(self.out / REPORT_FILE, document.page(inputs))
 
 
 def _version() -> str:

@@ -1,4 +1,9 @@
-"""Human-readable summaries of identification results (rich, on stdout)."""
+"""Human-readable summaries of identification results (rich, on stdout).
+
+Every quantity is shown with its unit, from the result's ``units`` (the
+log's ``unit_*`` metadata, :mod:`servobench.units`); a log that states no
+units gets one plain line saying the values are in command units.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +13,13 @@ import sys
 from typing import Any
 
 from servobench.bench.model import IdentificationResult
+from servobench.units import SignalUnits
+
+#: Said when a log states no units.
+NO_UNITS = (
+    "units: the log states none (no unit_u/unit_v/unit_x lines), so the values are in the "
+    "drive's command units and velocity units"
+)
 
 
 def print_json(obj: dict[str, Any]) -> None:
@@ -16,7 +28,8 @@ def print_json(obj: dict[str, Any]) -> None:
     sys.stdout.flush()
 
 
-def _pm(value: float, std: float | None) -> str:
+def plus_minus(value: float, std: float | None) -> str:
+    """``value ± std`` (std to two significant digits), or the value alone when std is unknown."""
     if std is None or not math.isfinite(std):
         return f"{value:.6g}"
     return f"{value:.6g} ± {std:.2g}"
@@ -32,33 +45,60 @@ def rate_text(fs_hz: float, achieved_hz: float, link_max_hz: float = math.inf) -
     return text
 
 
+def derived_std(result: IdentificationResult) -> dict[str, float]:
+    """1-sigma of the pole ``-B/M`` [1/s] and the DC gain ``1/B``, first-order propagation (M, B uncorrelated)."""
+    m = result.model
+    sm, sb = result.std.get("M", math.nan), result.std.get("B", math.nan)
+    return {"pole": math.hypot(sb / m.M, m.B * sm / m.M**2), "dc_gain": sb / m.B**2}
+
+
+def model_rows(result: IdentificationResult) -> list[tuple[str, str, str]]:
+    """``(quantity, value ± 1 sigma, unit)`` of the identified model, in the order a reader expects."""
+    m, s = result.model, result.std
+    unit = result.units.parameters()
+    d = derived_std(result)
+    rows = [
+        ("M (inertia)", plus_minus(m.M, s.get("M")), unit["M"]),
+        ("B (viscous friction)", plus_minus(m.B, s.get("B")), unit["B"]),
+        ("Coulomb friction, v > 0", plus_minus(m.coulomb_pos, s.get("coulomb_pos")), unit["coulomb_pos"]),
+        ("Coulomb friction, v < 0", plus_minus(m.coulomb_neg, s.get("coulomb_neg")), unit["coulomb_neg"]),
+        ("pole -B/M", plus_minus(m.pole, d.get("pole")), unit["pole"]),
+        ("DC gain 1/B", plus_minus(m.dc_gain, d.get("dc_gain")), unit["dc_gain"]),
+    ]
+    if m.resonance is not None:
+        rows.append(("resonance", f"{m.resonance.f_hz:.4g} (zeta {m.resonance.zeta:.3g})", "Hz"))
+    return rows
+
+
+def units_sentence(units: SignalUnits) -> str:
+    """One line naming the signal units, or :data:`NO_UNITS`."""
+    if not units.known:
+        return NO_UNITS
+    return f"units: u in {units.of('u')}, v in {units.of('v')}, x in {units.of('x')}"
+
+
 def print_result(
     result: IdentificationResult,
     title: str = "Identified model",
     extra: dict[str, str] | None = None,
 ) -> None:
-    """A table of the model with 1-sigma uncertainties, the fit and the selection sentence."""
+    """A table of the model with 1-sigma uncertainties and units, the fit and the selection sentence."""
     from rich.console import Console
     from rich.table import Table
 
-    m, s = result.model, result.std
     table = Table(title=title, show_header=True, header_style="bold")
     table.add_column("quantity")
-    table.add_column("value", justify="right")
-    table.add_row("M", _pm(m.M, s.get("M")))
-    table.add_row("B", _pm(m.B, s.get("B")))
-    table.add_row("pole -B/M [1/s]", f"{m.pole:.6g}")
-    table.add_row("DC gain 1/B", f"{m.dc_gain:.6g}")
-    table.add_row("Coulomb + (v > 0)", _pm(m.coulomb_pos, s.get("coulomb_pos")))
-    table.add_row("Coulomb - (v < 0)", _pm(m.coulomb_neg, s.get("coulomb_neg")))
-    if m.resonance is not None:
-        table.add_row("resonance [Hz]", f"{m.resonance.f_hz:.4g} (zeta {m.resonance.zeta:.3g})")
-    table.add_row("fit (simulation)", f"{result.fit_percent:.2f} %")
-    table.add_row("method", f"{result.method} ({result.estimator})")
+    table.add_column("value ± 1 sigma", justify="right")
+    table.add_column("unit")
+    for name, value, unit in model_rows(result):
+        table.add_row(name, value, unit)
+    table.add_row("fit (simulation)", f"{result.fit_percent:.2f}", "%")
+    table.add_row("method", f"{result.method} ({result.estimator})", "")
     for key, value in (extra or {}).items():
-        table.add_row(key, value)
+        table.add_row(key, value, "")
     console = Console()
     console.print(table)
+    console.print(units_sentence(result.units))
     console.print(result.selection)
     for note in result.notes:
         console.print(f"note: {note}")

@@ -44,7 +44,7 @@ from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
-from servobench.errors import DriveError, LimitExceededError, UsageError
+from servobench.errors import DriveError, LimitExceededError, UsageError, add_note
 
 #: Columns of a runner log.
 LOG_COLUMNS = ("run", "t", "u", "v", "x", "t_host")
@@ -179,6 +179,7 @@ def stream_runs(
             writer.finish(
                 "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
             )
+            add_note(err, f"partial log kept: {log_path} ({writer.rows} samples, marked incomplete)")
         raise
     writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
