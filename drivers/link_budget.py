@@ -157,12 +157,17 @@ def default_rate_hz(
 
 
 def sample_rate_hz(
-    requested_hz: float | None, max_rate_hz: float, ceiling_hz: float, link: str = "the link"
+    requested_hz: float | None,
+    max_rate_hz: float,
+    ceiling_hz: float,
+    link: str = "the link",
+    option: str = "--fs",
 ) -> float:
     """The cycle rate to stream at [Hz]: ``requested_hz`` when the link carries it, else refused.
 
     With ``requested_hz`` None, :func:`default_rate_hz` of the link's limit
-    (at most ``ceiling_hz``). ``link`` names the link in the refusal.
+    (at most ``ceiling_hz``). ``link`` names the link in the refusal, ``option``
+    where the rate was asked for (``--fs``, ``[bump] fs_hz``).
 
     Raises
     ------
@@ -177,7 +182,7 @@ def sample_rate_hz(
     if requested_hz > max_rate_hz:
         suggestion = default_rate_hz(max_rate_hz, ceiling_hz) if max_rate_hz >= 1.25 else 1.0
         raise UsageError(
-            f"--fs {requested_hz:g} Hz is beyond {link}: it carries at most {max_rate_hz:.0f} "
-            f"cycles/s; use --fs {suggestion:g} (the default there) or less"
+            f"{option} {requested_hz:g} Hz is beyond {link}: it carries at most {max_rate_hz:.0f} "
+            f"cycles/s; use {option} {suggestion:g} (the default there) or less"
         )
     return float(requested_hz)
