@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "list": ("servobench.bench.commands.list", "list shipped maps, dialects, effects and URL keys"),
     "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
     "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),
+    "fleet": ("servobench.bench.commands.fleet", "re-identify a fleet's logs on Dask and trend each axis"),
 }
 
 

@@ -175,10 +175,40 @@ def default_freqs(
     fs_hz: float, samples_per_period: int, count: int = DEFAULT_LINES
 ) -> tuple[float, ...]:
     """Log-spaced harmonic lines from ``1/period`` up to ``min(40 Hz, fs/20)``."""
+    return freqs_from(fs_hz / samples_per_period, fs_hz, samples_per_period, count)
+
+
+def top_line_hz(fs_hz: float, samples_per_period: int) -> float:
+    """The highest default line [Hz]: ``min(40 Hz, fs/20)``, at least ``1/period``."""
     f0 = fs_hz / samples_per_period
-    k_max = max(1, int(min(DEFAULT_F_MAX_HZ, fs_hz / 20) / f0))
-    ks = np.unique(np.round(np.geomspace(1, k_max, count)).astype(int))
+    return max(1, int(min(DEFAULT_F_MAX_HZ, fs_hz / 20) / f0)) * f0
+
+
+def freqs_from(
+    lowest_hz: float, fs_hz: float, samples_per_period: int, count: int = DEFAULT_LINES
+) -> tuple[float, ...]:
+    """Log-spaced harmonic lines from ``lowest_hz`` up to ``min(40 Hz, fs/20)``.
+
+    The design of an axis with limited travel: the lowest line is raised until
+    the travel it drives fits the window (:mod:`servobench.bench.run.travel`).
+    ``lowest_hz`` is rounded to a harmonic of ``1/period``; when it is at or
+    above the top line, that one line is returned.
+    """
+    f0 = fs_hz / samples_per_period
+    k_max = int(round(top_line_hz(fs_hz, samples_per_period) / f0))
+    k_lo = min(max(1, int(round(lowest_hz / f0))), k_max)
+    ks = np.unique(np.round(np.geomspace(k_lo, k_max, count)).astype(int))
     return tuple(float(k * f0) for k in ks)
+
+
+def lowest_line_choices(fs_hz: float, samples_per_period: int, lines: int = 4) -> tuple[float, ...]:
+    """Candidate lowest lines [Hz], ascending: harmonics spaced by about 20 %, from
+    ``1/period`` up to where at least ``lines`` lines still fit below the top line."""
+    f0 = fs_hz / samples_per_period
+    k_top = int(round(top_line_hz(fs_hz, samples_per_period) / f0))
+    k_hi = max(1, k_top // lines)
+    ks = np.unique(np.round(np.geomspace(1, k_hi, max(2, int(np.log(k_hi) / np.log(1.2)) + 1))))
+    return tuple(float(k * f0) for k in ks.astype(int))
 
 
 def freqs_around(

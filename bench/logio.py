@@ -12,7 +12,10 @@ Layout::
 ``run`` is optional for a single run (run 1 is the u1 experiment, run 2 the
 u2 experiment); ``v`` or ``x`` may be missing, not both. ``t`` is in
 seconds, ``u`` in command units, ``v`` in velocity units/s, ``x`` in
-position units. Metadata lines may also follow the data (the writer appends
+position units. Closed-loop logs (metadata ``loop = closed``) also carry
+``u_exc``, the excitation (``u`` is then the total command applied, the
+hold loop's included), and ``x_ref``, the position the hold loop holds.
+Metadata lines may also follow the data (the writer appends
 a trailer with the status and timing statistics; a later line wins). The
 writer opens every log with ``# status = running``, so a log whose writer
 died before the trailer (a killed host) reads as incomplete; a log without
@@ -45,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.logmap import (
+    CLOSED_LOOP_SIGNALS,
     REQUIRED,
     SIGNALS,
     apply_map,
@@ -58,7 +62,7 @@ from servobench.errors import LogFormatError, one_line
 from servobench.units import SignalUnits
 
 __all__ = [
-    "REQUIRED", "SIGNALS", "MAX_RUN", "RunData", "ExperimentLog", "LogWriter",
+    "REQUIRED", "SIGNALS", "CLOSED_LOOP_SIGNALS", "MAX_RUN", "RunData", "ExperimentLog", "LogWriter",
     "read_log", "parse_log_text", "parse_map", "parse_mat_map",
 ]  # fmt: skip
 
@@ -78,11 +82,17 @@ class RunData:
     t : ndarray
         Sample times [s].
     u : ndarray
-        Applied command [command units], held over ``[t_k, t_k+1)``.
+        Applied command [command units], held over ``[t_k, t_k+1)``; in a
+        closed-loop log the total command, the hold loop's included.
     v, x : ndarray or None
         Measured velocity [units/s] and position [units], sampled at ``t_k``.
     extra : dict of ndarray
         Any other columns.
+    u_exc : ndarray or None
+        Closed loop: the excitation [command units], held like ``u`` (the
+        instrument of the closed-loop estimators); None in open loop.
+    x_ref : ndarray or None
+        Closed loop: the position the hold loop holds [units]; None in open loop.
     """
 
     run: int
@@ -91,10 +101,12 @@ class RunData:
     v: np.ndarray | None = None
     x: np.ndarray | None = None
     extra: Mapping[str, np.ndarray] = field(default_factory=dict)
+    u_exc: np.ndarray | None = None
+    x_ref: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]
-        for name in ("u", "v", "x"):
+        for name in ("u", "v", "x", "u_exc", "x_ref"):
             arr = getattr(self, name)
             if arr is not None and arr.shape != (n,):
                 raise LogFormatError(
@@ -341,15 +353,19 @@ def _assemble(
         raise LogFormatError(f"{source}: column run must hold integers (|run| <= {MAX_RUN})")
     runs: list[RunData] = []
     for number, idx in _run_rows(run_col):
-        extra = {k: v[idx] for k, v in columns.items() if k not in SIGNALS}
+        extra = {
+            k: v[idx] for k, v in columns.items() if k not in SIGNALS + CLOSED_LOOP_SIGNALS
+        }
+        picked = {
+            k: columns[k][idx] if k in columns else None for k in ("v", "x", *CLOSED_LOOP_SIGNALS)
+        }
         runs.append(
             RunData(
                 run=number,
                 t=columns["t"][idx],
                 u=columns["u"][idx],
-                v=columns["v"][idx] if "v" in columns else None,
-                x=columns["x"][idx] if "x" in columns else None,
                 extra=extra,
+                **picked,
             )
         )
     for r in runs:

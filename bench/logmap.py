@@ -22,6 +22,8 @@ from servobench.errors import LogFormatError, one_line
 
 #: The signals a log's columns may name (run 1 = u1 experiment, run 2 = u2).
 SIGNALS = ("run", "t", "u", "v", "x")
+#: The columns of a closed-loop log beyond :data:`SIGNALS`: the excitation and the held position.
+CLOSED_LOOP_SIGNALS = ("u_exc", "x_ref")
 #: Signals every log needs.
 REQUIRED = ("t", "u")
 
@@ -129,7 +131,7 @@ def read_mat(path: Path, spec: str | Mapping[str, str] | None) -> tuple[dict[str
         ) from None
     variables = {k: v for k, v in mat.items() if not k.startswith("__")}
     if not mapping:
-        mapping = {k: k for k in SIGNALS if k in variables}
+        mapping = {k: k for k in SIGNALS + CLOSED_LOOP_SIGNALS if k in variables}
         missing = [c for c in REQUIRED if c not in mapping]
         if missing:
             raise LogFormatError(

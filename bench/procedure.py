@@ -11,11 +11,16 @@
    redesign the spectrum around the identified corner frequency
    ``B / (2 pi M)``; then run again, at most ``max_iterations`` times.
 
-The run folder: each round streams to ``log-<i>.csv`` as its samples arrive
-(``log-1.csv`` the first amplitude, ``log-2.csv`` the next, ...); the round
-whose model is accepted is copied to ``log.csv``, the log ``model.json``
-describes. ``model.json`` says the same in its ``files`` object. A folder
-that already holds a run is refused, never overwritten.
+An axis with limited travel (``xmin``/``xmax`` of the drive, ``loop =
+auto``, the default) is excited in closed loop instead
+(:mod:`servobench.bench.closed_loop`): a hold loop keeps it inside its
+window, the excitation is designed to fit, and step 6 raises the amplitude
+only while the measured travel still fits.
+
+The run folder (:mod:`servobench.bench.run_folder`): each round streams to
+``log-<i>.csv`` as its samples arrive; the round whose model is accepted is
+copied to ``log.csv``, the log ``model.json`` describes. A folder that
+already holds a run is refused, never overwritten.
 
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
 :class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
@@ -27,18 +32,27 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 from servobench.bench import excitation as exc
+from servobench.bench.closed_loop import closed_rounds
 from servobench.bench.identify.auto import METHODS, identify
 from servobench.bench.logio import read_log
-from servobench.bench.model import IdentificationResult
+from servobench.bench.model import IdentificationResult, ServoModel
 from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
-from servobench.drivers.base import Drive
+from servobench.bench.run.travel import TravelWindow
+from servobench.bench.run_folder import (
+    LOG_FILE,
+    MODEL_FILE,
+    check_run_folder,
+    describe_files,
+    round_log_name,
+)
+from servobench.drivers.base import Drive, Limits
 from servobench.errors import IdentificationError, UsageError
 
 #: Default verification fit that ends the procedure [%].
@@ -49,38 +63,10 @@ DEFAULT_MAX_ITERATIONS = 4
 DEFAULT_GROWTH = 2.0
 #: Without a drive limit (max_u), the amplitude may grow to this multiple of the first.
 UNLIMITED_GROWTH_CAP = 8.0
+#: Choices of ``--loop``: ``auto`` closes the loop whenever the travel is finite.
+LOOPS = ("auto", "open", "closed")
 
 Progress = Callable[[int, int], None]
-
-#: Files of a run folder: the accepted round's log and the model.
-LOG_FILE, MODEL_FILE = "log.csv", "model.json"
-
-
-def round_log_name(index: int) -> str:
-    """The log of excite-identify round ``index`` (from 1)."""
-    return f"log-{index}.csv"
-
-
-def check_run_folder(out_dir: str | Path) -> None:
-    """Refuse a folder that holds an earlier run (its ``model.json``, ``log.csv`` or ``log-N.csv``).
-
-    Raises
-    ------
-    UsageError
-        Naming the files found and what to do.
-    """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"{out} is a file, not a folder; choose another --out")
-    if not out.is_dir():
-        return
-    found = sorted(p.name for p in out.iterdir() if p.name in (LOG_FILE, MODEL_FILE)
-                   or (p.name.startswith("log-") and p.suffix == ".csv"))  # fmt: skip
-    if found:
-        raise UsageError(
-            f"{out} already holds a run ({', '.join(found)}); choose another --out, or move that "
-            "run away first: nothing was overwritten"
-        )
 
 
 @dataclass(frozen=True)
@@ -92,7 +78,11 @@ class SidbeOptions:
     amplitude, ratio, fs_hz, periods, period_s, freqs_hz
         The excitation (see :func:`servobench.bench.excitation.make_design`); ``freqs_hz``
         None means log-spaced default lines; ``fs_hz`` None means the drive's
-        link decides (:meth:`for_drive`).
+        link decides (:meth:`for_drive`). ``amplitude`` None means the default: 1
+        in open loop, chosen to fit the travel in closed loop.
+    loop : {"auto", "open", "closed"}
+        Excite in open loop, or in closed loop under a hold loop; ``auto``
+        closes the loop whenever the drive's travel (``xmin``/``xmax``) is finite.
     method : {"auto", "sidbe", "joint"}
     fit_threshold : float
         Verification fit [%] that ends the procedure.
@@ -111,14 +101,18 @@ class SidbeOptions:
         Let SIDBE fit a series resonance.
     plots : bool
         Write PNG plots.
+    axis : str
+        The logs' ``# axis`` line (``servobench fleet`` groups records by it);
+        "" names the axis by the drive URL's address.
     """
 
-    amplitude: float = exc.DEFAULT_AMPLITUDE
+    amplitude: float | None = None
     ratio: float = exc.DEFAULT_RATIO
     fs_hz: float | None = None
     periods: int = exc.DEFAULT_PERIODS
     period_s: float = exc.DEFAULT_PERIOD_S
     freqs_hz: tuple[float, ...] | None = None
+    loop: str = "auto"
     method: str = "auto"
     fit_threshold: float = DEFAULT_FIT_THRESHOLD
     max_iterations: int = DEFAULT_MAX_ITERATIONS
@@ -128,11 +122,12 @@ class SidbeOptions:
     settle_s: float = DEFAULT_SETTLE_S
     resonance: bool = False
     plots: bool = True
+    axis: str = ""
 
     def design(self) -> exc.ExcitationDesign:
         """The first round's excitation (validates the options)."""
         return exc.make_design(
-            self.amplitude,
+            exc.DEFAULT_AMPLITUDE if self.amplitude is None else self.amplitude,
             ratio=self.ratio,
             fs_hz=exc.DEFAULT_FS_HZ if self.fs_hz is None else self.fs_hz,
             periods=self.periods,
@@ -146,12 +141,9 @@ class SidbeOptions:
         ``fs_hz`` None: the link's default (:func:`servobench.drivers.link_budget.default_rate_hz`);
         an ``fs_hz`` beyond :meth:`Drive.max_rate_hz` raises :class:`UsageError` naming the limit.
         """
-        from servobench.drivers.link_budget import sample_rate_hz
+        from servobench.drivers.link_budget import drive_rate_hz
 
-        fs = sample_rate_hz(
-            self.fs_hz, drive.max_rate_hz(), exc.DEFAULT_FS_HZ, f"the {drive.url.scheme}:// link"
-        )
-        return replace(self, fs_hz=fs)
+        return replace(self, fs_hz=drive_rate_hz(self.fs_hz, drive, exc.DEFAULT_FS_HZ))
 
     def validate(self, drive: Drive | None = None) -> exc.ExcitationDesign:
         """Raise :class:`UsageError` for bad options (a rate beyond the drive's link, an
@@ -159,27 +151,40 @@ class SidbeOptions:
         design = (self if drive is None else self.for_drive(drive)).design()
         if self.method not in METHODS:
             raise UsageError(f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
+        if self.loop not in LOOPS:
+            raise UsageError(f"unknown loop {self.loop!r}; choose from {', '.join(LOOPS)}")
         if not (int(self.max_iterations) == self.max_iterations and self.max_iterations >= 1):
             raise UsageError("max_iterations must be an integer >= 1")
         if not (math.isfinite(self.growth) and self.growth > 1):
             raise UsageError("growth must be > 1")
         if not math.isfinite(self.fit_threshold) or self.fit_threshold > 100:
             raise UsageError("fit threshold must be a number <= 100 %")
-        if drive is not None and self.amplitude > drive.limits.max_command:
+        # without an amplitude, closed loop chooses one within the limits: nothing to check
+        chosen = self.amplitude is None and (
+            self.loop == "closed" or (drive is not None and self.closed(drive.limits))
+        )
+        if drive is not None and not chosen and design.amplitude > drive.limits.max_command:
             raise UsageError(
-                f"amplitude {self.amplitude:g} exceeds the drive limit max_u = {drive.limits.max_command:g}"
+                f"amplitude {design.amplitude:g} exceeds the drive limit max_u = {drive.limits.max_command:g}"
             )
-        if self.max_amplitude is not None and not (self.max_amplitude >= self.amplitude):
+        if self.max_amplitude is not None and not chosen and not self.max_amplitude >= design.amplitude:
             raise UsageError("max amplitude must be >= amplitude")
         return design
 
-    def amplitude_cap(self, drive: Drive) -> float:
-        """Highest amplitude step 6 may reach on ``drive``."""
+    def amplitude_cap(self, drive: Drive, start: float | None = None) -> float:
+        """Highest amplitude step 6 may reach on ``drive`` (``start``: the first round's amplitude)."""
         limit = drive.limits.max_command
         cap = self.max_amplitude
         if cap is None:
-            cap = limit if math.isfinite(limit) else UNLIMITED_GROWTH_CAP * self.amplitude
+            first = start if start is not None else self.design().amplitude
+            cap = limit if math.isfinite(limit) else UNLIMITED_GROWTH_CAP * first
         return min(cap, limit)
+
+    def closed(self, limits: Limits) -> bool:
+        """Whether to excite in closed loop on a drive with ``limits``."""
+        if self.loop == "auto":
+            return TravelWindow.of(limits).finite
+        return self.loop == "closed"
 
 
 @dataclass(frozen=True)
@@ -194,9 +199,10 @@ class Iteration:
     log_path: Path
     action: str
     error: str = ""
+    travel_share: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "index": self.index,
             "amplitude": self.amplitude,
             "freqs": list(self.freqs_hz),
@@ -206,6 +212,9 @@ class Iteration:
             "action": self.action,
             "error": self.error,
         }
+        if self.travel_share is not None:  # closed loop: share of the room the round used
+            out["travel_share"] = self.travel_share
+        return out
 
 
 @dataclass(frozen=True)
@@ -224,6 +233,9 @@ class SidbeResult:
     fit_threshold : float
     out_dir, log_path, model_path : Path
     plots : tuple of Path
+    hold : mapping or None
+        Closed loop: where the hold loop ran, its parameters, the travel room and
+        the share of it used, and what the probe learnt; None in open loop.
     accepted_log : Path or None
         The round's log that ``log_path`` copies.
     fs_achieved_hz : float
@@ -239,8 +251,13 @@ class SidbeResult:
     log_path: Path
     model_path: Path
     plots: tuple[Path, ...] = field(default_factory=tuple)
+    hold: Mapping[str, Any] | None = None
     accepted_log: Path | None = None
     fs_achieved_hz: float = math.nan
+
+    @property
+    def loop(self) -> str:
+        return "open" if self.hold is None else "closed"
 
     def to_json(self) -> dict[str, Any]:
         """The model keys of :meth:`IdentificationResult.to_json` plus the procedure."""
@@ -265,20 +282,17 @@ class SidbeResult:
                 "log": str(self.log_path),
                 "model_file": str(self.model_path),
                 "plots": [str(p) for p in self.plots],
+                "loop": self.loop,
                 "files": self.files(),
             }
         )
+        if self.hold is not None:
+            out["hold"] = dict(self.hold)
         return out
 
     def files(self) -> dict[str, str]:
         """What each log of the run folder holds (``model.json``'s ``files`` object)."""
-        source = self.accepted_log.name if self.accepted_log is not None else "the best round's log"
-        out = {LOG_FILE: f"copy of {source}: the round this model was identified from "
-                         "(the log to validate or diagnose it with)"}  # fmt: skip
-        for it in self.iterations:
-            fit = "no model" if it.fit_percent is None else f"fit {it.fit_percent:.2f} %"
-            out[it.log_path.name] = f"round {it.index}, amplitude {it.amplitude:g}: {fit}; {it.action}"
-        return out
+        return describe_files(self.out_dir, self.accepted_log, self.iterations, closed=self.hold is not None)
 
 
 def run_sidbe(
@@ -286,6 +300,7 @@ def run_sidbe(
     options: SidbeOptions,
     out_dir: str | Path,
     progress: Callable[[int, int, int], None] | None = None,
+    known: ServoModel | None = None,
 ) -> SidbeResult:
     """Run the SIDBE procedure on ``drive`` and write ``out_dir/log.csv``, ``model.json`` and plots.
 
@@ -300,6 +315,9 @@ def run_sidbe(
         accepted one is copied to ``log.csv``.
     progress : callable(iteration, done, total), optional
         Streaming progress, samples done of total, per round.
+    known : ServoModel, optional
+        Closed loop: what is known of the axis already (from a bump test); without
+        it a relay probe learns it first (``probe.csv``).
 
     Raises
     ------
@@ -313,12 +331,16 @@ def run_sidbe(
     out = Path(out_dir)
     check_run_folder(out)
     out.mkdir(parents=True, exist_ok=True)
-    cap = options.amplitude_cap(drive)
     opened_here = not drive.is_open
     if opened_here:
         drive.open()
+    hold = None
     try:
-        iterations, best = _rounds(drive, options, design, cap, out, progress)
+        if options.closed(drive.limits):
+            iterations, best, hold = closed_rounds(drive, options, out, progress, known, Iteration)
+        else:
+            cap = options.amplitude_cap(drive)
+            iterations, best = _rounds(drive, options, design, cap, out, progress)
     finally:
         if opened_here:
             drive.close()
@@ -345,6 +367,7 @@ def run_sidbe(
         log_path,
         model_path,
         plots,
+        hold,
         best_log,
         achieved_hz,
     )
@@ -360,6 +383,8 @@ def _rounds(drive, options, design, cap, out, progress):
         log_path = out / round_log_name(index)
         excitation = exc.design_excitation(design)
         meta = {**design.metadata(), "loop": "open", "iteration": index}
+        if options.axis:
+            meta["axis"] = options.axis
 
         def tick(done: int, total: int, _i: int = index) -> None:
             if progress is not None:

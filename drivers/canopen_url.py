@@ -15,8 +15,10 @@ QUERY_KEYS = frozenset(
      "sdo_timeout", "pdo_timeout", "pos_scale", "vel_scale", "torque_constant", "eds",
      "sync_cob"}
 )  # fmt: skip
-#: SDO response timeout unless the URL sets ``sdo_timeout`` [s].
-SDO_TIMEOUT_S = 0.3
+#: SDO response timeout unless the URL sets ``sdo_timeout`` [s].  A drive
+#: answers within milliseconds; the margin is for a loaded host or a
+#: socketcand hop, and only a drive that never answers waits it out.
+SDO_TIMEOUT_S = 1.0
 #: Wait for the TPDOs of one SYNC unless the URL sets ``pdo_timeout`` [s].
 PDO_TIMEOUT_S = 0.1
 #: Torque modes by URL name: (0x6060 value, description).

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from servobench.errors import UsageError
+
+if TYPE_CHECKING:
+    from servobench.drivers.base import Drive
 
 #: CAN 2.0A frame without data: SOF, 11-bit id, RTR, IDE, r0, DLC, CRC(15)+del, ACK(2), EOF(7), IFS(3) [bits].
 CAN_FRAME_OVERHEAD_BITS = 47
@@ -186,3 +190,11 @@ def sample_rate_hz(
             f"cycles/s; use {option} {suggestion:g} (the default there) or less"
         )
     return float(requested_hz)
+
+
+def drive_rate_hz(
+    requested_hz: float | None, drive: Drive, ceiling_hz: float, option: str = "--fs"
+) -> float:
+    """:func:`sample_rate_hz` on ``drive``'s link (:meth:`Drive.max_rate_hz`, named by its URL scheme)."""
+    link = f"the {drive.url.scheme}:// link"
+    return sample_rate_hz(requested_hz, drive.max_rate_hz(), ceiling_hz, link, option)

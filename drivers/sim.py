@@ -5,24 +5,45 @@
 wall-clock time like a real drive; ``pace=fast`` (default) runs as fast as
 the host asks, and supports block exchange for batch work.
 Timestamps are the drive's own clock (cycle count times cycle period).
+
+Drive-side position hold: with ``pos_kp``, ``pos_ki`` or ``pos_kd`` in the
+URL the simulated drive has its own position loop -- the served CiA 402
+drive's (:mod:`servobench.sim_backend.servers.can_position_loop`), the keys
+not given from the plant as there -- and
+:attr:`~servobench.drivers.base.Drive.supports_drive_hold` is true. While it
+holds ``x_ref`` (:meth:`~servobench.drivers.base.Drive.hold_position`), each
+cycle applies, from the feedback sampled at the cycle start::
+
+    u = kp (x_ref - x) + ki sum((x_ref - x) dt) - kd v + offset
+
+limited to ``max_u``, ``offset`` being the host's command; ``Feedback.applied``
+reports the total applied over the previous cycle. Gains are in plant units
+(command units per position unit, per position unit and second, per velocity
+unit).
 """
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.servers.can_position_loop import Gains, PositionLoop, gains_from_keys
 from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
+
+#: Keys of the simulated drive's own position loop (those of the served CiA 402 drive).
+HOLD_KEYS = ("pos_kp", "pos_ki", "pos_kd")
 
 
 class SimDrive(Drive):
     """The simulated drive of :mod:`sim_backend`, driven in-process."""
 
-    query_keys = sim_query_keys()
+    query_keys = sim_query_keys() | frozenset(HOLD_KEYS)
     drive_clock = True
 
     def __init__(self, url) -> None:
@@ -32,10 +53,29 @@ class SimDrive(Drive):
             raise DriveConfigError(f"sim pace must be 'fast' or 'real', got {pace!r}")
         self.realtime = pace == "real"
         self.supports_block = not self.realtime
-        self.device = SimulatedDevice(plant_from_url(self.url))
-        signal_units = units_from_url(self.url)
+        given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
+        plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
+        self.device = SimulatedDevice(plant_from_url(plant_url))
+        p = self.device.params
+        self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None
+        self.supports_drive_hold = self.hold_gains is not None
+        signal_units = units_from_url(plant_url)
         self.units = {"u": signal_units.u, "v": signal_units.v, "x": signal_units.x}
         self._t0_wall: float | None = None
+        self._loop: PositionLoop | None = None
+        self._x_ref = 0.0
+        self._applied = 0.0  # total command of the last held cycle
+
+    def _gain(self, key: str) -> float:
+        value = self.url.get_float(key)
+        if value is None or not value >= 0:
+            raise DriveConfigError(f"sim position loop gain {key}={self.url.query[key]!r} must be >= 0")
+        return value
+
+    def log_metadata(self) -> dict[str, str]:
+        """The base lines, and the gains of the drive's own position loop when it has one."""
+        gains = {} if self.hold_gains is None else self.hold_gains.as_dict()
+        return {**super().log_metadata(), **{k: format(v, ".10g") for k, v in gains.items()}}
 
     def _open(self) -> None:
         self._t0_wall = None
@@ -53,10 +93,21 @@ class SimDrive(Drive):
         self.device.enable()
 
     def _disable(self) -> None:
+        self._loop = None
         self.device.disable()
 
     def _quick_stop(self) -> None:
+        self._loop = None
         self.device.quick_stop()
+
+    def _hold_position(self, x_ref: float) -> None:
+        assert self.hold_gains is not None
+        self._applied = self.device.command
+        self._loop, self._x_ref = PositionLoop(self.hold_gains), x_ref
+
+    def _release_hold(self) -> None:
+        self._loop = None
+        self.device.set_command(0.0)
 
     def _write_command(self, u: float) -> None:
         self.device.set_command(u)
@@ -84,11 +135,34 @@ class SimDrive(Drive):
 
     def _exchange(self, u: float) -> Feedback:
         self._pace()
+        if self._loop is not None:
+            return self._held(u)
         s = self.device.exchange(u)
         self._check_fault(s.fault_code)
         return Feedback(s.t_s, s.velocity, s.position, s.fault_code)
 
+    def _held(self, offset: float) -> Feedback:
+        """One cycle of the drive's own loop: the loop acts on the feedback the host receives."""
+        assert self._loop is not None
+        s = self.device.sample()
+        self._check_fault(s.fault_code)
+        error = self._x_ref - s.position
+        total = self._loop.torque(error, s.velocity, offset, self.limits.max_command, self.device.cycle_s)
+        if not (math.isfinite(s.position) and math.isfinite(s.velocity)):
+            total = 0.0
+        self.device.exchange(total)
+        fb = Feedback(s.t_s, s.velocity, s.position, s.fault_code, applied=self._applied)
+        self._applied = self.device.command
+        return fb
+
     def _exchange_block(self, u: np.ndarray) -> BlockFeedback:
+        if self._loop is not None:
+            rows = [self._held(float(uk)) for uk in u]
+            applied = [r.applied for r in rows[1:]] + [self._applied]
+            return BlockFeedback(
+                t_s=np.array([r.t_s for r in rows]), velocity=np.array([r.velocity for r in rows]),
+                position=np.array([r.position for r in rows]), applied=np.array(applied),
+            )  # fmt: skip
         if self.realtime or self.device.frozen_feedback is not None:
             return super()._exchange_block(u)
         self._check_fault(self.device.fault_code)

@@ -7,19 +7,23 @@ import argparse
 from servobench.bench import excitation as exc
 from servobench.errors import UsageError
 
+#: Choices of ``--loop``.
+LOOPS = ("auto", "open", "closed")
+
 
 def add_excitation_arguments(p: argparse.ArgumentParser) -> None:
-    """``--drive``, ``--amplitude``, ``--ratio``, ``--fs``, ``--periods``, ``--period``, ``--freqs``."""
+    """``--drive``, ``--amplitude``, ``--ratio``, ``--fs``, ``--periods``, ``--period``,
+    ``--freqs``, ``--loop``."""
     p.add_argument(
         "--drive", required=True, metavar="URL", help="drive URL, e.g. sim:// or canopen://..."
     )
     p.add_argument(
         "--amplitude",
         type=float,
-        default=exc.DEFAULT_AMPLITUDE,
+        default=None,
         metavar="A",
-        help=f"level of the binary excitation u1 = ±A [command units] (default {exc.DEFAULT_AMPLITUDE:g}; "
-        "must not exceed the drive's max_u)",
+        help=f"level of the binary excitation u1 = ±A [command units] (default {exc.DEFAULT_AMPLITUDE:g} "
+        "in open loop; in closed loop chosen to fit the travel; must not exceed the drive's max_u)",
     )
     p.add_argument(
         "--ratio",
@@ -55,7 +59,15 @@ def add_excitation_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="F1,F2,...",
         help="excited lines [Hz], multiples of 1/period below Nyquist "
-        f"(default: {exc.DEFAULT_LINES} log-spaced lines from 1/period to min(40 Hz, fs/20))",
+        f"(default: {exc.DEFAULT_LINES} log-spaced lines from 1/period to min(40 Hz, fs/20); "
+        "in closed loop from the lowest line the travel allows)",
+    )
+    p.add_argument(
+        "--loop",
+        choices=LOOPS,
+        default="auto",
+        help="excite in open loop, or in closed loop under a slow hold loop that keeps the axis "
+        "inside its travel (default auto: closed whenever the drive's xmin/xmax is finite)",
     )
 
 
@@ -74,17 +86,15 @@ def parse_freqs(text: str | None) -> tuple[float, ...] | None:
 
 def link_rate_hz(fs_hz: float | None, drive) -> float:
     """``--fs`` checked against the drive's link, or the link's default rate when it is None."""
-    from servobench.drivers.link_budget import sample_rate_hz
+    from servobench.drivers.link_budget import drive_rate_hz
 
-    return sample_rate_hz(
-        fs_hz, drive.max_rate_hz(), exc.DEFAULT_FS_HZ, f"the {drive.url.scheme}:// link"
-    )
+    return drive_rate_hz(fs_hz, drive, exc.DEFAULT_FS_HZ)
 
 
 def design_from_args(args: argparse.Namespace, fs_hz: float) -> exc.ExcitationDesign:
     """Validated excitation design from the parsed options at the cycle rate ``fs_hz`` [Hz]."""
     return exc.make_design(
-        args.amplitude,
+        exc.DEFAULT_AMPLITUDE if args.amplitude is None else args.amplitude,
         ratio=args.ratio,
         fs_hz=fs_hz,
         periods=args.periods,

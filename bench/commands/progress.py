@@ -38,3 +38,30 @@ def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], 
     finally:
         if tasks:
             bar.stop()
+
+
+@contextmanager
+def count_progress(
+    description: str, total: int, enabled: bool = True
+) -> Iterator[Callable[[int, int], None]]:
+    """Yield ``update(done, total)`` for one bar of ``total`` items, drawn on stderr."""
+    if not enabled:
+        yield lambda _d, _t: None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=False,
+    )
+    task = bar.add_task(description, total=total)
+    bar.start()
+    try:
+        yield lambda done, all_: bar.update(task, completed=done, total=all_)
+    finally:
+        bar.stop()

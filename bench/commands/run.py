@@ -1,4 +1,10 @@
-"""``servobench run --drive URL --out LOG``: apply u1 and u2 to a drive and log them, nothing else."""
+"""``servobench run --drive URL --out LOG``: apply u1 and u2 to a drive and log them, nothing else.
+
+On an axis with limited travel (``--loop auto``, the default, with
+``xmin``/``xmax`` in the URL, or ``--loop closed``) the runs are streamed in
+closed loop under a hold loop that keeps the axis inside its window; a relay
+probe first learns the axis (``LOG-probe.csv`` beside the log).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +16,7 @@ from servobench.bench.commands.excitation_args import (
     check_amplitude,
     design_from_args,
     link_rate_hz,
+    parse_freqs,
 )
 
 
@@ -24,40 +31,59 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
     from servobench.bench.excitation import design_excitation
+    from servobench.bench.procedure import SidbeOptions
     from servobench.bench.report.summary import print_json
     from servobench.bench.run.runner import stream_runs
     from servobench.drivers.registry import open_drive
 
     drive = open_drive(args.drive)
-    design = design_from_args(args, link_rate_hz(args.fs, drive))
-    check_amplitude(design.amplitude, drive.limits.max_command)
+    fs_hz = link_rate_hz(args.fs, drive)  # refused before the port is opened
+    design = design_from_args(args, fs_hz)
+    options = SidbeOptions(
+        amplitude=args.amplitude, ratio=args.ratio, fs_hz=fs_hz, periods=args.periods,
+        period_s=args.period, freqs_hz=parse_freqs(args.freqs), loop=args.loop,
+    )  # fmt: skip
+    if args.amplitude is not None or not options.closed(drive.limits):
+        check_amplitude(design.amplitude, drive.limits.max_command)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True)
-    excitation = design_excitation(design)
-    meta = {**design.metadata(), "loop": "open"}
+    hold = None
     with drive, stream_progress() as progress:
-        res = stream_runs(
-            drive,
-            excitation.runs(),
-            design.fs_hz,
-            out,
-            metadata=meta,
-            progress=lambda done, total: progress(1, done, total),
-        )
+        tick = lambda done, total: progress(1, done, total)  # noqa: E731
+        if options.closed(drive.limits):
+            res, design, hold = _closed(drive, options, out, tick)
+        else:
+            meta = {**design.metadata(), "loop": "open"}
+            excitation = design_excitation(design)
+            res = stream_runs(drive, excitation.runs(), design.fs_hz, out, metadata=meta, progress=tick)
     if args.json:
-        print_json(
-            {
-                "log": str(res.log_path),
-                "samples": res.samples,
-                "complete": res.complete,
-                "fs_achieved": res.fs_achieved_hz,
-                **design.metadata(),
-            }
-        )
+        extra = {"loop": "open"} if hold is None else {"loop": "closed", "hold": hold}
+        print_json({"log": str(res.log_path), "samples": res.samples, "complete": True,
+                    "fs_achieved": res.fs_achieved_hz, **design.metadata(), **extra})  # fmt: skip
     else:
+        where = "" if hold is None else (
+            f", closed loop ({hold['where']}-side hold, {hold['travel_share']:.0%} of the room used)"
+        )
         print(
             f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g}, "
-            f"{design.fs_hz:g} Hz, achieved {res.fs_achieved_hz:.6g} Hz)"
+            f"{design.fs_hz:g} Hz, achieved {res.fs_achieved_hz:.6g} Hz{where})"
         )
     return 0
+
+
+def _closed(drive, options, out: Path, tick):
+    """Probe, plan and stream in closed loop; the result, the design applied and the hold's facts."""
+    from servobench.bench.closed_loop import facts, prepare
+    from servobench.bench.excitation import design_excitation
+    from servobench.bench.run.closed import stream_closed_runs
+    from servobench.bench.run.runner import default_pace
+
+    pace = drive.url.get_str("pace", "") or default_pace(drive)
+    probe_log = out.with_name(out.stem + "-probe.csv")
+    trial_log = out.with_name(out.stem + "-hold-trial.csv")
+    plan, learnt, _ = prepare(drive, options, probe_log, trial_log, pace)
+    design = plan.design
+    res = stream_closed_runs(drive, design_excitation(design).runs(), design.fs_hz, out, plan,
+                             metadata=design.metadata(), pace=pace, progress=tick)  # fmt: skip
+    return res, design, {**facts(plan), "travel_share": res.share, **learnt}

@@ -3,7 +3,9 @@
 Designs the excitation, streams u1 and u2, identifies and verifies the
 model, repeats with a larger amplitude (or a redesigned spectrum) while the
 verification fit is below the threshold (step 6), and writes ``log.csv``,
-``model.json`` and PNG plots to the output folder.
+``model.json`` and PNG plots to the output folder. On an axis with limited
+travel (``--loop auto``, the default, with ``xmin``/``xmax`` in the URL) the
+excitation runs in closed loop inside the window (``probe.csv`` first).
 """
 
 from __future__ import annotations
@@ -87,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         periods=args.periods,
         period_s=args.period,
         freqs_hz=parse_freqs(args.freqs),
+        loop=args.loop,
         method=args.method,
         fit_threshold=args.fit_threshold,
         max_iterations=args.max_iterations,
@@ -109,14 +112,17 @@ def run(args: argparse.Namespace) -> int:
         + ("no model" if it.fit_percent is None else f"{it.fit_percent:.2f} %")
         for it in result.iterations
     )
-    print_result(
-        result.result,
-        "SIDBE: identified model",
-        {
-            "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz()),
-            "rounds (amplitude: fit)": rounds,
-            "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
-            "output": str(result.out_dir),
-        },
-    )
+    facts = {
+        "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz()),
+        "rounds (amplitude: fit)": rounds,
+        "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
+        "output": str(result.out_dir),
+    }
+    if result.hold is not None:
+        h = result.hold
+        facts["loop"] = (
+            f"closed, {h['where']}-side hold at x = {h['x_ref']:.4g}, "
+            f"{h['travel_share']:.0%} of the room {h['room']:.4g} used"
+        )
+    print_result(result.result, "SIDBE: identified model", facts)
     return 0

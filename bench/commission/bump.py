@@ -130,13 +130,11 @@ def at_link_rate(settings: BumpSettings, sidbe_fs_hz: object, drive: Drive) -> B
     anything moves.
     """
     from servobench.bench.excitation import DEFAULT_FS_HZ
-    from servobench.drivers.link_budget import sample_rate_hz
+    from servobench.drivers.link_budget import drive_rate_hz
 
-    link, max_hz = f"the {drive.url.scheme}:// link", drive.max_rate_hz()
     if isinstance(sidbe_fs_hz, int | float):  # other values: [sidbe] is checked in step 2
-        sample_rate_hz(float(sidbe_fs_hz), max_hz, DEFAULT_FS_HZ, link, "[sidbe] fs_hz")
-    fs_hz = sample_rate_hz(settings.fs_hz, max_hz, DEFAULT_FS_HZ, link, "[bump] fs_hz")
-    return replace(settings, fs_hz=fs_hz)
+        drive_rate_hz(float(sidbe_fs_hz), drive, DEFAULT_FS_HZ, "[sidbe] fs_hz")
+    return replace(settings, fs_hz=drive_rate_hz(settings.fs_hz, drive, DEFAULT_FS_HZ, "[bump] fs_hz"))
 
 
 def plan_text(limits: ConfirmedLimits, settings: BumpSettings) -> str:

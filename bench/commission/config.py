@@ -8,8 +8,9 @@ documented layout::
     [identity]      site, machine, axis, operator (text, for the commissioning record)
     [limits]        max_u, max_v, xmin, xmax      (drive units; +-inf for unlimited travel)
     [bump]          fractions, pulse_s, rest_s, fs_hz, max_speed_fraction, position_tolerance
-    [sidbe]         passed to the SIDBE procedure as its options
-    [diagnose]      passed to the diagnosis
+    [sidbe]         the SIDBE procedure's options (:data:`SIDBE_KEYS`), among them
+                    loop = "auto" | "open" | "closed" (auto: closed loop on finite travel)
+    [diagnose]      horizon_s
     [design]        phase_margin_deg, delay_cycles, pi_zero_ratio, max_bandwidth_hz, fs_hz
     [compensation]  ref_amplitude, ref_frequency_hz, periods, sign_band
 """
@@ -17,7 +18,7 @@ documented layout::
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,19 @@ from servobench.tomlfile import SENTENCE, TomlTable, read_toml
 
 #: The four limit keys, as in the drive URL query.
 LIMIT_KEYS = ("max_u", "max_v", "xmin", "xmax")
+#: The keys of ``[sidbe]`` -- the options of the SIDBE procedure commissioning passes
+#: on (``SidbeOptions`` fields) -- and the TOML type of each (values are checked there).
+SIDBE_KEYS: Mapping[str, type] = {
+    "amplitude": float, "ratio": float, "fs_hz": float, "periods": int, "period_s": float,
+    "freqs_hz": list, "loop": str, "method": str, "fit_threshold": float,
+    "max_iterations": int, "growth": float, "max_amplitude": float, "settle_s": float,
+    "resonance": bool,
+}  # fmt: skip
+#: The keys of ``[diagnose]`` and their types.
+DIAGNOSE_KEYS: Mapping[str, type] = {"horizon_s": float}
+#: ``bench.toml``'s wording, with an option table's unknown keys said as
+#: ``bench.toml [sidbe] has unknown key(s) amplitud`` (the words users know).
+_OPTIONS = replace(SENTENCE, unknown="{where} has unknown {noun}(s) {keys} (known: {known})")
 
 
 @dataclass(frozen=True)
@@ -209,7 +223,7 @@ _SECTIONS = {
     "design": DesignSettings,
     "compensation": CompensationSettings,
 }
-_FREE_SECTIONS = ("sidbe", "diagnose")
+_OPTION_TABLES = {"sidbe": SIDBE_KEYS, "diagnose": DIAGNOSE_KEYS}
 
 
 def _section(table: TomlTable, cls: type) -> object:
@@ -233,16 +247,35 @@ def _section(table: TomlTable, cls: type) -> object:
         raise UsageError(f"{table.file}: {err}") from None
 
 
+def _options(table: TomlTable, keys: Mapping[str, type]) -> dict[str, Any]:
+    """An option table (``[sidbe]``, ``[diagnose]``): known keys, each of its type.
+
+    Numbers are finite; ``freqs_hz`` is a list of numbers. The values' ranges are
+    the procedure's to check.
+    """
+    table = TomlTable(table.data, table.file, table.name, wording=_OPTIONS, error=UsageError)
+    values: dict[str, Any] = {}
+    for name in table.allow(keys):
+        kind = keys[name]
+        if kind is float:
+            values[name] = table.number(name)
+        elif kind is list:
+            values[name] = tuple(float(f) for f in table.sequence(name, float))
+        else:
+            values[name] = table.get(name, kind)
+    return values
+
+
 def parse_config(data: Mapping[str, object], source: str = "bench.toml") -> CommissionConfig:
     """Build a :class:`CommissionConfig` from a parsed TOML document."""
     top = TomlTable(data, source, wording=SENTENCE, error=UsageError)
-    top.allow([*_SECTIONS, *_FREE_SECTIONS], noun="table")
+    top.allow([*_SECTIONS, *_OPTION_TABLES], noun="table")
     parts: dict[str, object] = {
         name: _section(top.table(name), cls) for name, cls in _SECTIONS.items() if name in top
     }
-    for name in _FREE_SECTIONS:
+    for name, keys in _OPTION_TABLES.items():
         if name in top:
-            parts[name] = dict(top.table(name).data)
+            parts[name] = _options(top.table(name), keys)
     return CommissionConfig(**parts, source=source)  # type: ignore[arg-type]
 
 

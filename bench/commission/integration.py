@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -80,36 +80,53 @@ class DiagnoseOutcome:
     note: str = ""
 
 
-def sidbe_options(options: Mapping[str, Any], max_u: float, moved_at: float) -> Any:
+def sidbe_options(
+    options: Mapping[str, Any], max_u: float, moved_at: float, travel_finite: bool = False
+) -> Any:
     """:class:`servobench.bench.procedure.SidbeOptions` from the ``[sidbe]`` table.
 
     Keys are the option names (``amplitude``, ``ratio``, ``fs_hz``, ``periods``,
-    ``period_s``, ``freqs_hz``, ``method``, ``fit_threshold``, ``max_iterations``,
-    ``growth``, ``max_amplitude``, ``settle_s``, ``resonance``); unknown keys are an
-    error. Without ``amplitude``: twice the bump pulse that moved the axis
+    ``period_s``, ``freqs_hz``, ``loop``, ``method``, ``fit_threshold``,
+    ``max_iterations``, ``growth``, ``max_amplitude``, ``settle_s``,
+    ``resonance``), read and type-checked by :mod:`.config`. Without
+    ``amplitude`` in open loop: twice the bump pulse that moved the axis
     (``moved_at`` [command units]), at most half of ``max_u``, so the excitation
     starts well past friction and the verification loop may still grow it up
-    to max_u. The options are validated here (:class:`UsageError`).
+    to max_u; in closed loop (``loop`` closed, or auto on finite travel) the
+    procedure fits it to the travel. The options are validated here
+    (:class:`UsageError`).
     """
     from servobench.bench.procedure import SidbeOptions
 
-    known = {f.name for f in fields(SidbeOptions)} - {"pace", "plots"}
-    unknown = sorted(set(options) - known)
-    if unknown:
-        raise UsageError(f"[sidbe] has unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     values = dict(options)
-    if "freqs_hz" in values:
-        values["freqs_hz"] = tuple(float(f) for f in values["freqs_hz"])
-    if "amplitude" not in values:
+    loop = values.get("loop", "auto")
+    closed = loop == "closed" or (loop == "auto" and travel_finite)
+    if "amplitude" not in values and not closed:
         values["amplitude"] = min(AMPLITUDE_OVER_BUMP * moved_at, 0.5 * max_u)
     try:
         opts = SidbeOptions(**values, plots=True)
     except TypeError as err:
         raise UsageError(f"[sidbe]: {err}") from None
     opts.validate()
-    if opts.amplitude > max_u:
+    if opts.amplitude is not None and opts.amplitude > max_u:
         raise UsageError(f"[sidbe] amplitude {opts.amplitude:g} exceeds the confirmed max_u = {max_u:g}")
     return opts
+
+
+def bump_model(log_path: Path) -> Any:
+    """The model the bump test's log tells (the joint estimator on its pulses), or None.
+
+    What the closed-loop procedure designs its hold loop and excitation from; when
+    the pulses cannot yield a model it learns the axis by its own relay probe.
+    """
+    from servobench.bench.identify.auto import identify
+    from servobench.bench.logio import read_log
+    from servobench.errors import IdentificationError
+
+    try:
+        return identify(read_log(log_path), "joint").model
+    except IdentificationError:
+        return None
 
 
 def run_sidbe(
@@ -117,15 +134,20 @@ def run_sidbe(
     options: Any,
     out_dir: Path,
     progress: ProgressCallback | None = None,
+    known: Any = None,
 ) -> SidbeOutcome:
-    """SIDBE with its verification loop on an open drive; ``log.csv``, ``log-<i>.csv`` and plots in ``out_dir``."""
+    """SIDBE with its verification loop on an open drive; ``log.csv``, ``log-<i>.csv`` and plots in ``out_dir``.
+
+    ``known``: the model of the bump test (:func:`bump_model`), which a closed-loop
+    run designs its hold from.
+    """
     from servobench.bench import procedure
 
     def tick(iteration: int, done: int, total: int) -> None:
         if progress is not None:
             progress(done, total)
 
-    res = procedure.run_sidbe(drive, options, out_dir, progress=tick)
+    res = procedure.run_sidbe(drive, options, out_dir, progress=tick, known=known)
     summary = res.to_json()
     details = {
         "amplitude": summary["amplitude"],
@@ -138,7 +160,10 @@ def run_sidbe(
             {**it.as_dict(), "log": Path(it.log_path).name} for it in res.iterations
         ],
         "selection": res.result.selection,
+        "loop": res.loop,
     }
+    if res.hold is not None:
+        details["hold"] = dict(res.hold)
     return SidbeOutcome(
         result=res.result,
         log_path=res.log_path,
@@ -149,14 +174,12 @@ def run_sidbe(
 
 
 def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> DiagnoseOutcome:
-    """Diagnose ``log_path`` (``[diagnose]`` keys: ``horizon_s``); ``comparison.csv``, plots, ``report.md`` in ``out_dir``."""
+    """Diagnose ``log_path`` (``[diagnose]`` keys, read by :mod:`.config`: ``horizon_s``);
+    ``comparison.csv``, plots, ``report.md`` in ``out_dir``."""
     from servobench.bench.diagnose.workflow import diagnose as run_diagnosis
     from servobench.bench.logio import read_log
     from servobench.bench.report.diagnose import to_json, write_report
 
-    unknown = sorted(set(options) - {"horizon_s"})
-    if unknown:
-        raise UsageError(f"[diagnose] has unknown key(s) {', '.join(unknown)} (known: horizon_s)")
     d = run_diagnosis(read_log(log_path), horizon_s=options.get("horizon_s"))
     report = write_report(d, out_dir)
     plots = tuple(sorted(report.parent.glob("*.png")))

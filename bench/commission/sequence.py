@@ -21,7 +21,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from servobench.bench.commission import integration
@@ -52,6 +52,7 @@ from servobench.bench.commission.record import (
     write_mat,
 )
 from servobench.bench.commission.ui import Console
+from servobench.bench.logidentity import configured_axis
 from servobench.bench.logio import read_log
 from servobench.bench.model import IdentificationResult, ServoModel
 from servobench.bench.report import commission_record as document
@@ -231,7 +232,7 @@ class Commissioning:
         limits = given if isinstance(given, ConfirmedLimits) else self._confirm(given)
         self._check_start_position(limits, check.feedback.position)
         first_pulse = self.o.config.bump.fractions[0] * limits.max_u
-        integration.sidbe_options(self.o.config.sidbe, limits.max_u, first_pulse)  # bad options refuse now
+        integration.sidbe_options(self.o.config.sidbe, limits.max_u, first_pulse, _finite(limits))  # bad options refuse now
         self.console.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
         self._done("limits", limits=limits.as_dict())
         return limits, url_with_limits(self.o.drive_url, limits)
@@ -254,10 +255,16 @@ class Commissioning:
 
             c.step(4, "SIDBE identification with verification")
             moved_at = max(bump.breakaway_pos, bump.breakaway_neg)
-            options = integration.sidbe_options(config.sidbe, limits.max_u, moved_at)
-            c.say(f"excitation amplitude {options.amplitude:g} (the verification loop may raise it up to max_u)")
+            options = integration.sidbe_options(config.sidbe, limits.max_u, moved_at, _finite(limits))
+            options = replace(options, axis=configured_axis(config.identity.machine, config.identity.axis))
+            closed = options.closed(drive.limits)
+            known = integration.bump_model(bump.log_path) if closed else None
+            c.say(f"closed loop: a hold loop keeps the axis in [{limits.xmin:g}, {limits.xmax:g}], the "
+                  f"excitation fitted to it ({'from the bump test' if known else 'after a relay probe'})"
+                  if closed else f"excitation amplitude {options.amplitude:g} (the verification loop "
+                  "may raise it up to max_u)")  # fmt: skip
             with c.progress("SIDBE") as tick:
-                sidbe = integration.run_sidbe(drive, options, self.out, tick)
+                sidbe = integration.run_sidbe(drive, options, self.out, tick, known)
         model = sidbe.result.model
         c.ok(
             f"M = {model.M:.5g}, B = {model.B:.5g} (pole {model.pole:.4g} 1/s, DC gain {model.dc_gain:.4g}), "
@@ -378,6 +385,11 @@ class Commissioning:
         inputs = document.RecordInputs(self.o.config, check, limits, url, bump, sidbe, diag, design, log,
                                        program, scale, self.progress.started, _version())  # fmt: skip
         write_report(self.out / REPORT_FILE, document.page(inputs))
+
+
+def _finite(limits: ConfirmedLimits) -> bool:
+    """Whether the confirmed travel is finite on either side."""
+    return math.isfinite(limits.xmin) or math.isfinite(limits.xmax)
 
 
 def _version() -> str:

@@ -62,6 +62,11 @@ class Segment:
         Filtered position, velocity and acceleration when ``v`` was derived from position.
     x : ndarray or None
         Logged position [units], if any.
+    u_exc : ndarray or None
+        Closed loop: the excitation [command units] (``u`` is then the total
+        command, the hold loop's included); the closed-loop estimators' instrument.
+    x_ref : ndarray or None
+        Closed loop: the position the hold loop held [units].
     """
 
     run: int
@@ -72,6 +77,8 @@ class Segment:
     dt_s: np.ndarray | None = None
     motion: DerivedMotion | None = None
     x: np.ndarray | None = None
+    u_exc: np.ndarray | None = None
+    x_ref: np.ndarray | None = None
 
     @property
     def derived(self) -> bool:
@@ -103,8 +110,10 @@ class Segment:
                 motion.x[:n], motion.v[:n], motion.a[:n], motion.cutoff_hz, motion.method
             )
         dt = None if self.dt_s is None else self.dt_s[: max(0, n - 1)]
-        x = None if self.x is None else self.x[:n]
-        return Segment(self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x)
+        x, u_exc, x_ref = (None if a is None else a[:n] for a in (self.x, self.u_exc, self.x_ref))
+        return Segment(
+            self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x, u_exc, x_ref
+        )
 
 
 def initial_velocity(segment: Segment, noise_std: float, k: int = 0) -> float:
@@ -158,7 +167,8 @@ class Dataset:
     notes : tuple of str
         Facts worth reporting (derived velocity, irregular sampling).
     closed_loop : bool or None
-        From the ``loop`` metadata key (``open``/``closed ...``); None when unknown.
+        From the ``loop`` metadata key (``open``/``closed ...``), else True when the
+        runs carry the excitation ``u_exc``; None when unknown.
     units : SignalUnits
         Units of the signals, from the log's ``unit_*`` metadata.
     """
@@ -182,6 +192,11 @@ class Dataset:
     @property
     def jittered(self) -> bool:
         return any(s.dt_s is not None for s in self.segments)
+
+    @property
+    def has_excitation(self) -> bool:
+        """True when every run carries its excitation ``u_exc`` (a closed-loop log)."""
+        return all(s.u_exc is not None for s in self.segments)
 
     def cat(self, name: str) -> np.ndarray:
         """Attribute ``name`` (``"u"``, ``"v"``, ``"v_f"``, ``"position"`` ...) of every run, concatenated."""
@@ -270,6 +285,8 @@ def prepare(
         design = design.with_periods(shortest // design.samples_per_period)
     loop = log.metadata.get("loop", "").strip().lower()
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
+    if closed is None and all(r.u_exc is not None for r in log.runs):
+        closed = True
     return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units)
 
 
@@ -297,9 +314,9 @@ def _segment(
             f"velocity derived from position ({method}, zero-phase, "
             f"cut-off {motion.cutoff_hz:.4g} Hz)"
         )
-    x = None if r.x is None else np.asarray(r.x, dtype=float)
+    x, u_exc, x_ref = (None if a is None else np.asarray(a, dtype=float) for a in (r.x, r.u_exc, r.x_ref))
     u = np.asarray(r.u, dtype=float)
-    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x), notes
+    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref), notes
 
 
 def _moves(s: Segment) -> bool:

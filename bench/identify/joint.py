@@ -13,6 +13,19 @@ Works on any log -- one run or two, any excitation, open or closed loop:
    (:mod:`servobench.bench.identify.output_error`) -- on the averaged steady-state period of
    periodic logs, or on a window of raw samples otherwise.
 
+Closed-loop logs (a hold loop kept the axis inside its travel; ``u`` is the
+total command, ``u_exc`` the excitation): the hold loop feeds the measured,
+noisy motion back into ``u``, so ``u`` is correlated with the equation error
+and least squares is biased. The instrumental-variable passes then take the
+excitation ``u_exc`` as the instrument of ``u`` (and, as in open loop, the
+model's simulated velocity, which depends on past commands only, as that of
+``v``). The output-error refinement simulates the measured total command on
+raw samples, never on averaged periods: the command is not periodic (the
+loop adds noise to it) and averaging would mix the noise of ``u`` into the
+model. With white velocity noise its residual at the true parameters is
+that noise, uncorrelated with the simulation driven by past commands, so
+it stays unbiased in closed loop.
+
 Logs with position only go to the inverse-dynamic estimator
 (:mod:`servobench.bench.identify.idim`).
 """
@@ -78,7 +91,7 @@ def identify_joint(
     notes: list[str] = list(data.notes)
     v_all = data.cat("v")
 
-    if start is not None and start.estimator == "output-error" and refine_oe:
+    if start is not None and start.estimator.endswith("output-error") and refine_oe:
         sigma = start.noise_std
         return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
 
@@ -105,7 +118,9 @@ def identify_joint(
 def _pairs(
     data: Dataset, threshold: float = 0.0, references: list[np.ndarray] | None = None
 ) -> Pairs:
-    """The regression's sample pairs of every run (see :func:`select_pairs`)."""
+    """The regression's sample pairs of every run (see :func:`select_pairs`); in closed loop
+    with the excitation as the instrument of ``u`` once there are references."""
+    closed = references is not None and _closed(data)
     return select_pairs(
         [s.v for s in data.segments],
         [s.u for s in data.segments],
@@ -113,7 +128,13 @@ def _pairs(
         references=references,
         threshold=threshold,
         max_pairs=MAX_PAIRS,
+        excitations=[s.u_exc for s in data.segments] if closed else None,
     )
+
+
+def _closed(data: Dataset) -> bool:
+    """A closed-loop log that carries its excitation."""
+    return bool(data.closed_loop) and data.has_excitation
 
 
 def _instrumental(
@@ -163,7 +184,12 @@ def _refine(
         notes.append(note)
     free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
     oe = refine(model, chunks, free)
-    return MethodEstimate(oe.model, "joint", oe.std, "output-error", oe.sigma, tuple(notes))
+    estimator = "output-error"
+    if _closed(data):
+        estimator = "zoh-iv (excitation as instrument) + output-error"
+        note = "closed-loop log: instruments from the excitation u_exc, output error on raw samples"
+        notes.append(note)
+    return MethodEstimate(oe.model, "joint", oe.std, estimator, oe.sigma, tuple(notes))
 
 
 def _iv_data(data: Dataset) -> Dataset:
@@ -198,10 +224,11 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
 
     Periodic logs: each run's first period from rest (when it starts at rest and
     has fewer than ``MANY_PERIODS`` steady periods) and the average of its
-    steady-state periods; otherwise a raw window.
+    steady-state periods; otherwise, and for closed-loop logs (whose total command
+    is not periodic), a raw window.
     """
     design = data.design
-    if design is not None and not data.jittered and data.periodic_periods() >= 2:
+    if not data.closed_loop and design is not None and not data.jittered and data.periodic_periods() >= 2:
         n = design.samples_per_period
         chunks = []
         for s in data.segments:

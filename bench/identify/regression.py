@@ -13,6 +13,12 @@ exact for noise-free data at any amplitude. With sensor noise the pairs
 are chosen on a noise-free reference (a simulation) and solved with
 instrumental variables; the output-error refinement in
 :mod:`servobench.bench.identify.output_error` then removes what is left.
+
+In closed loop the command itself carries noise: the hold loop feeds the
+measured motion back into ``u``, so ``u[k]`` is correlated with the noise
+of ``v[k]`` that the pair's equation error holds, and least squares (which
+uses ``u`` as its own instrument) is biased. There the excitation ``u_exc``,
+which no noise reaches, is the instrument of ``u``.
 """
 
 from __future__ import annotations
@@ -45,6 +51,8 @@ class Pairs:
         Interval length [s].
     z0 : ndarray
         Instrument for ``v0`` (the reference velocity at ``k``; ``v0`` itself for plain LS).
+    zu : ndarray or None
+        Instrument for ``u`` (the excitation of a closed-loop log); None: ``u`` itself.
     """
 
     v0: np.ndarray
@@ -54,6 +62,7 @@ class Pairs:
     neg: np.ndarray
     dt: np.ndarray
     z0: np.ndarray
+    zu: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.v0.size)
@@ -66,6 +75,7 @@ def select_pairs(
     references: Sequence[np.ndarray] | None = None,
     threshold: float = 0.0,
     max_pairs: int | None = None,
+    excitations: Sequence[np.ndarray] | None = None,
 ) -> Pairs:
     """Pairs whose reference velocity keeps one strict sign with ``|v| > threshold`` at both ends.
 
@@ -81,22 +91,25 @@ def select_pairs(
         Smallest ``|reference|`` accepted at both ends [units/s].
     max_pairs : int, optional
         Consider only every ``ceil(n / max_pairs)``-th interval (even thinning).
+    excitations : sequence of ndarray, optional
+        Closed loop: the excitation of each run [command units], the instrument of ``u``.
     """
     refs = velocities if references is None else references
+    exc = commands if excitations is None else excitations
     total = sum(len(v) - 1 for v in velocities)
     step = 1 if max_pairs is None or total <= max_pairs else -(-total // max_pairs)
-    parts: list[list[np.ndarray]] = [[] for _ in range(7)]
-    for v, u, dt, r in zip(velocities, commands, intervals, refs, strict=True):
+    parts: list[list[np.ndarray]] = [[] for _ in range(8)]
+    for v, u, dt, r, e in zip(velocities, commands, intervals, refs, exc, strict=True):
         k = np.arange(0, len(v) - 1, step) if step > 1 else slice(0, len(v) - 1)
         k1 = k + 1 if step > 1 else slice(1, len(v))
         r0, r1 = r[k], r[k1]
         pos = (r0 > threshold) & (r1 > threshold)
         neg = (r0 < -threshold) & (r1 < -threshold)
         keep = pos | neg
-        for i, arr in enumerate((v[k], v[k1], u[k], pos, neg, dt[k], r0)):
+        for i, arr in enumerate((v[k], v[k1], u[k], pos, neg, dt[k], r0, e[k])):
             parts[i].append(arr[keep])
-    v0, v1, u, pos, neg, dt, z0 = (np.concatenate(p) for p in parts)
-    return Pairs(v0, v1, u, pos, neg, dt, z0)
+    v0, v1, u, pos, neg, dt, z0, zu = (np.concatenate(p) for p in parts)
+    return Pairs(v0, v1, u, pos, neg, dt, z0, None if excitations is None else zu)
 
 
 @dataclass(frozen=True)
@@ -154,7 +167,8 @@ def physical_jacobian(theta: np.ndarray, dt_s: float) -> np.ndarray:
 
 
 def fit_pairs(pairs: Pairs, dt_s: float, instrumental: bool = False) -> ZohFit:
-    """Solve the regression by least squares, or by instrumental variables (``z0`` for ``v0``).
+    """Solve the regression by least squares, or by instrumental variables (``z0`` for ``v0``,
+    and ``zu`` for ``u`` when the pairs carry it).
 
     Normal equations on scaled columns with one step of iterative refinement:
     as accurate as an orthogonal solve for these four well-scaled columns, and
@@ -178,6 +192,8 @@ def fit_pairs(pairs: Pairs, dt_s: float, instrumental: bool = False) -> ZohFit:
     if instrumental:
         Zu = Xu.copy()
         Zu[:, 0] = pairs.z0
+        if pairs.zu is not None and 1 in used:
+            Zu[:, used.index(1)] = pairs.zu
     else:
         Zu = Xu
     y = pairs.v1

@@ -13,6 +13,12 @@
 The differential pair does not cancel friction exactly (the zero-crossing
 times of the two runs differ), so at amplitudes close to the friction level
 the estimate is biased; :mod:`servobench.bench.identify.joint` is not.
+
+Closed-loop logs (a hold loop kept the axis inside its travel): ``u`` is the
+total command the drive applied, the hold loop's share included, and the FRF
+is taken from it. The loop feeds noise back into ``u``, but the lines carry
+the excitation, identical in every period and (scaled) in both runs, so the
+averaged spectra at the lines converge to the noise-free response.
 """
 
 from __future__ import annotations
@@ -71,6 +77,11 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
     frf_for_fit = frf
     fit = fit_linear_block(frf, resonance=resonance, of_position=of_position)
     notes = list(data.notes)
+    if data.closed_loop:
+        notes.append(
+            "closed-loop log: the differential FRF is taken from the measured total command u, "
+            "unbiased at the excited lines, where both runs share the noise-free excitation"
+        )
     if fit.resonance_at_bound:
         notes.append("no resonance found within the excited band: fitted without one")
         fit = fit_linear_block(frf_for_fit, resonance=False, of_position=of_position)

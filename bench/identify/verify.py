@@ -25,7 +25,8 @@ from servobench.bench.model import ServoModel, fit_percent
 
 @dataclass(frozen=True)
 class RunVerification:
-    """One run: times [s], command, measured and simulated velocity (shape ``(n,)``), fit [%]."""
+    """One run: times [s], command, measured and simulated velocity (shape ``(n,)``), fit [%];
+    in closed loop also the excitation ``u_exc`` (``u`` is then the total command)."""
 
     run: int
     t: np.ndarray
@@ -33,6 +34,7 @@ class RunVerification:
     v: np.ndarray
     v_sim: np.ndarray
     fit_percent: float
+    u_exc: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -70,7 +72,7 @@ def verify(
         v_sim = simulate_run(model, seg.u, dt, initial_velocity(seg, noise_std), period)
         sl = slice(start, stop)
         runs.append(
-            RunVerification(seg.run, seg.t, seg.u, seg.v, v_sim, fit_percent(seg.v[sl], v_sim[sl]))
+            RunVerification(seg.run, seg.t, seg.u, seg.v, v_sim, fit_percent(seg.v[sl], v_sim[sl]), seg.u_exc)
         )
         measured.append(seg.v[sl])
         simulated.append(v_sim[sl])

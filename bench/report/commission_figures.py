@@ -1,6 +1,7 @@
 """The figures only commissioning draws, rendered to PNG bytes (matplotlib, Agg).
 
-One excitation period (command and velocity of both runs), the bump test
+One excitation period (command and velocity of both runs; in closed loop
+also the position in its travel window), the bump test
 and the compensation check. The identification plots (FRF, velocities,
 friction map) come from :mod:`servobench.bench.report.plots` through the
 SIDBE procedure, the before/after plots from the diagnosis; the report
@@ -47,23 +48,53 @@ def period_window(log: ExperimentLog) -> tuple[int, int, int, int]:
     return (whole - 1) * n, whole * n, whole, whole
 
 
-def excitation_period(log: ExperimentLog, units: SignalUnits) -> bytes:
-    """Command and velocity of every run over the last whole excitation period."""
+def excitation_period(
+    log: ExperimentLog, units: SignalUnits, window: tuple[float, float] | None = None
+) -> bytes:
+    """Command and velocity of every run over the last whole excitation period.
+
+    A closed-loop log (its runs carry ``u_exc``) shows the binary excitation and,
+    thinner, the total command the hold loop made of it, and a third panel of
+    the position against the held one and the travel ``window`` ``(xmin, xmax)``.
+    """
     start, stop, index, periods = period_window(log)
-    fig, (ax_u, ax_v) = _figure(2, 5.0)
+    closed = all(r.u_exc is not None and r.x is not None for r in log.runs)
+    fig, axes = _figure(3 if closed else 2, 6.6 if closed else 5.0)
+    ax_u, ax_v = axes[0], axes[1]
     for i, run in enumerate(log.runs):
         t = run.t[start:stop]
-        ax_u.step(t, run.u[start:stop], where="post", lw=1.0, color=f"C{i}", label=f"run {run.run}: u{run.run}")
+        if closed:
+            ax_u.step(t, run.u_exc[start:stop], where="post", lw=1.0, color=f"C{i}",
+                      label=f"run {run.run}: excitation u{run.run}")  # fmt: skip
+            ax_u.step(t, run.u[start:stop], where="post", lw=0.6, alpha=0.6, color=f"C{i}", ls="--",
+                      label=f"run {run.run}: total, hold included")  # fmt: skip
+            axes[2].plot(t, run.x[start:stop], lw=0.9, color=f"C{i}", label=f"run {run.run}: x{run.run}")
+        else:
+            ax_u.step(t, run.u[start:stop], where="post", lw=1.0, color=f"C{i}", label=f"run {run.run}: u{run.run}")
         if run.v is not None:
             ax_v.plot(t, run.v[start:stop], lw=0.9, color=f"C{i}", label=f"run {run.run}: v{run.run}")
     length_s = log.runs[0].t[stop - 1] - log.runs[0].t[start] + (log.runs[0].t[1] - log.runs[0].t[0])
     ax_u.set(ylabel=units.label("u"),
              title=f"Excitation period {index} of {periods} ({length_s:.3g} s), steady state")  # fmt: skip
-    ax_v.set(xlabel="t [s]", ylabel=units.label("v"))
-    for ax in (ax_u, ax_v):
+    ax_v.set(ylabel=units.label("v"))
+    if closed:
+        _travel_panel(axes[2], log, units, window)
+    axes[-1].set(xlabel="t [s]")
+    for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     return png_bytes(fig, DPI)
+
+
+def _travel_panel(ax, log: ExperimentLog, units: SignalUnits, window: tuple[float, float] | None) -> None:
+    """The held position and the travel window on the position panel."""
+    x_ref = log.runs[0].x_ref
+    if x_ref is not None:
+        ax.axhline(float(x_ref[0]), color="k", lw=0.8, ls=":", label="held position x_ref")
+    if window is not None and all(np.isfinite(window)):
+        for edge in window:
+            ax.axhline(edge, color="C3", lw=1.0, label="travel limit" if edge == window[0] else None)
+    ax.set(ylabel=units.label("x"))
 
 
 def bump(t: np.ndarray, u: np.ndarray, v: np.ndarray, units: SignalUnits) -> bytes:

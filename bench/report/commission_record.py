@@ -254,10 +254,38 @@ def _excitation_section(r: RecordInputs) -> Section:
                              + ("no model" if it.get("fit_percent") is None else f"{it['fit_percent']:.2f} %")
                              for it in d.get("iterations", []))),
     ]  # fmt: skip
+    hold = d.get("hold")
     caption = (f"One excitation period (period {index} of {periods}, steady state) of both runs: the "
                "binary multisine u1 and u2 = ratio x u1 (top) and the velocity each produced (bottom).")  # fmt: skip
+    window = None
+    if isinstance(hold, dict):
+        rows += _hold_rows(hold, r.units)
+        window = (r.limits.xmin, r.limits.xmax)
+        caption = (f"One excitation period (period {index} of {periods}, steady state) of both runs, "
+                   "excited in closed loop: the binary multisine u1 and u2 = ratio x u1 with the total "
+                   "command the hold loop made of it (top), the velocity (middle), and the position "
+                   "against the held one and the travel limits (bottom).")  # fmt: skip
     return Section("Excitation", [KeyValues("SIDBE excitation", rows),
-                                  Figure(caption, figures.excitation_period(r.log, r.units))], level=3)  # fmt: skip
+                                  Figure(caption, figures.excitation_period(r.log, r.units, window))],
+                   level=3)  # fmt: skip
+
+
+def _hold_rows(hold: dict, units: SignalUnits) -> list[tuple[str, object]]:
+    """The closed loop's facts: where the hold ran, its gains, the travel it used."""
+    u, x, v = units.of("u"), units.of("x"), units.of("v")
+    where = ("the drive's own position loop (gains fitted to a trial)" if hold.get("where") == "drive"
+             else "host-side position loop")  # fmt: skip
+    learnt = "the bump test" if "known" in hold else "a relay probe (probe.csv)" if "probe" in hold else "-"
+    bandwidth = hold.get("bandwidth_hz")
+    return [
+        ("loop", f"closed: {where}, designed from {learnt}"),
+        (f"held position x_ref [{x}]", hold.get("x_ref", math.nan)),
+        (f"hold gains kp [{u}/{x}], ki [{u}/({x} s)], kd [{u}/({v})]",
+         ", ".join(f"{hold.get(k, math.nan):.4g}" for k in ("kp", "ki", "kd"))),
+        ("hold bandwidth [Hz]", "-" if bandwidth is None else f"{bandwidth:.3g}"),
+        ("travel used", f"{hold.get('travel_share', math.nan):.0%} of the room of {hold.get('room', math.nan):.4g} "
+                        f"{x} around x_ref"),
+    ]  # fmt: skip
 
 
 #: Identification plots (servobench.bench.report.plots, written by the SIDBE procedure) -> section title.

@@ -178,7 +178,8 @@ class FrfEvidence:
     periods : int
         Steady periods averaged.
     amplitude : float
-        Largest ``|u1|`` [u unit]; NaN without the logged runs.
+        Largest ``|u1|`` [u unit], of the excitation ``u_exc`` in closed loop; NaN
+        without the logged runs.
     """
 
     f_hz: np.ndarray
@@ -237,7 +238,7 @@ def frf_evidence(result: IdentificationResult) -> FrfEvidence | None:
         return None
     linear = result.model.frequency_response(frf.f_hz, frf.dt_s)
     runs = {r.run: r for r in result.verification.runs} if result.verification else {}
-    amplitude = float(np.max(np.abs(runs[1].u))) if 1 in runs else math.nan
+    amplitude = _amplitude(runs[1]) if 1 in runs else math.nan
     found = _steady_periods(frf, runs)
     if found is None:
         return FrfEvidence(frf.f_hz, frf.G, None, linear, None, frf.periods_averaged, amplitude)
@@ -260,6 +261,12 @@ def frf_evidence(result: IdentificationResult) -> FrfEvidence | None:
     averaged = slice(0, frf.periods_averaged)  # the periods the stored FRF averages
     sim = spectra(r1.v_sim, r2.v_sim)[averaged].mean(axis=0) / du
     return FrfEvidence(frf.f_hz, frf.G, std_error, linear, sim, frf.periods_averaged, amplitude)
+
+
+def _amplitude(run) -> float:
+    """The excitation's amplitude in run 1: its command, or in closed loop its excitation
+    (the total command also holds the hold loop's share)."""
+    return float(np.max(np.abs(run.u if run.u_exc is None else run.u_exc)))
 
 
 def _steady_periods(frf, runs) -> tuple[int, np.ndarray] | None:

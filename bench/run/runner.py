@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from servobench.bench.logidentity import run_identity
 from servobench.bench.logio import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
@@ -144,7 +145,9 @@ def stream_runs(
     log_path : path
         CSV log, written as samples arrive.
     metadata : mapping
-        Extra ``# key = value`` header lines (``fs`` is always written).
+        Extra ``# key = value`` header lines. ``fs`` is always written, and so are
+        ``axis`` and ``time`` (:func:`~servobench.bench.logidentity.run_identity`),
+        which ``metadata`` may override.
     pace : {"real", "fast"}, optional
         Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose
         ``realtime`` is False (``sim://``), else ``"real"``.
@@ -164,7 +167,7 @@ def stream_runs(
     """
     plan = _Plan.make(drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway)
     meta = {
-        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace,
+        "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace, **run_identity(drive),
         **drive.log_metadata(), **(metadata or {}),
     }  # fmt: skip
     writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
@@ -179,10 +182,17 @@ def stream_runs(
             writer.finish(
                 "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
             )
-            add_note(err, f"partial log kept: {log_path} ({writer.rows} samples, marked incomplete)")
+            note_partial_log(err, writer)
         raise
     writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
     return RunResult(Path(log_path), writer.rows, tuple(timing), True)
+
+
+def note_partial_log(err: BaseException, writer: LogWriter) -> None:
+    """Name the partial log ``writer`` kept in ``err``'s notes (the CLI ends its one line with
+    them), unless the message names it already."""
+    if str(writer.path) not in str(err):
+        add_note(err, f"partial log kept: {writer.path} ({writer.rows} samples, marked incomplete)")
 
 
 @dataclass(frozen=True)
