@@ -70,6 +70,9 @@ def test_sidbe_with_default_options_fits_every_link(group, tmp_path):
         assert model["fs"] == fs
         if "link_max_rate_hz" in log.metadata:  # the rate follows the link
             assert fs == default_rate_hz(float(log.metadata["link_max_rate_hz"]), 1000.0)
+        # the excitation follows the rate: a whole number of samples per period, lines below fs/20
+        assert int(log.metadata["samples_per_period"]) == round(DEFAULT_PERIOD_S * fs)
+        assert max(float(f) for f in log.metadata["freqs"].split(",")) <= fs / 20
         for run in log.runs:  # in real time, on schedule: no run overran its nominal length
             nominal_s = (len(run) - 1) / fs
             assert run.extra["t_host"][-1] <= 1.03 * nominal_s + 0.5, (transport, run.run)
