@@ -161,7 +161,6 @@ class ModbusDrive(Drive):
 
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
-        meta["link_max_rate_hz"] = f"{self.max_rate_hz():.1f}"
         meta["modbus_map"] = self.regmap.name
         if self.regmap.fc23_auto:
             meta["fc23"] = "yes" if self.fc23 else "no (the drive answered exception 1)"

@@ -192,7 +192,6 @@ class SerialAsciiDrive(Drive):
 
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
-        meta["link_max_rate_hz"] = f"{self.max_rate_hz():.1f}"
         if self.lockstep is not None:
             meta["drive_clock"] = (
                 "feedback query count x cycle period (lock-step drive)" if self.lockstep

@@ -68,8 +68,8 @@ def test_sidbe_with_default_options_fits_every_link(group, tmp_path):
         log = read_log(tmp_path / transport / "log.csv")
         fs = float(log.metadata["fs"])
         assert model["fs"] == fs
-        if "link_max_rate_hz" in log.metadata:  # the rate follows the link
-            assert fs == default_rate_hz(float(log.metadata["link_max_rate_hz"]), 1000.0)
+        # the rate follows the link, whose limit every transport logs (CANopen: the bus's bitrate)
+        assert fs == default_rate_hz(float(log.metadata["link_max_rate_hz"]), 1000.0)
         # the excitation follows the rate: a whole number of samples per period, lines below fs/20
         assert int(log.metadata["samples_per_period"]) == round(DEFAULT_PERIOD_S * fs)
         assert max(float(f) for f in log.metadata["freqs"].split(",")) <= fs / 20

@@ -49,7 +49,7 @@ def test_a_served_axis_coasts_down_while_nobody_polls(transport):
     assert (second.velocity, second.position) == pytest.approx((first.velocity, first.position))
 
 
-@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu", "serial"])
+@pytest.mark.parametrize("transport", sorted(TRANSPORTS))
 def test_each_session_starts_with_the_drive_clock_at_zero(transport):
     # Issue 10 §4: after an overrun the next run met "the drive clock stands at 6.031 s", then a
     # first time stamp of 120.8 s. A host that vanishes mid-run (no close) leaves nothing behind.
