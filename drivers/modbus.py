@@ -103,12 +103,13 @@ class ModbusDrive(Drive):
         self.timeout_s: float = u.get_float("timeout", DEFAULT_TIMEOUT_S)
         if not self.timeout_s > 0:
             raise DriveConfigError("timeout must be > 0 s")
+        self.baud = 0  #: RTU line speed [bit/s]; 0 on TCP
         if self.rtu:
             if not u.path or u.host:
                 raise DriveConfigError(
                     f"modbus+rtu URL needs a device path: modbus+rtu:///dev/ttyUSB0, got {u.raw!r}"
                 )
-            self.baud: int = u.get_int("baud", DEFAULT_BAUD)
+            self.baud = u.get_int("baud", DEFAULT_BAUD)
             self.parity = (u.get_str("parity", "N") or "N").upper()
             if self.baud <= 0 or self.parity not in ("N", "E", "O"):
                 raise DriveConfigError("baud must be > 0 and parity one of N, E, O")
@@ -156,7 +157,7 @@ class ModbusDrive(Drive):
         if m.watchdog_feed == "register":
             transactions.append((8, 8) if m["watchdog_feed"].count == 1 else (11, 8))
         return modbus_max_rate_hz(
-            transactions, rtu=self.rtu, baud=getattr(self, "baud", 0), turnaround_s=m.turnaround_s
+            transactions, rtu=self.rtu, baud=self.baud, turnaround_s=m.turnaround_s
         )
 
     def log_metadata(self) -> dict[str, str]:
