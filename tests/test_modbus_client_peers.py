@@ -1,9 +1,11 @@
 """servobench's Modbus client against a server it did not write, and its honest messages.
 
-* uModbus (PyPI) as the TCP server of a drive laid out as ``servobench-sim.toml``
-  says. uModbus implements FC01-06, FC15, FC16 and not FC23, so it answers
-  FC23 with exception 1 (illegal function): a map with ``fc23 = "auto"`` falls
-  back to write-then-read, and the cycles still match the plant.
+* uModbus (PyPI) as the TCP and the RTU server of a drive laid out as
+  ``servobench-sim.toml`` says (RTU over a pseudo-terminal: uModbus frames
+  by pyserial's inter-byte time-out and checks the CRC itself). uModbus
+  implements FC01-06, FC15, FC16 and not FC23, so it answers FC23 with
+  exception 1 (illegal function): a map with ``fc23 = "auto"`` falls back to
+  write-then-read, and the cycles still match the plant.
 * A wrong unit id, no answer and a gateway exception each say what happened.
 * ``feed = "any_request"`` over TCP warns, and the warning is true: a second
   client's polling keeps the drive's watchdog from tripping after the host stops.
@@ -11,9 +13,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import select
 import struct
 import threading
 import time
+import tty
 from pathlib import Path
 from socketserver import TCPServer
 
@@ -21,6 +27,8 @@ import numpy as np
 import pytest
 from pyModbusTCP.client import ModbusClient
 from umodbus import conf
+from umodbus.server.serial import get_server as get_rtu_server
+from umodbus.server.serial.rtu import RTUServer
 from umodbus.server.tcp import RequestHandler, get_server
 
 from servobench.bench.testing.served_modbus import host_port, rtu_path, served_modbus
@@ -32,27 +40,38 @@ from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 SIM_MAP = Path(resolve_map("servobench-sim")).read_text()
+RTU_BAUD = 115200
 
 
 class UmodbusDrive:
-    """The servobench-sim register layout on a uModbus TCP server, a device behind it.
+    """The servobench-sim register layout on a uModbus server, a device behind it.
 
     uModbus calls a route once per register address, in address order, so a
     32-bit value is applied when its second word arrives, and a read of the
-    feedback block clocks the device at the velocity's first word.
+    feedback block clocks the device at the velocity's first word. TCP by
+    default; with ``rtu=True`` uModbus's RTU server on the master side of a
+    pseudo-terminal whose other side (:attr:`path`) the host opens.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, rtu: bool = False) -> None:
         conf.SIGNED_VALUES = False
         self.device = SimulatedDevice(PARAMS)
         self.words = {a: 0 for a in (0x00, 0x01, 0x02, 0x03, 0x10, 0x11)}
         self.sample = self.device.sample()
-        TCPServer.allow_reuse_address = True
-        self.app = get_server(TCPServer, ("127.0.0.1", 0), RequestHandler)
+        if rtu:
+            master, slave = os.openpty()
+            tty.setraw(slave)
+            self.path = os.ttyname(slave)
+            self._fds = (master, slave)
+            self.app = get_rtu_server(RTUServer, PtyMasterPort(master, RTU_BAUD))
+        else:
+            TCPServer.allow_reuse_address = True
+            self.app = get_server(TCPServer, ("127.0.0.1", 0), RequestHandler)
         holding = list(range(0x00, 0x04)) + [0x10, 0x11] + list(range(0x20, 0x28))
         self.app.route(slave_ids=[1], function_codes=[3], addresses=holding)(self.read)
         self.app.route(slave_ids=[1], function_codes=[6, 16], addresses=holding)(self.write)
-        self.thread = threading.Thread(target=self.app.serve_forever, daemon=True)
+        self.rtu = rtu
+        self.thread = threading.Thread(target=self.app.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
 
     @property
     def port(self) -> int:
@@ -93,8 +112,41 @@ class UmodbusDrive:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.app.shutdown()
-        self.app.server_close()
+        if self.rtu:
+            self.app.shutdown()
+            self.thread.join(timeout=2)
+            for fd in self._fds:
+                os.close(fd)
+        else:
+            self.app.shutdown()
+            self.app.server_close()
+
+
+class PtyMasterPort:
+    """The master side of a pseudo-terminal as the pyserial port uModbus's RTU server reads.
+
+    What pyserial's ``read(size)`` does: wait up to ``timeout`` for the first
+    byte, then return once ``inter_byte_timeout`` passes without another (the
+    RTU frame gap by which uModbus frames), or ``size`` bytes arrived.
+    """
+
+    def __init__(self, fd: int, baudrate: int) -> None:
+        self.fd, self.baudrate = fd, baudrate
+        self.timeout: float | None = None
+        self.inter_byte_timeout: float | None = None
+
+    def read(self, size: int) -> bytes:
+        data = b""
+        wait = self.timeout
+        while len(data) < size:
+            if not select.select([self.fd], [], [], wait)[0]:
+                break
+            data += os.read(self.fd, size - len(data))
+            wait = self.inter_byte_timeout
+        return data
+
+    def write(self, data: bytes) -> int:
+        return os.write(self.fd, data)
 
 
 @pytest.fixture
@@ -104,11 +156,17 @@ def auto_map(tmp_path: Path) -> str:
     return str(path)
 
 
-def test_fc23_auto_falls_back_to_write_then_read_on_a_drive_without_fc23(auto_map):
+@pytest.mark.parametrize("rtu", [False, True], ids=["tcp", "rtu"])
+def test_fc23_auto_falls_back_to_write_then_read_on_a_drive_without_fc23(auto_map, rtu):
     u = np.where((np.arange(120) // 30) % 2 == 0, 1.5, -1.5)
-    with UmodbusDrive() as peer:
-        url = f"modbus+tcp://127.0.0.1:{peer.port}?unit=1&map={auto_map}&watchdog=0.5"
-        with pytest.warns(DriveWarning), open_drive(url) as drive:
+    with UmodbusDrive(rtu=rtu) as peer:
+        url = (
+            f"modbus+rtu://{peer.path}?baud={RTU_BAUD}&unit=1&map={auto_map}&watchdog=0.5" if rtu
+            else f"modbus+tcp://127.0.0.1:{peer.port}?unit=1&map={auto_map}&watchdog=0.5"
+        )  # fmt: skip
+        # over TCP the map's any-request feed warns; an RTU line has one master
+        warns = contextlib.nullcontext() if rtu else pytest.warns(DriveWarning, match="another Modbus client")
+        with warns, open_drive(url) as drive:
             assert drive.fc23 is True  # tried first
             drive.set_cycle(0.002)
             assert peer.device.cycle_s == pytest.approx(0.002)
