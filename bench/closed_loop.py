@@ -63,7 +63,8 @@ UNLIMITED = 8.0
 #: The trial under a drive's own hold: this share of the first round's u1, one period.
 TRIAL_SCALE = 0.5
 
-Best = tuple[IdentificationResult, exc.ExcitationDesign, Path]
+#: The best round: its result, design, log and the cycle rate achieved streaming it [Hz].
+Best = tuple[IdentificationResult, exc.ExcitationDesign, Path, float]
 
 
 def closed_rounds(
@@ -77,7 +78,7 @@ def closed_rounds(
     """The rounds of the procedure in closed loop (see module docstring).
 
     ``record`` builds the :class:`~servobench.bench.procedure.Iteration` of a round.
-    Returns the rounds, the best ``(result, design, log)``, and the facts of the hold
+    Returns the rounds, the best ``(result, design, log, fs_achieved_hz)``, and the facts of the hold
     (for ``model.json``).
     """
     pace = options.pace or drive.url.get_str("pace", "") or default_pace(drive)
@@ -85,10 +86,10 @@ def closed_rounds(
     iterations: list[Iteration] = []
     best: Best | None = None
     for index in range(1, int(options.max_iterations) + 1):
-        result, error, share = _round(drive, options, plan, out, index, pace, progress)
+        result, error, share, achieved_hz = _round(drive, options, plan, out, index, pace, progress)
         log_path = out / round_log_name(index)
         if result is not None and (best is None or result.fit_percent > best[0].fit_percent):
-            best = (result, plan.design, log_path)
+            best = (result, plan.design, log_path, achieved_hz)
         fit = None if result is None else result.fit_percent
         method = None if result is None else result.method
         d = plan.design
@@ -201,8 +202,9 @@ def _drive_gains(
 def _round(
     drive: Drive, options: SidbeOptions, plan: ClosedLoopPlan, out: Path, index: int, pace: str,
     progress: Callable[[int, int, int], None] | None,
-) -> tuple[IdentificationResult | None, str, float]:  # fmt: skip
-    """Stream one round and identify it: the result (or None and the error), the share of room used."""
+) -> tuple[IdentificationResult | None, str, float, float]:  # fmt: skip
+    """Stream one round and identify it: the result (or None and the error), the share of room
+    used, the cycle rate achieved [Hz]."""
     design = plan.design
 
     def tick(done: int, total: int) -> None:
@@ -215,9 +217,10 @@ def _round(
         settle_s=options.settle_s, progress=tick,
     )  # fmt: skip
     try:
-        return identify(read_log(run.log_path), options.method, resonance=options.resonance), "", run.share
+        result = identify(read_log(run.log_path), options.method, resonance=options.resonance)
     except IdentificationError as err:
-        return None, str(err), run.share
+        return None, str(err), run.share, run.fs_achieved_hz
+    return result, "", run.share, run.fs_achieved_hz
 
 
 def _grow(

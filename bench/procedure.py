@@ -77,7 +77,8 @@ class SidbeOptions:
     ----------
     amplitude, ratio, fs_hz, periods, period_s, freqs_hz
         The excitation (see :func:`servobench.bench.excitation.make_design`); ``freqs_hz``
-        None means log-spaced default lines. ``amplitude`` None means the default: 1
+        None means log-spaced default lines; ``fs_hz`` None means the drive's
+        link decides (:meth:`for_drive`). ``amplitude`` None means the default: 1
         in open loop, chosen to fit the travel in closed loop.
     loop : {"auto", "open", "closed"}
         Excite in open loop, or in closed loop under a hold loop; ``auto``
@@ -107,7 +108,7 @@ class SidbeOptions:
 
     amplitude: float | None = None
     ratio: float = exc.DEFAULT_RATIO
-    fs_hz: float = exc.DEFAULT_FS_HZ
+    fs_hz: float | None = None
     periods: int = exc.DEFAULT_PERIODS
     period_s: float = exc.DEFAULT_PERIOD_S
     freqs_hz: tuple[float, ...] | None = None
@@ -128,15 +129,26 @@ class SidbeOptions:
         return exc.make_design(
             exc.DEFAULT_AMPLITUDE if self.amplitude is None else self.amplitude,
             ratio=self.ratio,
-            fs_hz=self.fs_hz,
+            fs_hz=exc.DEFAULT_FS_HZ if self.fs_hz is None else self.fs_hz,
             periods=self.periods,
             period_s=self.period_s,
             freqs_hz=self.freqs_hz,
         )
 
+    def for_drive(self, drive: Drive) -> SidbeOptions:
+        """These options at the cycle rate ``drive``'s link carries.
+
+        ``fs_hz`` None: the link's default (:func:`servobench.drivers.link_budget.default_rate_hz`);
+        an ``fs_hz`` beyond :meth:`Drive.max_rate_hz` raises :class:`UsageError` naming the limit.
+        """
+        from servobench.drivers.link_budget import drive_rate_hz
+
+        return replace(self, fs_hz=drive_rate_hz(self.fs_hz, drive, exc.DEFAULT_FS_HZ))
+
     def validate(self, drive: Drive | None = None) -> exc.ExcitationDesign:
-        """Raise :class:`UsageError` for bad options (and an amplitude beyond the drive's ``max_u``)."""
-        design = self.design()
+        """Raise :class:`UsageError` for bad options (a rate beyond the drive's link, an
+        amplitude beyond its ``max_u``); the design at the rate the drive's link carries."""
+        design = (self if drive is None else self.for_drive(drive)).design()
         if self.method not in METHODS:
             raise UsageError(f"unknown method {self.method!r}; choose from {', '.join(METHODS)}")
         if self.loop not in LOOPS:
@@ -226,6 +238,8 @@ class SidbeResult:
         the share of it used, and what the probe learnt; None in open loop.
     accepted_log : Path or None
         The round's log that ``log_path`` copies.
+    fs_achieved_hz : float
+        Cycle rate the host achieved streaming the accepted round [Hz].
     """
 
     result: IdentificationResult
@@ -239,6 +253,7 @@ class SidbeResult:
     plots: tuple[Path, ...] = field(default_factory=tuple)
     hold: Mapping[str, Any] | None = None
     accepted_log: Path | None = None
+    fs_achieved_hz: float = math.nan
 
     @property
     def loop(self) -> str:
@@ -253,6 +268,7 @@ class SidbeResult:
                 "amplitude": d.amplitude,
                 "ratio": d.ratio,
                 "fs": d.fs_hz,
+                "fs_achieved": self.fs_achieved_hz if math.isfinite(self.fs_achieved_hz) else None,
                 "periods": d.periods,
                 "samples_per_period": d.samples_per_period,
                 "freqs": list(d.freqs_hz),
@@ -310,6 +326,7 @@ def run_sidbe(
     IdentificationError
         No round produced a model.
     """
+    options = options.for_drive(drive)
     design = options.validate(drive)
     out = Path(out_dir)
     check_run_folder(out)
@@ -330,7 +347,7 @@ def run_sidbe(
     if best is None:
         errors = "; ".join(f"round {it.index}: {it.error}" for it in iterations if it.error)
         raise IdentificationError(f"no round produced a model ({errors})")
-    result, best_design, best_log = best
+    result, best_design, best_log, achieved_hz = best
     log_path = out / LOG_FILE
     shutil.copyfile(best_log, log_path)
     passed = result.fit_percent >= options.fit_threshold
@@ -352,6 +369,7 @@ def run_sidbe(
         plots,
         hold,
         best_log,
+        achieved_hz,
     )
     model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
     return sr
@@ -359,7 +377,7 @@ def run_sidbe(
 
 def _rounds(drive, options, design, cap, out, progress):
     iterations: list[Iteration] = []
-    best: tuple[IdentificationResult, exc.ExcitationDesign, Path] | None = None
+    best: tuple[IdentificationResult, exc.ExcitationDesign, Path, float] | None = None
     redesigned = options.freqs_hz is not None
     for index in range(1, int(options.max_iterations) + 1):
         log_path = out / round_log_name(index)
@@ -372,7 +390,7 @@ def _rounds(drive, options, design, cap, out, progress):
             if progress is not None:
                 progress(_i, done, total)
 
-        stream_runs(
+        streamed = stream_runs(
             drive,
             excitation.runs(),
             design.fs_hz,
@@ -390,7 +408,7 @@ def _rounds(drive, options, design, cap, out, progress):
             error = str(err)
         fit = None if result is None else result.fit_percent
         if result is not None and (best is None or result.fit_percent > best[0].fit_percent):
-            best = (result, design, log_path)
+            best = (result, design, log_path, streamed.fs_achieved_hz)
         method = None if result is None else result.method
         this_round = partial(Iteration, index, design.amplitude, design.freqs_hz, fit, method, log_path)
         if fit is not None and fit >= options.fit_threshold:

@@ -10,9 +10,14 @@ the jitter a bench would see. Link limits:
   stuffing (on the generic served drive servobench maps a 6-byte RPDO:
   controlword, target torque, torque offset; and two 8-byte TPDOs; a
   drive-side hold adds a 4-byte RPDO, which ``Drive.max_rate_hz`` counts);
-- Modbus RTU at 115200 baud: the frames of one cycle plus a t3.5 after each;
-- Modbus TCP: the Ethernet frames at 100 Mbit/s (the wire is rarely the limit);
-- serial ASCII at 115200 baud: the bytes actually exchanged, 10 bits each.
+- Modbus RTU, Modbus TCP and serial: the drive's own ``Drive.max_rate_hz()``
+  (the frames or lines of one cycle on the wire, from
+  :mod:`servobench.drivers.link_budget`, plus the map's turnaround per
+  Modbus transaction and the serial driver's fault poll); beside it the
+  bytes actually exchanged on the serial line.
+
+The paced row streams at the rate ``sidbe`` would choose by default
+(:func:`servobench.drivers.link_budget.default_rate_hz`).
 
 Run: ``python benchmarks/transport_rate.py [--n 3000]``.
 """
@@ -28,6 +33,7 @@ from servobench.bench.testing.served import ServedSim
 from servobench.clock import sleep_until
 from servobench.drivers.link_budget import (
     canopen_cycle_s,
+    default_rate_hz,
     modbus_rtu_cycle_s,
     modbus_rtu_frames,
     modbus_tcp_cycle_s,
@@ -59,19 +65,31 @@ def measure(url: str, n: int, rate_hz: float | None) -> tuple[np.ndarray, object
     return np.diff(t), (moved / n, regmap)
 
 
-def link_limit(transport: str, extra: tuple[float, object]) -> tuple[float, str]:
+def link_limit(transport: str, url: str, extra: tuple[float, object]) -> tuple[float, str]:
     bytes_per_cycle, regmap = extra
     if transport == "canopen":
         best, worst = canopen_cycle_s([6, 0, 8, 8])
         return worst, f"RPDO(6)+SYNC+2 TPDO(8): {best * 1e6:.0f}-{worst * 1e6:.0f} us"
+    limit_s = 1.0 / open_drive(url).max_rate_hz()
     if transport == "modbus-rtu":
         frames = modbus_rtu_frames(regmap["command"].count, regmap.feedback.count, regmap.fc23)
-        return modbus_rtu_cycle_s(frames), f"{'FC23' if regmap.fc23 else 'write+read'} {frames} B + t3.5"
+        wire_s = modbus_rtu_cycle_s(frames)
+        return limit_s, (
+            f"{'FC23' if regmap.fc23 else 'write+read'} {frames} B + t3.5 = {wire_s * 1e3:.2f} ms, "
+            f"+ turnaround {regmap.turnaround_s * 1e3:g} ms per transaction"
+        )
     if transport == "modbus-tcp":
         w, r = regmap["command"].count, regmap.feedback.count
         adus = [7 + 10 + 2 * w, 7 + 2 + 2 * r]  # MBAP + FC23 request / response PDU
-        return modbus_tcp_cycle_s(adus), "FC23 on 100 Mbit/s Ethernet"
-    return uart_cycle_s(bytes_per_cycle), f"{bytes_per_cycle:.1f} B/cycle at 115200 baud"
+        wire_us = modbus_tcp_cycle_s(adus) * 1e6
+        return limit_s, (
+            f"FC23 on 100 Mbit/s Ethernet ({wire_us:.0f} us) + turnaround "
+            f"{regmap.turnaround_s * 1e3:g} ms"
+        )
+    return limit_s, (
+        f"Drive.max_rate_hz(), fault poll included; measured {bytes_per_cycle:.1f} B/cycle = "
+        f"{1 / uart_cycle_s(bytes_per_cycle):.0f}/s at 115200 baud"
+    )
 
 
 def stats(period_s: np.ndarray) -> str:
@@ -94,8 +112,8 @@ def main() -> None:
         with ServedSim(transport, PLANT) as served:
             url = served.url + "&pace=fast"
             free, extra = measure(url, n, None)
-            limit_s, how = link_limit(transport, extra)
-            paced_hz = min(1000.0, 0.8 / limit_s)
+            limit_s, how = link_limit(transport, url, extra)
+            paced_hz = default_rate_hz(1 / limit_s, 1000.0)
             paced, _ = measure(url, n, paced_hz)
         achieved = 1 / free.mean()
         print(f"{transport:11s} free-running {stats(free)}")

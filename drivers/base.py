@@ -409,11 +409,16 @@ class Drive(ABC):
         """``# key = value`` lines this drive contributes to every log streamed from it.
 
         The base gives the signal units ``unit_u``, ``unit_v``, ``unit_x`` (from
-        :attr:`units`; unknown ones are left out). Backends add what a reader
-        of the log must know, such as where each scale factor came from or what
-        the drive clock is.
+        :attr:`units`; unknown ones are left out) and ``link_max_rate_hz`` where
+        :meth:`max_rate_hz` is finite. Backends add what a reader of the log
+        must know, such as where each scale factor came from or what the drive
+        clock is.
         """
-        return {f"unit_{k}": v for k, v in self.units.items() if k in ("u", "v", "x") and v}
+        meta = {f"unit_{k}": v for k, v in self.units.items() if k in ("u", "v", "x") and v}
+        rate_hz = self.max_rate_hz()
+        if math.isfinite(rate_hz):
+            meta["link_max_rate_hz"] = f"{rate_hz:.1f}"
+        return meta
 
     def link_recoveries(self) -> Mapping[str, int]:
         """Transport-level recoveries counted since the drive was created, by kind.

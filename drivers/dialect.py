@@ -12,6 +12,14 @@ Everything here is pure: text in, text or frozen dataclasses out, no I/O.
 
 Templates (``"c {axis} {u}"``) are :class:`servobench.drivers.line_template.Template`;
 line framing and checksums are in :mod:`servobench.drivers.ascii_line`.
+
+Firmware versions: ``[firmware] version`` lists the property reads that
+give the drive's major, minor and revision numbers, and each
+``[firmware.fallback.COMMAND]`` names a command whose requests differ on firmware
+older than ``below`` (``[firmware.fallback.clear_errors]``: ODrive's ``sc``
+exists from 0.5.2; before it, the error properties are written 0 one by one). ``[units.si]`` says how ``units=si``
+converts the drive's own units (``x = {unit = "rad", factor = 6.283...}``:
+SI value = drive value * factor).
 """
 
 from __future__ import annotations
@@ -63,6 +71,7 @@ COMMAND_SPECS: dict[str, CommandSpec] = {
     "vbus": CommandSpec(frozenset({"axis"}), reply="vbus", required=False),
     "info": CommandSpec(frozenset({"axis"}), required=False),
     "quick_stop": CommandSpec(frozenset({"axis"}), required=False),
+    "watchdog_disable": CommandSpec(frozenset({"axis"}), required=False),
     "set_cycle": CommandSpec(frozenset({"axis", "period_s"}), required=False),
     "cycle_readback": CommandSpec(frozenset({"axis"}), reply="cycle", required=False),
 }
@@ -93,13 +102,36 @@ _TOP_KEYS = frozenset(
         "states",
         "errors",
         "info",
+        "firmware",
     }
 )
 _STATE_KEYS = ("enabled", "disabled")
 _DIALECT_KEYS = frozenset(
     {"name", "protocol", "firmware", "reference", "terminator", "reply_terminator", "checksum",
-     "use_checksum", "float_format", "reply_float_format", "axis"}
+     "use_checksum", "float_format", "reply_float_format", "axis", "line_ends", "firmware_model"}
 )  # fmt: skip
+#: Firmware models the served simulator can emulate (``[dialect] firmware_model``).
+FIRMWARE_MODELS = ("", "odrive-0.5")
+
+
+@dataclass(frozen=True)
+class Fallback:
+    """Requests that replace ``command`` on firmware older than ``below`` (major, minor, revision)."""
+
+    command: str
+    below: tuple[int, ...]
+    requests: tuple[Template, ...]
+
+
+def parse_version(text: str) -> tuple[int, ...]:
+    """``"0.5.2"`` -> ``(0, 5, 2)``; :class:`DriveConfigError` for anything else."""
+    try:
+        parts = tuple(int(p) for p in text.strip().lstrip("v").split("."))
+    except ValueError:
+        raise DriveConfigError(f"not a firmware version: {text!r} (expected e.g. 0.5.6)") from None
+    if not parts or any(p < 0 for p in parts):
+        raise DriveConfigError(f"not a firmware version: {text!r} (expected e.g. 0.5.6)")
+    return parts
 
 
 @dataclass(frozen=True)
@@ -144,6 +176,16 @@ class Dialect:
         Error flag names -> bit values, for messages.
     watchdog_error, other_error : int
         Error codes the simulator reports for a watchdog trip / any other fault.
+    line_ends : bytes
+        Bytes that end a request line at the drive (ODrive: ``\\r``, ``\\n`` and ``!``).
+    firmware_model : str
+        Firmware the served simulator emulates (:data:`FIRMWARE_MODELS`; ``""``: generic).
+    version_requests : tuple of str
+        Reads giving the firmware's major, minor, revision (empty: not readable).
+    fallbacks : tuple of Fallback
+        Commands that differ on older firmware.
+    si_units : Mapping[str, tuple[str, float]]
+        Signal -> (SI unit, factor) for ``units=si``.
     """
 
     name: str
@@ -168,9 +210,23 @@ class Dialect:
     error_bits: Mapping[str, int] = field(default_factory=dict)
     watchdog_error: int = 0
     other_error: int = 0
+    line_ends: bytes = b"\r\n"
+    firmware_model: str = ""
+    version_requests: tuple[str, ...] = ()
+    fallbacks: tuple[Fallback, ...] = ()
+    si_units: Mapping[str, tuple[str, float]] = field(default_factory=dict)
 
     def has(self, command: str) -> bool:
         return command in self.commands
+
+    def requests(
+        self, command: str, firmware: tuple[int, ...] | None = None, **values: int | float | str
+    ) -> list[str]:
+        """Bodies of ``command`` for a drive at ``firmware`` (None: unknown, the stock request)."""
+        for fb in self.fallbacks:
+            if fb.command == command and firmware is not None and firmware < fb.below:
+                return [t.format(self.float_format, **values) for t in fb.requests]
+        return [self.request(command, **values)]
 
     def request(self, command: str, **values: int | float | str) -> str:
         """Body of request ``command`` (no checksum, no terminator)."""
@@ -272,6 +328,11 @@ def _read_meta(meta: TomlTable) -> dict[str, object]:
             raise meta.table_error(f"{key} {spec!r} is not a float format") from None
     for key, default in (("terminator", "\n"), ("reply_terminator", "\r\n")):
         fields[key] = meta.choice(key, ("\n", "\r", "\r\n"), default).encode("ascii")
+    line_ends = meta.get("line_ends", str, "\r\n")
+    if not line_ends or any(c not in "\r\n!" for c in line_ends) or "\n" not in line_ends:
+        raise meta.error("line_ends", f"{line_ends!r} must hold \\n and only \\r, \\n or !")
+    fields["line_ends"] = line_ends.encode("ascii")
+    fields["firmware_model"] = meta.choice("firmware_model", FIRMWARE_MODELS, "")
     return fields
 
 
@@ -321,6 +382,47 @@ def _read_states(top: TomlTable) -> dict[str, int]:
     return states
 
 
+def _read_units(top: TomlTable) -> tuple[dict[str, str], dict[str, tuple[str, float]]]:
+    """``[units]``: u, v, x; and ``[units.si]``: the SI unit and factor of each convertible one."""
+    t = top.table("units")
+    t.allow(("u", "v", "x", "si"))
+    units = {k: t.get(k, str) for k in ("u", "v", "x")}
+    si_table = t.table("si", required=False)
+    si: dict[str, tuple[str, float]] = {}
+    for key in si_table.allow(("v", "x"), noun="signal"):
+        entry = si_table.table(key)
+        unit, factor = entry.get("unit", str), entry.number("factor")
+        entry.done()
+        if not factor > 0:
+            raise entry.error("factor", f"{factor!r} must be > 0")
+        si[key] = (unit, float(factor))
+    return units, si
+
+
+def _read_firmware(top: TomlTable) -> tuple[tuple[str, ...], tuple[Fallback, ...]]:
+    """``[firmware]``: the version reads and the fallbacks of older firmware."""
+    t = top.table("firmware", required=False)
+    version = t.sequence("version", str, ())
+    if version and len(version) != 3:
+        raise t.error("version", "must list 3 reads: major, minor, revision")
+    table = t.table("fallback", required=False)
+    fallbacks = []
+    for command in table.allow(tuple(COMMAND_SPECS), noun="command"):
+        fb = table.table(command)
+        below = parse_version(fb.get("below", str))
+        fields = COMMAND_SPECS[command].fields
+        requests = tuple(
+            Template.compile(f"{fb.where} requests", text, fields)
+            for text in fb.sequence("requests", str)
+        )
+        if not requests:
+            raise fb.error("requests", "must not be empty")
+        fb.done()
+        fallbacks.append(Fallback(command, below, requests))
+    t.done()
+    return version, tuple(fallbacks)
+
+
 def _read_errors(top: TomlTable) -> tuple[dict[str, int], int, int]:
     """Error flags of ``[errors.bits]``; the codes of a watchdog trip and of any other fault."""
     t = top.table("errors")
@@ -349,7 +451,7 @@ def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dial
     top = TomlTable(data, f"dialect {source}", wording=SENTENCE)
     top.allow(_TOP_KEYS)
     meta = _read_meta(top.table("dialect"))
-    units = _read_texts(top, "units", ("u", "v", "x"))
+    units, si_units = _read_units(top)
     commands, extensions = _read_commands(top)
     replies = _read_replies(top, commands)
     info_table = top.table("info", required="info" in commands)
@@ -357,7 +459,11 @@ def parse_dialect(data: Mapping[str, object], source: str = "<dialect>") -> Dial
     rejections = _read_texts(top, "rejections", REJECTION_KEYS)
     states = _read_states(top)
     bits, watchdog_error, other_error = _read_errors(top)
+    version_requests, fallbacks = _read_firmware(top)
     return Dialect(
+        si_units=si_units,
+        version_requests=version_requests,
+        fallbacks=fallbacks,
         source=source,
         units=units,
         commands=commands,

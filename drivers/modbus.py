@@ -7,22 +7,29 @@ URLs::
 
 ``map`` is a shipped register map (``servobench-sim``, ``zlac8015d``) or a
 path to a TOML file (:mod:`servobench.drivers.regmap`). Further keys: ``timeout``
-(response timeout [s]) and, for RTU, ``parity`` (N, E, O).
+(response timeout [s]) and, for RTU, ``parity`` (N, E, O). The units of
+command, velocity and position are the map's (each register's ``unit``).
 
 One cycle (:meth:`ModbusDrive.exchange`) is one FC23 transaction (write the
 command, read the feedback block) when the map says the drive has FC23, else
-a write followed by a read. Feedback registers the map scatters over further
-blocks are read first, so that against a lock-step drive they too belong to
-``t_k``. A missing answer is never retried (the request may have been
-executed: a repeated FC23 would apply a command twice, a repeated feedback
-read of a lock-step drive would skip a sample), so it is a
-:class:`DriveTimeoutError`. The one retry: exception 6 (server device busy)
-says the request was *not* executed, so it is sent once more after
-:data:`BUSY_RETRY_S` (counted in :attr:`ModbusDrive.retries`); a second
-"busy" raises. Every pymodbus result is checked; exception responses become
-typed errors (see :func:`exception_error`). Feedback carries the drive's clock when the
-map has a ``timestamp`` register (unwrapped), else the host's
-``time.monotonic()`` at reception.
+a write followed by a read. With ``fc23 = "auto"`` FC23 is tried, and a drive
+that answers it with exception 1 (illegal function, so nothing was executed)
+gets the same cycle as write-then-read, from then on. Feedback registers the
+map scatters over further blocks are read first, so that against a lock-step
+drive they too belong to ``t_k``. The link (:mod:`servobench.drivers.modbus_link`)
+retries nothing but a "busy" answer and turns every failure into a typed
+error that says what happened (no answer, a gateway's exception, a drive
+fault). Feedback carries the drive's clock when the map has a ``timestamp``
+register (unwrapped), else the host's ``time.monotonic()`` at reception.
+
+A map whose watchdog is fed by any request (``feed = "any_request"``) over
+TCP gets a one-line :class:`~servobench.errors.DriveWarning` at open: a
+second client polling the drive (a SCADA, another host) keeps the watchdog
+alive even after this host dies. (On an RTU line there is one master.)
+
+:meth:`ModbusDrive.max_rate_hz` is the wire time of the frames of one cycle
+(:mod:`servobench.drivers.link_budget`) plus the map's ``turnaround_ms`` per
+transaction.
 
 Against the lock-step simulated drive every read of the feedback block clocks
 the drive one cycle, so :meth:`~servobench.drivers.base.Drive.read` advances it too.
@@ -30,17 +37,17 @@ the drive one cycle, so :meth:`~servobench.drivers.base.Drive.read` advances it 
 
 from __future__ import annotations
 
-import logging
-import select
 import time
+import warnings
 from collections.abc import Callable, Sequence
-from typing import Any
-
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.pdu import ModbusPDU
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.link_budget import modbus_max_rate_hz, modbus_rtu_frames
+from servobench.drivers.modbus_link import (  # noqa: F401 (exception_error re-exported)
+    EXCEPTION_ILLEGAL_FUNCTION,
+    ModbusLink,
+    exception_error,
+)
 from servobench.drivers.regmap import (
     Block,
     Register,
@@ -54,17 +61,11 @@ from servobench.drivers.regmap import (
 )
 from servobench.errors import (
     DriveConfigError,
-    DriveConnectionError,
     DriveError,
     DriveFaultError,
-    DriveTimeoutError,
+    DriveWarning,
     StateTransitionError,
 )
-
-# The library's own log lines would reach stderr through logging's last-resort
-# handler; every failure is raised as a typed error here instead. An application
-# that configures logging still sees them.
-logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
 #: Response timeout when the URL gives none [s].
 DEFAULT_TIMEOUT_S = 0.25
@@ -73,70 +74,6 @@ DEFAULT_TCP_PORT = 502
 #: Longest wait for the status register to report "enabled" [s].
 ENABLE_TIMEOUT_S = 1.0
 ENABLE_POLL_S = 0.005
-#: Pause before re-sending a request the drive answered "busy" (exception 6) [s].
-BUSY_RETRY_S = 0.001
-#: Modbus exception "server device busy": the request was not executed.
-EXCEPTION_BUSY = 6
-
-EXCEPTION_NAMES = {
-    1: "illegal function",
-    2: "illegal data address",
-    3: "illegal data value",
-    4: "server device failure",
-    5: "acknowledge",
-    6: "server device busy",
-    7: "negative acknowledge",
-    8: "memory parity error",
-    10: "gateway path unavailable",
-    11: "gateway target device failed to respond",
-}
-
-
-def exception_error(code: int, what: str, fault_code: int = 0) -> DriveError:
-    """The typed error for a Modbus exception response ``code`` to request ``what``.
-
-    1-3 (the request does not fit the drive: wrong function, address or value)
-    -> :class:`DriveConfigError`; 4 (device failure) -> :class:`DriveFaultError`
-    carrying ``fault_code``; 5, 6, 11 (busy, no answer behind a gateway) ->
-    :class:`DriveTimeoutError`; 10 -> :class:`DriveConnectionError`.
-    """
-    text = f"{what}: Modbus exception {code} ({EXCEPTION_NAMES.get(code, 'unknown')})"
-    if code in (1, 2, 3):
-        hint = {1: "the drive lacks this function (fc23 = false in the map?)"}.get(
-            code, "the register map does not fit this drive"
-        )
-        return DriveConfigError(f"{text}: {hint}")
-    if code == 4:
-        return DriveFaultError(f"{text}, fault register 0x{fault_code:04X}", fault_code)
-    if code in (5, 6, 11):
-        return DriveTimeoutError(text)
-    if code == 10:
-        return DriveConnectionError(text)
-    return DriveError(text)
-
-
-class _RtuClient(ModbusSerialClient):
-    """The pymodbus serial client, answering reads as soon as bytes arrive.
-
-    The stock ``recv(None)`` polls ``in_waiting`` every millisecond until the
-    line has been quiet for one poll, which adds 1-2 ms to every transaction.
-    Here it blocks in ``select`` until bytes are there and returns them; the RTU
-    framer accumulates partial frames until the CRC closes one.
-    """
-
-    def recv(self, size: int | None) -> bytes:
-        if size is not None or self.socket is None:
-            return super().recv(size)
-        try:
-            ready, _, _ = select.select(
-                [self.socket.fileno()], [], [], self.comm_params.timeout_connect
-            )
-            if not ready:
-                return b""
-            return self.socket.read(max(1, self.socket.in_waiting))
-        except OSError:
-            self.close()
-            raise ConnectionException(str(self)) from None
 
 
 class ModbusDrive(Drive):
@@ -158,7 +95,7 @@ class ModbusDrive(Drive):
                 f"{u.scheme}:// needs map=NAME (a shipped register map or a .toml path)"
             )
         self.regmap = load_map(map_name)
-        self.units = dict(self.regmap.units)
+        self.units = self.regmap.signal_units
         self.drive_clock = "timestamp" in self.regmap
         self.unit: int = u.get_int("unit", 1)
         if not 0 <= self.unit <= 255:
@@ -166,12 +103,13 @@ class ModbusDrive(Drive):
         self.timeout_s: float = u.get_float("timeout", DEFAULT_TIMEOUT_S)
         if not self.timeout_s > 0:
             raise DriveConfigError("timeout must be > 0 s")
+        self.baud = 0  #: RTU line speed [bit/s]; 0 on TCP
         if self.rtu:
             if not u.path or u.host:
                 raise DriveConfigError(
                     f"modbus+rtu URL needs a device path: modbus+rtu:///dev/ttyUSB0, got {u.raw!r}"
                 )
-            self.baud: int = u.get_int("baud", DEFAULT_BAUD)
+            self.baud = u.get_int("baud", DEFAULT_BAUD)
             self.parity = (u.get_str("parity", "N") or "N").upper()
             if self.baud <= 0 or self.parity not in ("N", "E", "O"):
                 raise DriveConfigError("baud must be > 0 and parity one of N, E, O")
@@ -185,104 +123,91 @@ class ModbusDrive(Drive):
                     f"modbus+tcp URL needs a host: modbus+tcp://HOST:PORT, got {u.raw!r}"
                 )
             self.where = f"{u.host}:{u.port or DEFAULT_TCP_PORT}"
-        self._client: ModbusTcpClient | ModbusSerialClient | None = None
+        self.link = ModbusLink(
+            self.unit,
+            self.timeout_s,
+            rtu=(u.path, self.baud, self.parity) if self.rtu else None,
+            tcp=None if self.rtu else (u.host, u.port or DEFAULT_TCP_PORT),
+        )
+        self.link.fault_lookup = self._fault_code
+        #: FC23 in use: the map's choice until an "auto" map's drive refuses it.
+        self.fc23 = self.regmap.fc23
         self._t_offset_s = 0.0
         self._t_last_s: float | None = None
         self._feed_count = 0
-        #: Requests re-sent after a "busy" answer since the drive was created.
-        self.retries = 0
+
+    @property
+    def retries(self) -> int:
+        """Requests re-sent after a "busy" answer since the drive was created."""
+        return self.link.retries
 
     def link_recoveries(self) -> dict[str, int]:
         return {"retries": self.retries}
 
+    def max_rate_hz(self) -> float:
+        """Wire time of one cycle's frames plus the map's turnaround per transaction.
+
+        An ``fc23 = "auto"`` map is costed as write-then-read, the slower of the two.
+        """
+        m = self.regmap
+        fc23 = m.fc23 and not m.fc23_auto
+        frames = modbus_rtu_frames(m["command"].count, m.feedback.count, fc23)
+        transactions = list(zip(frames[::2], frames[1::2], strict=True))
+        transactions += [(8, 5 + 2 * b.count) for b in m.blocks[1:]]
+        if m.watchdog_feed == "register":
+            transactions.append((8, 8) if m["watchdog_feed"].count == 1 else (11, 8))
+        return modbus_max_rate_hz(
+            transactions, rtu=self.rtu, baud=self.baud, turnaround_s=m.turnaround_s
+        )
+
+    def log_metadata(self) -> dict[str, str]:
+        meta = super().log_metadata()
+        meta["modbus_map"] = self.regmap.name
+        if self.regmap.fc23_auto:
+            meta["fc23"] = "yes" if self.fc23 else "no (the drive answered exception 1)"
+        return meta
+
     # ------------------------------------------------------------- transport
     def _open(self) -> None:
-        if self.rtu:
-            client = _RtuClient(
-                self.url.path, baudrate=self.baud, parity=self.parity,
-                timeout=self.timeout_s, retries=0, reconnect_delay=0,
-            )  # fmt: skip
-        else:
-            client = ModbusTcpClient(
-                self.url.host, port=self.url.port or DEFAULT_TCP_PORT,
-                timeout=self.timeout_s, retries=0, reconnect_delay=0,
-            )  # fmt: skip
-        if not client.connect():
-            client.close()
-            raise DriveConnectionError(f"cannot connect to Modbus unit {self.unit} at {self.where}")
-        self._client = client
+        self.link.connect()
+        self.fc23 = self.regmap.fc23
         self._t_offset_s, self._t_last_s = 0.0, None
         try:
             self._fault_code()  # the unit answers, and the map's fault register exists
             for s in self.regmap.setup:
-                self._call(client.write_register, f"setup write {s.address:#06x}={s.value} ({s.note})",
+                self._call("write_register", f"setup write {s.address:#06x}={s.value} ({s.note})",
                            address=s.address, value=s.value)  # fmt: skip
         except BaseException:
             self._close()
             raise
+        if not self.rtu and self.regmap.watchdog_feed == "any_request":
+            warnings.warn(
+                DriveWarning(
+                    f"{self.where}: map {self.regmap.name!r} feeds the drive's watchdog with any "
+                    "request, so another Modbus client polling this drive keeps the watchdog "
+                    "alive even if this host dies; use a watchdog feed register "
+                    '(feed = "register") where the drive has one'
+                ),
+                stacklevel=3,
+            )
 
     def _close(self) -> None:
-        if self._client is not None:
-            self._client.close()
-            self._client = None
+        self.link.close()
 
-    def _call(
-        self,
-        method: Callable[..., ModbusPDU],
-        what: str,
-        *,
-        lookup_fault: bool = True,
-        **kwargs: Any,
-    ) -> ModbusPDU:
-        """Run one pymodbus request; translate every failure into a typed error.
-
-        On exception 4 (device failure) the fault register is read for the error's
-        code, unless ``lookup_fault`` is false (the request was that read).
-        """
-        response = self._request(method, what, **kwargs)
-        if response is not None and getattr(response, "exception_code", 0) == EXCEPTION_BUSY:
-            time.sleep(BUSY_RETRY_S)  # busy: not executed, so sending it again is safe
-            self.retries += 1
-            response = self._request(method, what, **kwargs)
-        if response is None or response.isError():
-            code = getattr(response, "exception_code", 0)
-            fault = 0
-            if code == 4 and lookup_fault:
-                try:
-                    fault = self._fault_code()
-                except DriveError:
-                    fault = 0
-            raise exception_error(code, f"{what} at {self.where}", fault)
-        return response
-
-    def _request(self, method: Callable[..., ModbusPDU], what: str, **kwargs: Any) -> ModbusPDU:
-        """One request, link failures translated; the response is not checked here."""
-        if self._client is None:
-            raise DriveConnectionError(f"Modbus link to {self.where} is closed")
-        try:
-            return method(device_id=self.unit, **kwargs)
-        except ConnectionException as err:
-            raise DriveConnectionError(f"{what}: link to {self.where} lost: {err}") from err
-        except ModbusIOException as err:
-            raise DriveTimeoutError(
-                f"{what}: no answer from unit {self.unit} at {self.where} within {self.timeout_s} s"
-            ) from err
-        except ModbusException as err:
-            raise DriveError(f"{what}: {err}") from err
+    def _call(self, method: str, what: str, **kwargs):
+        return self.link.call(method, what, **kwargs)
 
     def _write(self, reg: Register, words: Sequence[int]) -> None:
-        c = self._client
         what = f"write {reg.name} ({reg.address:#06x})"
         if len(words) == 1:
-            self._call(c.write_register, what, address=reg.address, value=words[0])
+            self._call("write_register", what, address=reg.address, value=words[0])
         else:
-            self._call(c.write_registers, what, address=reg.address, values=list(words))
+            self._call("write_registers", what, address=reg.address, values=list(words))
 
     def _read(
         self, kind: str, address: int, count: int, what: str, lookup_fault: bool = True
     ) -> list[int]:
-        c = self._client
-        method = c.read_holding_registers if kind == "holding" else c.read_input_registers
+        method = "read_holding_registers" if kind == "holding" else "read_input_registers"
         rr = self._call(
             method,
             f"read {what} ({address:#06x}+{count})",
@@ -322,22 +247,37 @@ class ModbusDrive(Drive):
         words = encode(cmd, u)
 
         def primary() -> list[int]:
-            if not m.fc23:
-                self._write(cmd, words)
-                return self._read_block(fb)
-            rr = self._call(
-                self._client.readwrite_registers,
-                f"FC23 command/{'/'.join(fb.names)}",
-                read_address=fb.address,
-                read_count=fb.count,
-                write_address=cmd.address,
-                values=words,
-            )
-            if len(rr.registers) != fb.count:
-                raise DriveError(f"FC23: asked {fb.count} registers, got {len(rr.registers)}")
-            return rr.registers
+            if self.fc23:
+                registers = self._fc23(words)
+                if registers is not None:
+                    return registers
+                self.fc23 = False  # exception 1: not executed; write, then read, from now on
+            self._write(cmd, words)
+            return self._read_block(fb)
 
         return self._cycle(primary)
+
+    def _fc23(self, words: list[int]) -> list[int] | None:
+        """One FC23 transaction: write the command, read the feedback block.
+
+        None when an ``fc23 = "auto"`` map's drive answers exception 1 (it lacks FC23).
+        """
+        cmd, fb = self.regmap["command"], self.regmap.feedback
+        auto = frozenset({EXCEPTION_ILLEGAL_FUNCTION}) if self.regmap.fc23_auto else frozenset()
+        rr = self._call(
+            "readwrite_registers",
+            f"FC23 command/{'/'.join(fb.names)}",
+            accept=auto,
+            read_address=fb.address,
+            read_count=fb.count,
+            write_address=cmd.address,
+            values=words,
+        )
+        if rr.isError():
+            return None
+        if len(rr.registers) != fb.count:
+            raise DriveError(f"FC23: asked {fb.count} registers, got {len(rr.registers)}")
+        return rr.registers
 
     def _read_feedback(self) -> Feedback:
         return self._cycle(lambda: self._read_block(self.regmap.feedback))
@@ -433,8 +373,26 @@ class ModbusDrive(Drive):
                 f"fault 0x{fault:04X} persists after reset at {self.where}", fault
             )
 
+    def _device_identification(self) -> dict[str, str]:
+        """Vendor, product and revision by FC43/14 (basic objects 0-2); empty if the drive has none."""
+        try:
+            rr = self._call(
+                "read_device_information", "read device identification (FC43/14)", read_code=1
+            )
+        except (DriveConfigError, DriveFaultError):
+            return {}
+        info = getattr(rr, "information", {}) or {}
+        names = {0: "vendor", 1: "product", 2: "firmware"}
+        return {
+            names[k]: (v.decode(errors="replace") if isinstance(v, bytes) else str(v))
+            for k, v in info.items()
+            if k in names
+        }
+
     def _info(self) -> DriveInfo:
         ident: dict[str, str] = {}
+        if not any(name in self.regmap for name in ("vendor", "product", "firmware")):
+            ident = self._device_identification()
         for name in ("vendor", "product", "firmware", "serial_number"):
             if name in self.regmap:
                 reg = self.regmap[name]
@@ -466,8 +424,9 @@ class ModbusDrive(Drive):
                 "map": self.regmap.name,
                 "map_source": self.regmap.source,
                 "unit": self.unit,
-                "fc23": self.regmap.fc23,
+                "fc23": self.fc23,
                 "link": self.where,
+                "max_rate_hz": self.max_rate_hz(),
             },  # fmt: skip
             **ident,
         )

@@ -51,6 +51,10 @@ KNOWN_REGISTERS = frozenset(WRITTEN + FEEDBACK + IDENTITY)
 #: Largest read of one Modbus request (FC3/FC4/FC23) [registers].
 MAX_READ = 125
 WATCHDOG_FEEDS = ("any_request", "register")
+#: Registers whose scaled value is a time: their unit, when given, must be seconds.
+TIMES = ("watchdog", "cycle", "timestamp")
+#: ``fc23`` values: the drive has FC23, has not, or it is tried and dropped on exception 1.
+FC23_AUTO = "auto"
 _ORDERS = ("big", "little")
 
 
@@ -76,6 +80,10 @@ class Register:
         ``"holding"`` or ``"input"`` register.
     access : str
         ``"r"``, ``"w"`` or ``"rw"``.
+    unit : str
+        Unit of the scaled value (``raw * scale``): an SI spelling of
+        :mod:`servobench.units` (``"N m"``, ``"rad/s"``, ``"A"``, ``"s"`` ...) or
+        the drive's own unit named as such (``"inc"``); ``""`` when the map does not say.
     """
 
     name: str
@@ -87,6 +95,7 @@ class Register:
     byte_order: str = "big"
     kind: str = "holding"
     access: str = "rw"
+    unit: str = ""
 
     @property
     def end(self) -> int:
@@ -142,6 +151,8 @@ class RegisterMap:
     control: ControlWords
     status: StatusBits = StatusBits()
     fc23: bool = False
+    fc23_auto: bool = False
+    turnaround_s: float = 0.0
     watchdog_feed: str = "any_request"
     setup: tuple[SetupWrite, ...] = ()
     units: Mapping[str, str] = field(default_factory=dict)
@@ -159,6 +170,14 @@ class RegisterMap:
     def feedback(self) -> Block:
         """The block holding ``velocity``: read (or FC23-read) every cycle, first."""
         return self.blocks[0]
+
+    @property
+    def signal_units(self) -> dict[str, str]:
+        """Units of command ``u``, velocity ``v``, position ``x``: the registers' own, else ``[units]``."""
+        return {
+            key: self.registers[name].unit or self.units.get(key, "")
+            for key, name in (("u", "command"), ("v", "velocity"), ("x", "position"))
+        }
 
 
 # ---------------------------------------------------------------- codec
@@ -312,8 +331,13 @@ def _parse_register(name: str, t: TomlTable, orders: tuple[str, str]) -> Registe
         byte_order=t.choice("byte_order", _ORDERS, orders[1]),
         kind=t.choice("type", ("holding", "input"), "holding"),
         access=t.choice("access", ("r", "w", "rw"), "r" if name in FEEDBACK + IDENTITY else "rw"),
+        unit=t.get("unit", str, "").strip(),
     )
     t.done()
+    if reg.unit and (fmt == "string" or name in ("control", "fault", "status", "watchdog_feed")):
+        raise t.error("unit", "only scaled values take a unit")
+    if reg.unit and name in TIMES and reg.unit != "s":
+        raise t.error("unit", f"{reg.unit!r}: the host reads and writes this register in s")
     if name in WRITTEN and (reg.kind != "holding" or "w" not in reg.access):
         raise t.error(
             "access", "the host writes this register: it must be a writable holding register"
@@ -413,11 +437,26 @@ def _parse_setup(top: TomlTable) -> tuple[SetupWrite, ...]:
     return tuple(setup)
 
 
-def _parse_units(top: TomlTable) -> dict[str, str]:
+def _parse_units(top: TomlTable, regs: Mapping[str, Register]) -> dict[str, str]:
+    """``[units]``: units of u, v, x for registers that name none; where both say, they agree."""
     t = top.table("units", required=False)
     units = {k: t.get(k, str, "") for k in ("u", "v", "x")}
     t.done()
+    for key, name in (("u", "command"), ("v", "velocity"), ("x", "position")):
+        own = regs[name].unit
+        if own and units[key] and own != units[key]:
+            raise t.error(key, f"{units[key]!r} contradicts [registers.{name}] unit {own!r}")
     return units
+
+
+def _parse_fc23(head: TomlTable) -> tuple[bool, bool]:
+    """``fc23``: true, false or "auto" -> (try FC23 first, drop it on exception 1)."""
+    value = head.get("fc23", object, False)
+    if value == FC23_AUTO:
+        return True, True
+    if not isinstance(value, bool):
+        raise head.error("fc23", f"expected bool, got {value!r} (or {FC23_AUTO!r})")
+    return value, False
 
 
 def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
@@ -427,7 +466,10 @@ def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
     name = head.get("name", str)
     description = head.get("description", str, "")
     source = head.get("source", str, "")
-    fc23 = head.get("fc23", bool, False)
+    fc23, fc23_auto = _parse_fc23(head)
+    turnaround_ms = head.number("turnaround_ms", 0.0)
+    if turnaround_ms < 0:
+        raise head.error("turnaround_ms", f"{turnaround_ms} must be >= 0")
     orders = (head.choice("word_order", _ORDERS, "big"), head.choice("byte_order", _ORDERS, "big"))
     max_gap = head.get("max_gap", int, 0)
     if not 0 <= max_gap < MAX_READ:
@@ -443,9 +485,11 @@ def parse_map(doc: Mapping[str, object], path: str = "<map>") -> RegisterMap:
         control=_parse_control(top),
         status=_parse_status(top, regs),
         fc23=fc23,
+        fc23_auto=fc23_auto,
+        turnaround_s=turnaround_ms / 1000.0,
         watchdog_feed=_parse_watchdog(top, regs),
         setup=_parse_setup(top),
-        units=_parse_units(top),
+        units=_parse_units(top, regs),
         description=description,
         source=source,
         blocks=blocks,

@@ -15,6 +15,9 @@ Query keys
 ``checksum``  1 to append ``*<xor>`` checksums (and demand them on replies)
 ``timeout``   reply deadline [s], default :data:`REPLY_TIMEOUT_S`
 ``poll``      fault poll period while streaming [s], default :data:`FAULT_POLL_S`; 0 = never
+``units``     ``drive`` (default: the drive's own units, turn and turn/s on an ODrive) or
+              ``si`` (position and velocity converted by the dialect's ``[units.si]``
+              factors, rad and rad/s; the log says so in ``unit_conversion``)
 
 Cycle semantics
 ---------------
@@ -26,84 +29,87 @@ ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
 raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
-protocol carries no drive clock).
+protocol carries no drive clock), except on a lock-step drive (one that
+took the cycle extension): it integrates exactly one cycle per feedback
+query, so its clock is the count of them times the cycle, and
+:attr:`SerialAsciiDrive.drive_clock` is True.
 
-Before each request the driver looks for bytes nobody asked for: an exact
-repeat of the last reply line (a duplicated reply) is dropped and counted in
-:attr:`SerialAsciiDrive.duplicates`; anything else means the last reply may
-not have answered the last request, so :class:`MalformedReplyError` is
-raised and the line is resynchronised before the next request.
+Line I/O (terminators, checksums, deadlines, duplicated replies, getting
+back in step) is :class:`servobench.drivers.ascii_link.AsciiLink`.
 
-Set-up on the drive: :meth:`open` resynchronises the line and reads the error
-register; the watchdog is armed as ``w axis0.config.watchdog_timeout <s>``,
-``u 0``, ``w axis0.config.enable_watchdog 1`` and read back; :meth:`enable`
-refuses a drive in fault, sends ``c 0 0`` (torque control, zero torque) and
-``w axis0.requested_state 8`` and waits for ``r axis0.current_state`` to read
-8 (:class:`~servobench.errors.StateTransitionError` if it does not, or
-:class:`~servobench.errors.DriveFaultError` with ``axis0.error`` if that is set);
-:meth:`reset_fault` is ``sc``; :meth:`set_cycle` uses the dialect's servobench
-extension and, if the drive rejects it (a stock ODrive), records the drive as
-free-running (:attr:`SerialAsciiDrive.lockstep` is False).
+Leaving the drive as the firmware expects
+------------------------------------------
+ODrive firmware 0.5.x checks its axis watchdog in every axis state, idle
+included, and the error it sets latches (``Firmware/MotorControl/axis.cpp``,
+fw-v0.5.1 to fw-v0.5.6). A watchdog left armed by a host that has gone
+therefore faults the idle drive, and the next session cannot enable it. So,
+when the dialect has ``watchdog_disable``, the watchdog is armed only while
+the axis is enabled: :meth:`open` disarms it (``w axis0.config.enable_watchdog 0``),
+reads the firmware version (``r fw_version_major`` / ``minor`` / ``revision``)
+and, when the error register holds exactly the watchdog flag
+(``WATCHDOG_TIMER_EXPIRED``, 0x800) an earlier session left, clears it and
+says so in one line (a :class:`~servobench.errors.DriveWarning`); the timeout
+is written and read back; :meth:`enable` refuses a drive in any other fault,
+sends ``c 0 0`` (torque control, zero torque), feeds (``u 0``), arms the
+watchdog and sends ``w axis0.requested_state 8``, then waits for
+``r axis0.current_state`` to read 8 (:class:`~servobench.errors.StateTransitionError`
+if it does not, :class:`~servobench.errors.DriveFaultError` with
+``axis0.error`` if that is set); :meth:`disable` requests idle, then
+disarms; :meth:`close` disarms once more. :meth:`reset_fault` is ``sc`` from
+fw-v0.5.2 on; on older firmware, which has no ``sc``, it writes 0 to
+``axis0.error``, ``axis0.motor.error``, ``axis0.encoder.error`` and
+``axis0.controller.error`` (the dialect's ``[firmware.fallback.clear_errors]``).
+:meth:`open` probes the dialect's servobench cycle extension (``r
+axis0.config.servobench_cycle``); a drive that rejects it (a stock ODrive) is
+free-running (:attr:`SerialAsciiDrive.lockstep` is False) and :meth:`set_cycle`
+tells it nothing. The log's ``drive_clock`` line says which clock ``t`` is.
 
-Not confirmed against hardware (no ODrive here): see the caveats at the top
-of ``drivers/data/dialects/odrive.toml`` (firmware 0.6 property names, the
-9-character limit of ``r`` replies, the ``sc`` command's first release, the
-"lu" error-read bug). Without ``checksum=1`` a reply that loses digits, not its line end,
-still parses (e.g. ``0.12345`` for ``0.123456``); only checksums catch that.
-POSIX only (waits with ``select`` on the port's file descriptor).
+Not confirmed against hardware (no ODrive here; the served simulator follows
+the firmware source): see the caveats at the top of
+``drivers/data/dialects/odrive.toml`` (firmware 0.6 property names, the
+9-character limit of ``r`` replies, the "lu" error-read bug). Without
+``checksum=1`` a reply that loses digits, not its line end, still parses
+(e.g. ``0.12345`` for ``0.123456``); only checksums catch that.
+:meth:`SerialAsciiDrive.max_rate_hz` assumes a UART at ``baud`` (a USB CDC
+port is faster than its nominal baud rate).
 """
 
 from __future__ import annotations
 
 import math
-import select
 import time
-from collections import deque
+import warnings
 
-import serial
-
-from servobench.drivers.ascii_line import MalformedReplyError, decode_reply, encode_line
+from servobench.drivers.ascii_link import AsciiLink
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.dialect import (
-    COMMAND_SPECS,
-    CommandRejectedError,
-    Dialect,
-    ParsedLine,
-    load_dialect,
-)
+from servobench.drivers.dialect import CommandRejectedError, Dialect, ParsedLine, load_dialect
+from servobench.drivers.link_budget import ascii_max_rate_hz
 from servobench.errors import (
     DriveConfigError,
-    DriveConnectionError,
     DriveFaultError,
-    DriveTimeoutError,
+    DriveWarning,
     StateTransitionError,
 )
 
 DEFAULT_BAUD = 115200
 #: Deadline for one reply line [s].
 REPLY_TIMEOUT_S = 0.1
-#: Deadline for a blocked write [s].
-WRITE_TIMEOUT_S = 0.5
 #: Deadline for the closed-loop / idle state to be reached [s].
 STATE_TIMEOUT_S = 2.0
 #: Pause between state reads while waiting for a transition [s].
 STATE_POLL_S = 0.005
-#: Silence that ends the resynchronisation drain on open [s].
-RESYNC_QUIET_S = 0.05
-#: Longest resynchronisation before the drive is deemed to talk nonstop [s].
-RESYNC_MAX_S = 1.0
 #: Default period of the error-register read while streaming [s].
 FAULT_POLL_S = 0.1
-#: Longest reply line accepted [bytes] (the ODrive's transmit buffer is 64).
-MAX_LINE_BYTES = 256
 #: Relative tolerance of read-backs (the firmware answers reads with <= 9 characters).
 READBACK_RTOL = 1e-3
+#: Values that stand for a typical cycle when counting its bytes (command, position, velocity).
+TYPICAL_U, TYPICAL_X, TYPICAL_V = -1.234567, -12.345678, -1.234567
 
 
 class SerialAsciiDrive(Drive):
     """A drive on a serial port speaking a line-based ASCII :class:`~servobench.drivers.dialect.Dialect`."""
 
-    query_keys = frozenset({"baud", "dialect", "axis", "checksum", "timeout", "poll"})
+    query_keys = frozenset({"baud", "dialect", "axis", "checksum", "timeout", "poll", "units"})
 
     def __init__(self, url) -> None:
         super().__init__(url)
@@ -124,192 +130,152 @@ class SerialAsciiDrive(Drive):
         self.poll_s = self.url.get_float("poll", FAULT_POLL_S)
         if not self.reply_timeout_s > 0 or self.poll_s < 0:
             raise DriveConfigError("timeout must be > 0 s and poll >= 0 s")
-        self.units = dict(self.dialect.units)
-        #: False once a drive rejected the cycle extension (it runs its own loop).
-        self.lockstep: bool | None = None
-        self._serial: serial.Serial | None = None
-        self._rx = bytearray()
-        self._sent: deque[str] = deque(maxlen=8)  # requests not yet followed by a reply
-        self._next_poll = 0.0
-        self._out_of_step = False
-        self._last_line = b""  # the last reply line, terminator included
-        #: Repeated reply lines dropped (see the module docstring).
-        self.duplicates = 0
-        #: Bytes written to / read from the port since it was opened (for rate figures).
-        self.bytes_sent = 0
-        self.bytes_received = 0
-
-    # ------------------------------------------------------------- line I/O
-    def _send(self, *bodies: str) -> None:
-        """Write request lines in one write (after a resync if the last exchange broke off)."""
-        ser = self._port()
-        if self._out_of_step:
-            self._resync(end_drive_line=False)
-        else:
-            self._check_unsolicited(ser)
-        raw = b"".join(encode_line(b, self.dialect.terminator, self.use_checksum) for b in bodies)
-        self._sent.extend(bodies)
-        try:
-            ser.write(raw)
-            self.bytes_sent += len(raw)
-        except serial.SerialTimeoutException as err:
-            raise DriveTimeoutError(f"{self.port}: write blocked for {WRITE_TIMEOUT_S} s") from err
-        except (serial.SerialException, OSError) as err:
-            raise DriveConnectionError(f"{self.port}: write failed: {err}") from err
-
-    def _check_unsolicited(self, ser: serial.Serial) -> None:
-        """Drop a repeated last reply; raise on any other bytes that came unasked."""
-        try:
-            waiting = ser.in_waiting
-            if waiting:
-                self._rx += ser.read(waiting)
-                self.bytes_received += waiting
-        except (serial.SerialException, OSError) as err:
-            raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
-        if not self._rx:
-            return
-        if self._last_line and bytes(self._rx) == self._last_line:
-            self._rx.clear()
-            self.duplicates += 1
-            return
-        junk = bytes(self._rx[:60])
-        self._out_of_step = True
-        raise MalformedReplyError(
-            f"{self.port}: the drive sent {junk!r} unasked; its last reply may not have "
-            "answered the last request"
+        self._scale = self._unit_scales(self.url.get_str("units", "drive"))
+        self.link = AsciiLink(
+            self.port, self.baud, self.dialect, self.axis, self.use_checksum, self.reply_timeout_s
         )
+        #: Whether the drive took the cycle extension at open (False: it runs its own loop).
+        self.lockstep: bool | None = None
+        #: Firmware (major, minor, revision) read at open; None when the drive does not tell.
+        self.firmware_version: tuple[int, ...] | None = None
+        #: What open() found and cleared, for the log (empty when nothing).
+        self.cleared_at_open = ""
+        self._next_poll = 0.0
+        self._cycles = 0  # feedback queries since the cycle was set (a lock-step drive's clock)
 
-    def _raw_line(self, deadline: float) -> bytes:
-        """One reply line (terminator stripped) or :class:`DriveTimeoutError` at ``deadline``."""
-        ser = self._port()
-        end = self.dialect.reply_terminator[-1:]
-        while True:
-            i = self._rx.find(end)
-            if i >= 0:
-                line = bytes(self._rx[: i + 1])
-                del self._rx[: i + 1]
-                self._last_line = line
-                return line.rstrip(b"\r\n")
-            if len(self._rx) > MAX_LINE_BYTES:
-                junk = bytes(self._rx[:60])
-                self._rx.clear()
-                raise DriveConnectionError(f"{self.port}: no line end in {junk!r}... (wrong baud?)")
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                partial = f" (partial {bytes(self._rx)!r})" if self._rx else ""
-                raise DriveTimeoutError(
-                    f"{self.port}: no reply to {' / '.join(self._sent)!r} within "
-                    f"{self.reply_timeout_s} s{partial}"
-                )
-            try:
-                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
-                if ready:
-                    chunk = ser.read(max(1, ser.in_waiting))
-                    if not chunk:
-                        raise DriveConnectionError(f"{self.port}: port closed by the other end")
-                    self._rx += chunk
-                    self.bytes_received += len(chunk)
-            except (serial.SerialException, OSError) as err:
-                raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
+    def _unit_scales(self, mode: str) -> dict[str, float]:
+        """Factors from the drive's position and velocity to the logged ones; sets :attr:`units`."""
+        self.units = dict(self.dialect.units)
+        if mode == "drive":
+            return {"x": 1.0, "v": 1.0}
+        if mode != "si":
+            raise DriveConfigError(f"units must be 'drive' or 'si', got {mode!r}")
+        si = self.dialect.si_units
+        if set(si) != {"x", "v"}:
+            raise DriveConfigError(f"dialect {self.dialect.name!r} has no [units.si] for x and v")
+        for key, (unit, _) in si.items():
+            self.units[key] = unit
+        return {key: factor for key, (_, factor) in si.items()}
 
-    def _read_body(self, deadline: float | None = None) -> str:
-        """Next reply body; a rejection message raises :class:`CommandRejectedError`."""
-        if deadline is None:
-            deadline = time.monotonic() + self.reply_timeout_s
-        try:
-            body = decode_reply(self._raw_line(deadline), self.use_checksum)
-            if self.dialect.rejection(body) is not None:
-                raise CommandRejectedError(
-                    f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
-                )
-            return body
-        except BaseException:
-            self._out_of_step = (
-                True  # replies may still be on their way: drain before the next send
-            )
-            raise
-        finally:
-            self._sent.clear()  # what was sent before has been answered, or never will be
+    # ------------------------------------------------------------ link facts
+    @property
+    def duplicates(self) -> int:
+        """Repeated reply lines dropped (see :mod:`servobench.drivers.ascii_link`)."""
+        return self.link.duplicates
 
-    def _read_reply(self, name: str) -> ParsedLine:
-        body = self._read_body()
-        try:
-            return self.dialect.parse_reply(name, body)
-        except MalformedReplyError:
-            self._out_of_step = True
-            raise
+    @property
+    def bytes_sent(self) -> int:
+        return self.link.bytes_sent
 
-    def _query(self, command: str, **values: float) -> ParsedLine:
-        """Send ``command`` and parse its reply."""
-        self._send(self.dialect.request(command, axis=self.axis, **values))
-        reply = COMMAND_SPECS[command].reply
-        if reply is None:
-            raise DriveConfigError(f"dialect command {command!r} has no reply")
-        return self._read_reply(reply)
+    @property
+    def bytes_received(self) -> int:
+        return self.link.bytes_received
 
-    def _command(self, command: str, **values: float) -> None:
-        self._send(self.dialect.request(command, axis=self.axis, **values))
-
-    def _port(self) -> serial.Serial:
-        if self._serial is None:
-            raise DriveConnectionError(f"{self.port} is not open")
-        return self._serial
-
-    def _resync(self, end_drive_line: bool = True) -> None:
-        """Drop whatever the drive still sends until it is quiet (after ending its half line)."""
-        ser = self._port()
-        try:
-            ser.reset_input_buffer()
-            if end_drive_line:
-                ser.write(self.dialect.terminator)
-            quiet_until = time.monotonic() + RESYNC_QUIET_S
-            give_up = time.monotonic() + RESYNC_MAX_S
-            while (remaining := quiet_until - time.monotonic()) > 0:
-                if time.monotonic() > give_up:
-                    raise DriveConnectionError(
-                        f"{self.port}: the drive talks without pause for {RESYNC_MAX_S} s "
-                        "(stdout on this port? wrong baud?)"
-                    )
-                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
-                if ready:
-                    ser.read(max(1, ser.in_waiting))
-                    quiet_until = time.monotonic() + RESYNC_QUIET_S
-        except DriveConnectionError:
-            raise
-        except (serial.SerialException, OSError) as err:
-            raise DriveConnectionError(f"{self.port}: resynchronising failed: {err}") from err
-        self._rx.clear()
-        self._out_of_step = False
-
-    # ------------------------------------------------------------ lifecycle
     def link_recoveries(self) -> dict[str, int]:
         return {"duplicates": self.duplicates}
 
-    def _open(self) -> None:
-        try:
-            self._serial = serial.Serial(
-                self.port, self.baud, timeout=0, write_timeout=WRITE_TIMEOUT_S, exclusive=True
+    def max_rate_hz(self) -> float:
+        """The exchange rate the UART carries: a torque command and a feedback query out, the
+        feedback reply in, every ``poll`` seconds an error read too (8N1 at ``baud``)."""
+        d, ax = self.dialect, self.axis
+        term, reply_term = len(d.terminator), len(d.reply_terminator)
+        request = [d.request("torque", axis=ax, u=TYPICAL_U), d.request("feedback", axis=ax)]
+        reply = d.reply("feedback", x=TYPICAL_X, v=TYPICAL_V)
+        poll_out = len(d.request("error", axis=ax)) + term
+        poll_in = len(d.reply("error", code=0)) + reply_term
+        return ascii_max_rate_hz(
+            sum(len(r) + term for r in request) + len(reply) + reply_term,
+            self.baud,
+            poll_bytes=poll_out + poll_in,
+            poll_s=self.poll_s,
+        )
+
+    def log_metadata(self) -> dict[str, str]:
+        meta = super().log_metadata()
+        if self.lockstep is not None:
+            meta["drive_clock"] = (
+                "feedback query count x cycle period (lock-step drive)" if self.lockstep
+                else "none: host reception time (the drive runs its own loop)"
+            )  # fmt: skip
+        if self._scale["x"] != 1.0 or self._scale["v"] != 1.0:
+            own = self.dialect.units
+            meta["unit_conversion"] = (
+                f"by the host (units=si): x {own['x']} -> {self.units['x']} "
+                f"(* {self._scale['x']:.9g}), v {own['v']} -> {self.units['v']} "
+                f"(* {self._scale['v']:.9g})"
             )
-        except (serial.SerialException, OSError, ValueError) as err:
-            raise DriveConnectionError(f"cannot open {self.port}: {err}") from err
+        if self.firmware_version is not None:
+            meta["drive_firmware"] = ".".join(map(str, self.firmware_version))
+        if self.cleared_at_open:
+            meta["cleared_at_open"] = self.cleared_at_open
+        return meta
+
+    # ------------------------------------------------------------ line helpers
+    def _query(self, command: str, **values: float) -> ParsedLine:
+        return self.link.query(command, **values)
+
+    def _command(self, command: str, **values: float) -> None:
+        self.link.command(command, **values)
+
+    # ------------------------------------------------------------ lifecycle
+    def _open(self) -> None:
+        self.link.open()
         try:
-            self._resync()
-            self._error_code()  # proves the drive speaks the dialect
+            code = self._error_code()  # proves the drive speaks the dialect
+            self._disarm()  # a watchdog an earlier host left armed would fault the idle axis
+            self.firmware_version = self._read_version()
+            self.lockstep = self._has_cycle_extension()
+            if code and code == self.dialect.watchdog_error:
+                self._clear_stale_watchdog(code)
         except BaseException:
-            self._close()
+            self.link.close()
             raise
 
+    def _read_version(self) -> tuple[int, ...] | None:
+        """(major, minor, revision) from the dialect's version reads; None if the drive refuses them."""
+        if not self.dialect.version_requests:
+            return None
+        parts = []
+        try:
+            for body in self.dialect.version_requests:
+                self.link.send(body)
+                parts.append(int(float(self.link.read_body())))
+        except (CommandRejectedError, ValueError):
+            return None
+        return tuple(parts)
+
+    def _clear_stale_watchdog(self, code: int) -> None:
+        """Clear the lone watchdog error an earlier session left, and say so in one line."""
+        self._send_clear_errors()
+        after = self._error_code()
+        if after:
+            return  # still set: enable() refuses with the code
+        what = self.dialect.describe_error(code)
+        self.cleared_at_open = what
+        warnings.warn(
+            DriveWarning(
+                f"{self.port}: axis {self.axis} held {what} from an earlier session "
+                "(its watchdog was left armed); cleared"
+            ),
+            stacklevel=4,
+        )
+
+    def _disarm(self) -> None:
+        if self.dialect.has("watchdog_disable"):
+            self._command("watchdog_disable")
+
     def _close(self) -> None:
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            finally:
-                self._serial = None
+        try:
+            if self.link.is_open:
+                self._disarm()
+        finally:
+            self.link.close()
 
     def _configure_watchdog(self, timeout_s: float) -> None:
         self._command("watchdog_timeout", timeout_s=timeout_s)
-        self._command("watchdog_feed")  # ODrive: feed before arming, or it trips at once
-        self._command("watchdog_enable")
+        if not self.dialect.has("watchdog_disable"):  # cannot be disarmed: armed for good now
+            self._command("watchdog_feed")  # ODrive: feed before arming, or it trips at once
+            self._command("watchdog_enable")
         if self.dialect.has("watchdog_readback"):
             got = self._query("watchdog_readback").fields["timeout_s"]
             if not math.isclose(got, timeout_s, rel_tol=READBACK_RTOL, abs_tol=1e-6):
@@ -317,21 +283,26 @@ class SerialAsciiDrive(Drive):
                     f"{self.port}: watchdog timeout reads back {got} s, wrote {timeout_s} s"
                 )
 
-    def _set_cycle(self, period_s: float) -> None:
-        """Tell a lock-step drive the cycle (dialect extension); free-running drives need not know."""
-        if not self.dialect.has("set_cycle"):
-            self.lockstep = False
-            return
+    def _has_cycle_extension(self) -> bool:
+        """True when the drive knows the dialect's cycle extension (a lock-step simulator)."""
+        if not (self.dialect.has("set_cycle") and self.dialect.has("cycle_readback")):
+            return False
         try:
             self._query("cycle_readback")
         except CommandRejectedError:
-            self.lockstep = False  # a stock drive: it does not know the extension property
+            return False  # a stock drive: it does not know the extension property
+        return True
+
+    def _set_cycle(self, period_s: float) -> None:
+        """Tell a lock-step drive the cycle (dialect extension); free-running drives need not know."""
+        if not self.lockstep:
             return
         self._command("set_cycle", period_s=period_s)
         got = self._query("cycle_readback").fields["period_s"]
         if not math.isclose(got, period_s, rel_tol=READBACK_RTOL, abs_tol=1e-6):
             raise CommandRejectedError(f"{self.port}: cycle reads back {got} s, wrote {period_s} s")
-        self.lockstep = True
+        self.drive_clock = True  # one cycle per feedback query: the count is its clock
+        self._cycles = 0
 
     # ---------------------------------------------------------------- power
     def _state(self) -> int:
@@ -350,6 +321,8 @@ class SerialAsciiDrive(Drive):
         target = self.dialect.states[key]
         deadline = time.monotonic() + STATE_TIMEOUT_S
         while True:
+            if self.dialect.has("watchdog_disable"):
+                self._command("watchdog_feed")  # armed while enabling: the wait must feed it
             state = self._state()
             if state == target:
                 return
@@ -369,13 +342,18 @@ class SerialAsciiDrive(Drive):
             self._raise_fault(code, "cannot be enabled")
         self._command("torque", u=0.0)  # also selects torque control on an ODrive
         self._command("watchdog_feed")
+        if self.dialect.has("watchdog_disable"):
+            self._command("watchdog_enable")  # armed while the axis has torque
         self._command("enable")
         self._await_state("enabled")
         self._next_poll = time.monotonic() + self.poll_s
 
     def _disable(self) -> None:
         self._command("disable")
-        self._await_state("disabled")
+        try:
+            self._await_state("disabled")
+        finally:
+            self._disarm()
 
     def _quick_stop(self) -> None:
         if self.dialect.has("quick_stop"):
@@ -395,34 +373,49 @@ class SerialAsciiDrive(Drive):
         if poll:
             lines.append(d.request("error", axis=self.axis))
             self._next_poll = now + self.poll_s
-        self._send(*lines)
-        fb = self._read_reply("feedback").fields
-        t_s = time.monotonic()
-        code = int(self._read_reply("error").fields["code"]) if poll else 0
+        self.link.send(*lines)
+        fb = self.link.read_reply("feedback").fields
+        t_s = self._now()
+        self._cycles += 1
+        code = int(self.link.read_reply("error").fields["code"]) if poll else 0
         if code:
             self._raise_fault(code, "faulted while streaming")
-        return Feedback(t_s, float(fb["v"]), float(fb["x"]), code)
+        return self._feedback(t_s, float(fb["v"]), float(fb["x"]), code)
+
+    def _now(self) -> float:
+        """Sample time [s]: the lock-step drive's cycle count times the cycle, else host time."""
+        if self.lockstep and self.cycle_s is not None:
+            return self._cycles * self.cycle_s
+        return time.monotonic()
+
+    def _feedback(self, t_s: float, v: float, x: float, code: int) -> Feedback:
+        return Feedback(t_s, v * self._scale["v"], x * self._scale["x"], code)
 
     def _read_feedback(self) -> Feedback:
         """Position and velocity without clocking the drive (property reads where the dialect has them)."""
+        t_s = self._now()
         if self.dialect.has("position") and self.dialect.has("velocity"):
             x = float(self._query("position").fields["x"])
             v = float(self._query("velocity").fields["v"])
-        else:
+        else:  # the feedback query clocks a lock-step drive: sampled at t_k
             fb = self._query("feedback").fields
             x, v = float(fb["x"]), float(fb["v"])
-        t_s = time.monotonic()
+            self._cycles += 1
         code = self._error_code()
         if code:
             self._raise_fault(code, "is in fault")
-        return Feedback(t_s, v, x, code)
+        return self._feedback(t_s, v, x, code)
 
     # --------------------------------------------------------------- status
     def _fault_code(self) -> int:
         return self._error_code()
 
+    def _send_clear_errors(self) -> None:
+        bodies = self.dialect.requests("clear_errors", self.firmware_version, axis=self.axis)
+        self.link.send(*bodies)
+
     def _reset_fault(self) -> None:
-        self._command("clear_errors")
+        self._send_clear_errors()
         code = self._error_code()
         if code:
             self._raise_fault(code, "still in fault after clearing errors")
@@ -431,9 +424,9 @@ class SerialAsciiDrive(Drive):
         d = self.dialect
         found: dict[str, str] = {}
         if d.has("info"):
-            self._send(d.request("info", axis=self.axis))
+            self.link.send(d.request("info", axis=self.axis))
             for _ in d.info:
-                body = self._read_body()
+                body = self.link.read_body()
                 for key, template in d.info.items():
                     fields = template.parse(body)
                     if fields is not None:

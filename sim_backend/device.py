@@ -7,6 +7,34 @@ applies the latest command for one control cycle each time it is clocked
 (disabled / enabled / quick stop / fault), a command limit like CiA 402's
 max torque 0x6072, and a drive-side watchdog that trips when the host falls
 silent.
+
+Wall-clock time (served drives)
+-------------------------------
+A real axis does not wait for the host: after a quick stop it coasts down
+whether anybody polls it or not. A device made with ``wall_clock=True``
+(every served transport, :func:`servobench.sim_backend.servers.serve.run_server`)
+therefore integrates wall-clock time while its power stage is off
+(disabled, quick stop, fault): every call first advances the plant by the
+time since it was last integrated, with zero command, so the axis coasts
+down as a real one does, polled or not. (The drive clock counts clocked
+cycles, as before: it stands while nobody clocks the drive.) While the axis is
+enabled the drive stays lock-step (one clock per cycle, exact ZOH), as the
+host's streaming contract says, so a host that falls behind on a loaded
+machine does not change the data; its silence is still bounded by the
+watchdog, which trips in wall-clock time and is integrated (with the command
+that was applied) up to the moment it tripped. A new host session
+(:meth:`SimulatedDevice.begin_session`) integrates whatever time has passed.
+The in-process ``sim://`` drive keeps ``wall_clock=False``: pure lock-step.
+
+Sessions
+--------
+:meth:`SimulatedDevice.begin_session` is what a served transport calls when
+a host session starts (a TCP connection when no other is open, a pty opened
+by a client, a CANopen host's first NMT command): the drive clock restarts
+at 0 and the cycle counter with it, the latched command is dropped, an
+enabled axis is disabled, and the axis keeps its position (after coasting).
+A latched fault stays latched, as on a real drive; so do the watchdog and
+cycle settings.
 """
 
 from __future__ import annotations
@@ -27,6 +55,13 @@ from servobench.sim_backend.physics.plant import Plant, PlantParams
 WATCHDOG_FAULT = 0x8130
 #: Fault code of a generic drive fault injected by tests or the fault injector.
 GENERIC_FAULT = 0x1000
+#: Most integration steps of one catch-up; longer idle spans take longer steps
+#: (the base plant is exact under zero-order hold for any step).
+MAX_CATCH_UP_STEPS = 100_000
+#: A watchdog-thread wake-up this late means the simulator itself was not running [s].
+STALL_S = 0.05
+#: Power states in which the watchdog is checked by default (an axis with torque).
+TORQUE_STATES = frozenset({"enabled", "quick_stop"})
 
 
 class PowerState(Enum):
@@ -63,7 +98,15 @@ class SimulatedDevice:
     watchdog_s : float or None
         Host silence after which an enabled drive faults and removes torque.
     clock : callable
-        Wall clock for the watchdog [s], ``time.monotonic`` by default.
+        Wall clock for the watchdog and the wall-clock integration [s],
+        ``time.monotonic`` by default.
+    wall_clock : bool
+        Integrate the time the host leaves unpolled (see the module doc);
+        False: pure lock-step.
+    watchdog_in_every_state : bool
+        Check the watchdog whatever the power state, as ODrive firmware 0.5
+        does (``Firmware/MotorControl/axis.cpp``, ``watchdog_check``); False:
+        only while the axis has torque (enabled or quick stop).
     """
 
     def __init__(
@@ -74,17 +117,27 @@ class SimulatedDevice:
         max_command: float = math.inf,
         watchdog_s: float | None = None,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: bool = False,
+        watchdog_in_every_state: bool = False,
     ) -> None:
         self.params = params
         self.plant = Plant(params)
         self.cycle_s = float(cycle_s)
         self.max_command = float(max_command)
         self.watchdog_s = watchdog_s
+        self.wall_clock = wall_clock
+        self.watchdog_in_every_state = watchdog_in_every_state
         self._clock = clock
         self._lock = threading.RLock()
-        self._k = 0
+        self._k = 0  # cycles clocked since the clock was last rebased
+        self._t_base_s = 0.0  # drive clock at the last rebase [s]
         self._t_s = 0.0
+        self._wall_due = clock()  # wall time up to which the plant has been integrated
         self._command = 0.0
+        #: Host sessions begun (:meth:`begin_session`).
+        self.sessions = 0
+        #: Wall-clock time integrated while the host was silent [s].
+        self.idle_s = 0.0
         self.state = PowerState.DISABLED
         #: Called as ``listener(state, fault_code)`` on every power-state change, under the lock.
         self.listeners: list[Callable[[PowerState, int], None]] = []
@@ -100,10 +153,24 @@ class SimulatedDevice:
         self.last_host_activity = self._clock()
 
     def set_cycle(self, cycle_s: float) -> None:
+        """Set the control cycle [s]; the drive clock goes on from where it stands."""
         with self._lock:
             if not cycle_s > 0:
                 raise ValueError("cycle must be > 0 s")
+            self._catch_up()
+            self._rebase(self._t_s)
             self.cycle_s = float(cycle_s)
+
+    def begin_session(self) -> None:
+        """A host session starts: clock at 0, command dropped, torque off (see the module doc)."""
+        with self._lock:
+            self._catch_up(force=True)
+            self.sessions += 1
+            self._rebase(0.0)
+            self._command = 0.0
+            self.feed()
+            if self.state in (PowerState.ENABLED, PowerState.QUICK_STOP):
+                self._set_state(PowerState.DISABLED)
 
     def set_watchdog(self, watchdog_s: float | None) -> None:
         with self._lock:
@@ -113,6 +180,7 @@ class SimulatedDevice:
     def set_command(self, u: float) -> None:
         """Latch the command applied from the next cycle on (clamped to ``max_command``)."""
         with self._lock:
+            self._catch_up()
             self.feed()
             if not math.isfinite(u):
                 u = 0.0
@@ -125,6 +193,7 @@ class SimulatedDevice:
 
     def enable(self) -> None:
         with self._lock:
+            self._catch_up()
             self.feed()
             if self.state is PowerState.FAULT:
                 raise DriveFaultError(
@@ -135,6 +204,7 @@ class SimulatedDevice:
 
     def disable(self) -> None:
         with self._lock:
+            self._catch_up()
             self.feed()
             self._command = 0.0
             if self.state is not PowerState.FAULT:
@@ -143,6 +213,7 @@ class SimulatedDevice:
     def quick_stop(self) -> None:
         """Remove the command; friction brings the axis to rest."""
         with self._lock:
+            self._catch_up()
             self.feed()
             self._command = 0.0
             if self.state is PowerState.ENABLED:
@@ -151,6 +222,7 @@ class SimulatedDevice:
     def fault(self, code: int = GENERIC_FAULT, reason: str = "injected fault") -> None:
         """Enter the fault state: torque off until :meth:`reset_fault`."""
         with self._lock:
+            self._catch_up()
             self._command = 0.0
             self.fault_code = int(code)
             self.fault_reason = reason
@@ -175,6 +247,7 @@ class SimulatedDevice:
     def sample(self) -> DeviceSample:
         """Feedback at the current cycle start, without clocking the plant."""
         with self._lock:
+            self._catch_up()
             if self.frozen_feedback is not None:
                 return self.frozen_feedback
             v, x = self.plant._measure(
@@ -185,9 +258,11 @@ class SimulatedDevice:
     def step(self) -> DeviceSample:
         """One cycle: sample feedback at ``t_k``, then hold the command until ``t_{k+1}``."""
         with self._lock:
+            self._catch_up()
             v, x = self.plant.step_block(np.array([self.command]), self.cycle_s)
             sample = DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
             self._advance(1)
+            self._wall_due = self._clock() + self.cycle_s
             return self.frozen_feedback or sample
 
     def exchange(self, u: float) -> DeviceSample:
@@ -199,6 +274,7 @@ class SimulatedDevice:
     def exchange_block(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Many cycles at once: ``(t_s, v, x)`` arrays, one row per cycle."""
         with self._lock:
+            self._catch_up()
             self.feed()
             u = np.clip(np.asarray(u, dtype=float), -self.max_command, self.max_command)
             if self.state is not PowerState.ENABLED:
@@ -208,29 +284,59 @@ class SimulatedDevice:
             t = self._t_s + self.cycle_s * np.arange(u.size)
             v, x = self.plant.step_block(u, self.cycle_s)
             self._advance(u.size)
+            self._wall_due = self._clock() + self.cycle_s
             return t, v, x
 
     def _advance(self, n: int) -> None:
         self._k += n
-        self._t_s = self._k * self.cycle_s
+        self._t_s = self._t_base_s + self._k * self.cycle_s
+
+    def _rebase(self, t_s: float) -> None:
+        """Let the drive clock stand at ``t_s`` and count cycles from there."""
+        self._k = 0
+        self._t_base_s = self._t_s = float(t_s)
+        self._wall_due = self._clock()
+
+    def _catch_up(self, until: float | None = None, force: bool = False) -> None:
+        """Integrate the wall-clock time the host left unpolled (``wall_clock`` devices only).
+
+        Up to ``until`` (default now), when the axis is not enabled (or at any
+        time with ``force``); the power stage applies :attr:`command` over it.
+        """
+        if not self.wall_clock or (self.state is PowerState.ENABLED and not force):
+            return
+        now = self._clock() if until is None else until
+        lag_s = now - self._wall_due
+        if lag_s <= 0:
+            return
+        n = min(MAX_CATCH_UP_STEPS, max(1, math.ceil(lag_s / self.cycle_s - 1e-9)))
+        if self.command != 0.0 or self.plant.state.v != 0.0:
+            self.plant.step_block(np.full(n, self.command), lag_s / n)
+        self._wall_due = now
+        self.idle_s += lag_s
 
     # --------------------------------------------------------------- watchdog
     def check_watchdog(self) -> bool:
         """Trip the watchdog if the host has been silent too long; return whether it tripped."""
         with self._lock:
-            if self.watchdog_s is None or self.state not in (
-                PowerState.ENABLED,
-                PowerState.QUICK_STOP,
-            ):
+            if self.watchdog_s is None or self.state is PowerState.FAULT:
+                return False
+            if not self.watchdog_in_every_state and self.state.value not in TORQUE_STATES:
                 return False
             silent = self._clock() - self.last_host_activity
             if silent <= self.watchdog_s:
                 return False
+            self._catch_up(until=self.last_host_activity + self.watchdog_s, force=True)
             self.watchdog_trips += 1
             self.fault(
                 WATCHDOG_FAULT, f"host silent for {silent:.3f} s (watchdog {self.watchdog_s} s)"
             )
             return True
+
+    def excuse_stall(self, stall_s: float) -> None:
+        """The simulator stalled ``stall_s`` [s]: that time does not count as host silence."""
+        with self._lock:
+            self.last_host_activity = min(self.last_host_activity + stall_s, self._clock())
 
     @property
     def is_stopped(self) -> bool:
@@ -239,7 +345,15 @@ class SimulatedDevice:
 
 
 class WatchdogThread(threading.Thread):
-    """Polls :meth:`SimulatedDevice.check_watchdog` every ``period_s`` until stopped."""
+    """Polls :meth:`SimulatedDevice.check_watchdog` every ``period_s`` until stopped.
+
+    A simulator process that was not scheduled for a while (a loaded machine)
+    has not read the requests that arrived meanwhile; a wake-up later than
+    :data:`STALL_S` after the previous one therefore shifts the host's last
+    activity by the stall instead of checking, so the drive does not blame
+    the host for its own stall (a host that really went silent trips the
+    watchdog at the next check that follows an on-time wake-up).
+    """
 
     def __init__(self, device: SimulatedDevice, period_s: float = 0.01) -> None:
         super().__init__(name="sim-watchdog", daemon=True)
@@ -248,8 +362,14 @@ class WatchdogThread(threading.Thread):
         self._stop_event = threading.Event()
 
     def run(self) -> None:
+        last = time.monotonic()
         while not self._stop_event.wait(self.period_s):
-            self.device.check_watchdog()
+            now = time.monotonic()
+            if now - last > max(STALL_S, 5 * self.period_s):
+                self.device.excuse_stall(now - last - self.period_s)
+            else:
+                self.device.check_watchdog()
+            last = now
 
     def stop(self) -> None:
         self._stop_event.set()

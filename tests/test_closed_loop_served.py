@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,13 +29,13 @@ PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.01&seed=2"
 SHORT = ["--period", "2", "--periods", "3", "--no-plots"]
 
 
-def test_sidbe_holds_a_modbus_tcp_axis_inside_its_window(tmp_path):
-    with ServedSim("modbus-tcp", PLANT) as served:
-        # a generous reply timeout and watchdog: the served drive shares a busy test machine
-        url = served.url + "&pace=fast&timeout=2&watchdog=2&xmin=-0.05&xmax=0.05"
+def closed_sidbe(transport: str, timeouts: str, run: Path) -> dict:
+    """``sidbe --json`` on a served drive with the travel window ±0.05; the model, checked against the plant."""
+    with ServedSim(transport, PLANT) as served:
+        # generous reply timeouts and watchdog: the served drive shares a busy test machine
+        url = served.url + f"&pace=fast&{timeouts}&watchdog=2&xmin=-0.05&xmax=0.05"
         out = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json",
-             "--out", str(tmp_path / "run"), *SHORT],
+            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json", "--out", str(run), *SHORT],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
     assert served.returncode == 0, served.stderr
@@ -44,7 +45,13 @@ def test_sidbe_holds_a_modbus_tcp_axis_inside_its_window(tmp_path):
     assert model["dc_gain"] == pytest.approx(1.0, rel=0.01)
     assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.05)
     assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.05)
-    assert model["loop"] == "closed" and model["hold"]["where"] == "host"
+    assert model["loop"] == "closed"
+    return model
+
+
+def test_sidbe_holds_a_modbus_tcp_axis_inside_its_window(tmp_path):
+    model = closed_sidbe("modbus-tcp", "timeout=2", tmp_path / "run")
+    assert model["hold"]["where"] == "host"
     log = read_log(tmp_path / "run" / "log.csv")
     assert log.metadata["loop"] == "closed" and log.metadata["drive"].startswith("modbus+tcp://")
     for r in log.runs:
@@ -55,23 +62,9 @@ def test_sidbe_holds_a_modbus_tcp_axis_inside_its_window(tmp_path):
 
 
 def test_sidbe_with_the_drives_own_csp_loop(tmp_path):
-    with ServedSim("canopen", PLANT) as served:
-        # a generous PDO timeout and watchdog: the served drive shares a busy test machine
-        url = served.url + "&pace=fast&pdo_timeout=1&watchdog=2&xmin=-0.05&xmax=0.05"
-        out = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json",
-             "--out", str(tmp_path / "run"), *SHORT],
-            capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
-    assert served.returncode == 0, served.stderr
-    assert out.returncode == 0, out.stderr
-    model = json.loads(out.stdout)
-    assert model["pole"] == pytest.approx(-10.0, rel=0.01)
-    assert model["dc_gain"] == pytest.approx(1.0, rel=0.01)
-    assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.05)
-    assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.05)
+    model = closed_sidbe("canopen", "pdo_timeout=1", tmp_path / "run")
     hold = model["hold"]
-    assert model["loop"] == "closed" and hold["where"] == "drive" and "gains fitted" in hold["drive_loop"]
+    assert hold["where"] == "drive" and "gains fitted" in hold["drive_loop"]
     # the served drive's default loop: 2 Hz, damping 0.7, integral at a fifth (its own source)
     w = 2 * np.pi * 2.0
     assert (hold["kp"], hold["ki"], hold["kd"]) == pytest.approx(

@@ -111,7 +111,7 @@ def test_odrive_dialect_loads_with_docs(odrive):
     assert odrive.name == "odrive"
     assert odrive.reference.startswith("https://docs.odriverobotics.com/")
     assert odrive.firmware == "0.5.x"
-    assert dict(odrive.units) == {"u": "Nm", "v": "turn/s", "x": "turn"}
+    assert dict(odrive.units) == {"u": "N m", "v": "turn/s", "x": "turn"}  # SI spelling of servobench.units
     assert odrive.terminator == b"\n" and odrive.reply_terminator == b"\r\n"
     assert odrive.checksum == "xor" and odrive.use_checksum is False
     assert odrive.states == {"enabled": 8, "disabled": 1}

@@ -152,8 +152,9 @@ def test_zlac8015d_map_is_self_consistent():
         rows = [drive.exchange(float(uk))[0] for uk in u]
         assert drive.info().extra["map"] == "zlac8015d"
     v_ref, x_ref = simulate(u, 1000.0, PARAMS)
-    # velocity in 0.1 r/min counts (read as rev/s), position in whole encoder counts
-    np.testing.assert_allclose([r.velocity for r in rows], v_ref, rtol=0, atol=0.05 / 60 + 1e-12)
+    # velocity in 0.1 r/min counts (read as rad/s): half a count; position in whole encoder counts
+    half_count = 0.5 * drive.regmap["velocity"].scale
+    np.testing.assert_allclose([r.velocity for r in rows], v_ref, rtol=0, atol=half_count + 1e-12)
     np.testing.assert_allclose([r.position for r in rows], x_ref, rtol=0, atol=0.5)
     assert rows[-1].velocity > 0.3
 

@@ -175,7 +175,7 @@ def _set(doc, dotted, value):
     *parents, last = dotted.split(".")
     node = doc
     for p in parents:
-        node = node[p]
+        node = node.setdefault(p, {})  # [units] is optional: the shipped map gives register units
     if value is _DELETE:
         del node[last]
     else:
@@ -283,3 +283,45 @@ def test_feedback_blocks_respect_gaps_and_put_velocity_first():
     assert (m.blocks[1].address, m.blocks[1].count) == (0x20, 8)
     doc["map"]["max_gap"] = 0x18
     assert len(parse_map(doc, "m.toml").blocks) == 1
+
+
+# ------------------------------------------------------------ units, fc23, turnaround
+def test_register_units_give_the_drive_units():
+    sim, z = load_map("servobench-sim"), load_map("zlac8015d")
+    assert sim.signal_units == {"u": "N m", "v": "rad/s", "x": "rad"}
+    assert z.signal_units == {"u": "A", "v": "rad/s", "x": "inc"}
+    assert sim["timestamp"].unit == sim["watchdog"].unit == "s"
+    # 0.1 r/min per count, in rad/s: 0.1 * 2 pi / 60
+    assert z["velocity"].scale == pytest.approx(0.1 * 2 * 3.141592653589793 / 60, rel=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("dotted", "value", "expect"),
+    [
+        ("registers.vendor.unit", "V", r"\[registers.vendor\] unit: only scaled values take a unit"),
+        ("registers.control.unit", "1", r"\[registers.control\] unit: only scaled values"),
+        ("registers.cycle.unit", "ms", r"\[registers.cycle\] unit: 'ms': the host reads and writes"),
+        ("units.v", "rpm", r"\[units\] v: 'rpm' contradicts \[registers.velocity\] unit 'rad/s'"),
+        ("map.turnaround_ms", -1.0, r"\[map\] turnaround_ms: -1.0 must be >= 0"),
+        ("map.fc23", "sometimes", r"\[map\] fc23: expected bool, got 'sometimes' \(or 'auto'\)"),
+    ],
+)
+def test_units_fc23_and_turnaround_are_checked(dotted, value, expect):
+    doc = copy.deepcopy(SIM_DOC)
+    _set(doc, dotted, value)
+    with pytest.raises(DriveConfigError, match=r"^my-map\.toml: " + expect):
+        parse_map(doc, "my-map.toml")
+
+
+def test_fc23_auto_and_turnaround():
+    doc = copy.deepcopy(SIM_DOC)
+    doc["map"]["fc23"] = "auto"
+    m = parse_map(doc, "m.toml")
+    assert (m.fc23, m.fc23_auto, m.turnaround_s) == (True, True, 0.0005)
+    doc["map"]["fc23"] = False
+    del doc["map"]["turnaround_ms"]
+    m = parse_map(doc, "m.toml")
+    assert (m.fc23, m.fc23_auto, m.turnaround_s) == (False, False, 0.0)
+    del doc["registers"]["velocity"]["unit"]
+    doc["units"] = {"v": "rpm"}
+    assert parse_map(doc, "m.toml").signal_units["v"] == "rpm"  # [units] where a register names none

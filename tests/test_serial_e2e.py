@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from servobench.bench.logio import read_log
+from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.ascii_line import MalformedReplyError
 from servobench.drivers.dialect import DIALECT_DIR, CommandRejectedError
@@ -23,6 +25,7 @@ from servobench.errors import (
     DriveConnectionError,
     DriveFaultError,
     DriveTimeoutError,
+    DriveWarning,
     StateTransitionError,
 )
 from servobench.sim_backend.physics.plant import PlantParams, simulate
@@ -59,6 +62,7 @@ def test_square_wave_matches_the_plant(cycle_s):
         drive.enable()
         rows = [drive.exchange(uk) for uk in u]
         drive.disable()
+    t = np.array([fb.t_s for fb, _ in rows])
     v = np.array([fb.velocity for fb, _ in rows])
     x = np.array([fb.position for fb, _ in rows])
     applied = np.array([a for _, a in rows])
@@ -69,6 +73,24 @@ def test_square_wave_matches_the_plant(cycle_s):
     np.testing.assert_allclose(x, x_ref, atol=1e-6)
     assert np.ptp(v) > 0.3  # it did move both ways
     assert drive.lockstep is True
+    # one cycle per feedback query: the sample times are the drive's, not the host's receptions
+    assert drive.drive_clock is True
+    np.testing.assert_array_equal(t, np.arange(len(u)) * cycle_s)
+
+
+def test_a_lock_step_drive_streamed_in_real_time_keeps_its_own_clock(tmp_path):
+    fs = 200.0
+    u = square(60, 10, 0.8)
+    with served() as url, open_drive(url) as drive:
+        assert drive.log_metadata()["drive_clock"].startswith("feedback query count")
+        stream_runs(drive, [(1, u)], fs, tmp_path / "log.csv", pace="real")
+    log = read_log(tmp_path / "log.csv")
+    (run,) = log.runs
+    assert log.metadata["drive_clock"].startswith("feedback query count")
+    assert np.ptp(np.diff(run.extra["t_host"])) > 0  # the host's receptions jitter ...
+    np.testing.assert_allclose(run.t, np.arange(len(u)) / fs, rtol=0, atol=1e-9)
+    v_ref, _ = simulate(u, fs, PARAMS)  # ... the drive's clock and samples do not
+    np.testing.assert_allclose(run.v, v_ref, atol=1e-6)
 
 
 def test_info_units_and_state():
@@ -76,9 +98,9 @@ def test_info_units_and_state():
         drive.set_cycle(0.001)
         info = drive.info()
         assert info.transport == "serial"
-        assert info.firmware.startswith("servobench-sim")
+        assert info.firmware == "0.5.6"  # the firmware the served drive emulates, by default
         assert info.serial_number == "SIM000000001"
-        assert dict(info.units) == {"u": "Nm", "v": "turn/s", "x": "turn"}
+        assert dict(info.units) == {"u": "N m", "v": "turn/s", "x": "turn"}
         assert info.state == "disabled" and info.fault_code == 0
         assert info.extra["vbus_V"] == pytest.approx(24.0)
         assert info.extra["checksum"] is True and info.extra["lockstep"] is True
@@ -119,14 +141,14 @@ def test_killed_host_trips_the_drive_watchdog():
                 host.kill()
             host.stdout.close()
         time.sleep(0.6)  # > watchdog 0.2 s + the device's 10 ms watchdog poll
-        with open_drive(url) as fresh:
-            assert fresh.fault_code() == ODRIVE_WATCHDOG
-            with pytest.raises(DriveFaultError, match="WATCHDOG_TIMER_EXPIRED") as err:
-                fresh.enable()
-            assert err.value.code == ODRIVE_WATCHDOG
-            assert fresh.info().state == "disabled"
-            fresh.reset_fault()
+        # the watchdog tripped and latched; the next session clears that lone error and says so
+        fresh = open_drive(url)
+        with pytest.warns(DriveWarning, match=r"0x00000800 \(WATCHDOG_TIMER_EXPIRED\).*cleared"):
+            fresh.open()
+        with fresh:
+            assert fresh.cleared_at_open == f"0x{ODRIVE_WATCHDOG:08X} (WATCHDOG_TIMER_EXPIRED)"
             assert fresh.fault_code() == 0
+            assert fresh.info().state == "disabled"
             fresh.enable()
             assert fresh.enabled
 
@@ -214,10 +236,14 @@ def test_a_stock_drive_without_the_cycle_extension_is_free_running(tmp_path):
         open_drive(url.replace(f"dialect={stock}", "dialect=odrive")) as drive,
     ):
         assert "dialect=odrive" in drive.url.raw
-        drive.set_cycle(0.001)  # the drive answers "unknown command" to the probe
-        assert drive.lockstep is False
+        assert drive.lockstep is False  # it answered "unknown command" to the probe at open
+        assert drive.log_metadata()["drive_clock"].startswith("none: host reception time")
+        drive.set_cycle(0.001)
+        assert drive.drive_clock is False
         drive.enable()
-        drive.exchange(0.2)
+        before = time.monotonic()
+        fb, _ = drive.exchange(0.2)
+        assert before <= fb.t_s <= time.monotonic()  # the host's reception time
 
 
 def test_enable_that_never_arrives_is_a_state_transition_error(tmp_path):
@@ -238,7 +264,7 @@ def test_a_rejected_command_names_what_was_sent(tmp_path):
     with (
         served() as url,
         open_drive(url.replace("dialect=odrive", f"dialect={wrong}")) as drive,
-        pytest.raises(CommandRejectedError, match="'unknown command' to 'r vbus_volts'"),
+        pytest.raises(CommandRejectedError, match="'invalid property' to 'r vbus_volts'"),  # fw 0.5.x text
     ):
         drive.info()
 

@@ -61,7 +61,10 @@ def test_rejections(server):
     assert server.handle(b"x 0") == b"unknown command\r\n"
     assert server.handle(b"f 1") == b"invalid motor 1\r\n"
     assert server.handle(b"w axis0.config.servobench_cycle -1") == b"invalid command format\r\n"
-    assert server.handle(b"") == b""
+    # an empty line: fw-v0.5.6 ascii_protocol.cpp answers it (switch default), fw-v0.5.1 does not
+    assert server.handle(b"") == b"unknown command\r\n"
+    old = AsciiDriveServer(SimulatedDevice(PlantParams()), load_dialect("odrive"), firmware=(0, 5, 1))
+    assert old.handle(b"") == b""
 
 
 def test_watchdog_fault_is_reported_as_the_dialect_flag(server, device):

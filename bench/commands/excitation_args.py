@@ -35,9 +35,10 @@ def add_excitation_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--fs",
         type=float,
-        default=exc.DEFAULT_FS_HZ,
+        default=None,
         metavar="HZ",
-        help=f"cycle rate [Hz] (default {exc.DEFAULT_FS_HZ:g})",
+        help=f"cycle rate [Hz] (default: {exc.DEFAULT_FS_HZ:g}, or what the drive's link carries "
+        "with a margin when that is less; a rate beyond the link is refused)",
     )
     p.add_argument(
         "--periods",
@@ -83,12 +84,19 @@ def parse_freqs(text: str | None) -> tuple[float, ...] | None:
     return freqs
 
 
-def design_from_args(args: argparse.Namespace) -> exc.ExcitationDesign:
-    """Validated excitation design from the parsed options."""
+def link_rate_hz(fs_hz: float | None, drive) -> float:
+    """``--fs`` checked against the drive's link, or the link's default rate when it is None."""
+    from servobench.drivers.link_budget import drive_rate_hz
+
+    return drive_rate_hz(fs_hz, drive, exc.DEFAULT_FS_HZ)
+
+
+def design_from_args(args: argparse.Namespace, fs_hz: float) -> exc.ExcitationDesign:
+    """Validated excitation design from the parsed options at the cycle rate ``fs_hz`` [Hz]."""
     return exc.make_design(
         exc.DEFAULT_AMPLITUDE if args.amplitude is None else args.amplitude,
         ratio=args.ratio,
-        fs_hz=args.fs,
+        fs_hz=fs_hz,
         periods=args.periods,
         period_s=args.period,
         freqs_hz=parse_freqs(args.freqs),

@@ -15,6 +15,7 @@ from servobench.bench.commands.excitation_args import (
     add_excitation_arguments,
     check_amplitude,
     design_from_args,
+    link_rate_hz,
     parse_freqs,
 )
 
@@ -35,12 +36,13 @@ def run(args: argparse.Namespace) -> int:
     from servobench.bench.run.runner import stream_runs
     from servobench.drivers.registry import open_drive
 
-    design = design_from_args(args)
+    drive = open_drive(args.drive)
+    fs_hz = link_rate_hz(args.fs, drive)  # refused before the port is opened
+    design = design_from_args(args, fs_hz)
     options = SidbeOptions(
-        amplitude=args.amplitude, ratio=args.ratio, fs_hz=args.fs, periods=args.periods,
+        amplitude=args.amplitude, ratio=args.ratio, fs_hz=fs_hz, periods=args.periods,
         period_s=args.period, freqs_hz=parse_freqs(args.freqs), loop=args.loop,
     )  # fmt: skip
-    drive = open_drive(args.drive)
     if args.amplitude is not None or not options.closed(drive.limits):
         check_amplitude(design.amplitude, drive.limits.max_command)
     out = Path(args.out)
@@ -58,14 +60,14 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         extra = {"loop": "open"} if hold is None else {"loop": "closed", "hold": hold}
         print_json({"log": str(res.log_path), "samples": res.samples, "complete": True,
-                    **design.metadata(), **extra})  # fmt: skip
+                    "fs_achieved": res.fs_achieved_hz, **design.metadata(), **extra})  # fmt: skip
     else:
         where = "" if hold is None else (
             f", closed loop ({hold['where']}-side hold, {hold['travel_share']:.0%} of the room used)"
         )
         print(
-            f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, "
-            f"amplitude ±{design.amplitude:g}{where})"
+            f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g}, "
+            f"{design.fs_hz:g} Hz, achieved {res.fs_achieved_hz:.6g} Hz{where})"
         )
     return 0
 

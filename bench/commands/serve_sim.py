@@ -22,6 +22,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", default="servobench-sim", help="Modbus register map name or file")
     p.add_argument("--dialect", default="odrive", help="serial dialect name or file")
     p.add_argument(
+        "--firmware",
+        default="",
+        metavar="VERSION",
+        help="serial: firmware release the dialect's firmware model emulates (ODrive 0.5.1-0.5.6; "
+        "default the latest)",
+    )
+    p.add_argument(
         "--can", default="socketcand", help="CAN link to serve on: socketcand|slcan|socketcan:IFACE"
     )
     p.add_argument(
@@ -58,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         "baud": str(args.baud),
         "map": args.map,
         "dialect": args.dialect,
+        "firmware": args.firmware,
         "can": args.can,
         "eds": args.eds or "",
         "fault": ";".join(args.fault),

@@ -79,7 +79,7 @@ def default_out_dir(base: Path | None = None) -> Path:
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
     from servobench.bench.procedure import SidbeOptions, check_run_folder, run_sidbe
-    from servobench.bench.report.summary import print_json, print_result
+    from servobench.bench.report.summary import print_json, print_result, rate_text
     from servobench.drivers.registry import open_drive
 
     options = SidbeOptions(
@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         for it in result.iterations
     )
     facts = {
+        "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz()),
         "rounds (amplitude: fit)": rounds,
         "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
         "output": str(result.out_dir),

@@ -20,7 +20,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +121,22 @@ class _Noise:
     travel_threshold: float
 
 
+def at_link_rate(settings: BumpSettings, sidbe_fs_hz: object, drive: Drive) -> BumpSettings:
+    """``settings`` at the cycle rate the drive's link carries (:meth:`Drive.max_rate_hz`).
+
+    ``[bump] fs_hz`` unset: the link's default rate, as ``sidbe`` picks it. A
+    ``[bump] fs_hz`` or ``[sidbe] fs_hz`` beyond the link raises
+    :class:`~servobench.errors.UsageError` naming the achievable rate, before
+    anything moves.
+    """
+    from servobench.bench.excitation import DEFAULT_FS_HZ
+    from servobench.drivers.link_budget import drive_rate_hz
+
+    if isinstance(sidbe_fs_hz, int | float):  # other values: [sidbe] is checked in step 2
+        drive_rate_hz(float(sidbe_fs_hz), drive, DEFAULT_FS_HZ, "[sidbe] fs_hz")
+    return replace(settings, fs_hz=drive_rate_hz(settings.fs_hz, drive, DEFAULT_FS_HZ, "[bump] fs_hz"))
+
+
 def plan_text(limits: ConfirmedLimits, settings: BumpSettings) -> str:
     """What the bump test does, in one sentence (for ``--dry-run``)."""
     amps = ", ".join(f"{f * limits.max_u:.3g}" for f in settings.fractions)
@@ -141,12 +157,16 @@ def run_bump_test(
 ) -> BumpResult:
     """Bump-test an open drive; it is enabled here and left stopped and disabled.
 
+    ``settings.fs_hz`` None streams at the link's default rate (:func:`at_link_rate`).
+
     Raises
     ------
     CommissionRefused
         No motion, wrong direction, or insane feedback.
     """
     log_path = Path(log_path)
+    if settings.fs_hz is None:
+        settings = at_link_rate(settings, None, drive)
     dt = 1.0 / settings.fs_hz
     streamer = _Streamer(drive, dt, pace, LogWriter(log_path, _metadata(drive, settings), LOG_COLUMNS))
     total = 2 * len(settings.fractions)

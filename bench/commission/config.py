@@ -105,8 +105,9 @@ class BumpSettings:
         Length of one pulse [s].
     rest_s : float
         Longest zero-command wait after a pulse for the axis to come to rest [s].
-    fs_hz : float
-        Cycle rate of the bump test [Hz].
+    fs_hz : float or None
+        Cycle rate of the bump test [Hz]; default (None) the rate the drive's
+        link carries, as ``sidbe`` picks it (:meth:`servobench.drivers.base.Drive.max_rate_hz`).
     max_speed_fraction : float
         A pulse ends early when ``|v|`` exceeds this fraction of max_v.
     position_tolerance : float
@@ -116,7 +117,7 @@ class BumpSettings:
     fractions: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3)
     pulse_s: float = 0.1
     rest_s: float = 2.0
-    fs_hz: float = 1000.0
+    fs_hz: float | None = None
     max_speed_fraction: float = 0.5
     position_tolerance: float = 0.25
 
@@ -124,6 +125,8 @@ class BumpSettings:
         if not self.fractions or not all(0 < f <= 0.5 for f in self.fractions):
             raise UsageError("[bump] fractions must be a non-empty list of values in (0, 0.5]")
         for name in ("pulse_s", "rest_s", "fs_hz", "max_speed_fraction", "position_tolerance"):
+            if name == "fs_hz" and self.fs_hz is None:
+                continue
             if not getattr(self, name) > 0:
                 raise UsageError(f"[bump] {name} must be > 0")
 

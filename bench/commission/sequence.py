@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from servobench.bench.commission import integration
-from servobench.bench.commission.bump import BumpResult, plan_text, run_bump_test
+from servobench.bench.commission.bump import BumpResult, at_link_rate, plan_text, run_bump_test
 from servobench.bench.commission.checks import DriveCheck, check_drive
 from servobench.bench.commission.closedloop import check_compensation, reference_amplitude
 from servobench.bench.commission.config import CommissionConfig, LimitSettings
@@ -144,6 +144,8 @@ class Commissioning:
         self.progress = Progress(drive_url=options.drive_url)
         self.out = options.out_dir
         self._t_step = time.monotonic()
+        #: The bump settings at the rate the drive's link carries (step 1 sets the rate).
+        self.bump = options.config.bump
 
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
@@ -220,6 +222,7 @@ class Commissioning:
         self.console.step(1, "link and drive")
         with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
             check = check_drive(drive, self.console, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
+            self.bump = at_link_rate(self.o.config.bump, self.o.config.sidbe.get("fs_hz"), drive)
         self._done("check", drive_info=check.as_dict())
         return check
 
@@ -243,7 +246,7 @@ class Commissioning:
             pace = drive.url.get_str("pace", "real") or "real"
             c.step(3, "bump test")
             with c.progress("bump test") as tick:
-                bump = run_bump_test(drive, limits, config.bump, self.out / BUMP_LOG, pace=pace, progress=tick)
+                bump = run_bump_test(drive, limits, self.bump, self.out / BUMP_LOG, pace=pace, progress=tick)
             c.ok(
                 f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g}), "
                 "positive command gives positive velocity, feedback consistent"
@@ -327,7 +330,7 @@ class Commissioning:
         cfg = self.o.config
         c.step(3, "plan (dry run: nothing is enabled or commanded)")
         c.say(f"would reconnect as {url}")
-        c.say("would " + plan_text(limits, cfg.bump))
+        c.say("would " + plan_text(limits, self.bump))
         opts = ", ".join(f"{k}={v}" for k, v in cfg.sidbe.items()) or "defaults"
         c.say(f"would run SIDBE with its verification loop ({opts}) and the diagnosis")
         c.say(

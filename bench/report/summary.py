@@ -35,6 +35,16 @@ def plus_minus(value: float, std: float | None) -> str:
     return f"{value:.6g} ± {std:.2g}"
 
 
+def rate_text(fs_hz: float, achieved_hz: float, link_max_hz: float = math.inf) -> str:
+    """``"100 Hz set, 99.98 Hz achieved (the link carries 147 Hz)"`` for a summary row."""
+    text = f"{fs_hz:g} Hz set"
+    if math.isfinite(achieved_hz):
+        text += f", {achieved_hz:.5g} Hz achieved"
+    if math.isfinite(link_max_hz):
+        text += f" (the link carries {link_max_hz:.0f} Hz)"
+    return text
+
+
 def derived_std(result: IdentificationResult) -> dict[str, float]:
     """1-sigma of the pole ``-B/M`` [1/s] and the DC gain ``1/B``, first-order propagation (M, B uncorrelated)."""
     m = result.model

@@ -52,6 +52,7 @@ from servobench.bench.run.runner import (
     _stats,
     _stop_quietly,
     _trailer,
+    achieved_rate_hz,
     note_partial_log,
 )
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
@@ -95,6 +96,12 @@ class ClosedRunResult:
     def share(self) -> float:
         """Share of the room used."""
         return self.excursion / self.room if self.room > 0 else math.inf
+
+    @property
+    def fs_achieved_hz(self) -> float:
+        """Cycles per second the host achieved over every run, as in open loop (the log's
+        ``fs_achieved``, :func:`~servobench.bench.run.runner.achieved_rate_hz`)."""
+        return achieved_rate_hz(self.timing)
 
 
 def stream_closed_runs(

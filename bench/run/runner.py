@@ -68,6 +68,18 @@ class RunResult:
     timing: tuple[TimingStats, ...]
     complete: bool
 
+    @property
+    def fs_achieved_hz(self) -> float:
+        """Cycles per second the host achieved, over every run (:func:`achieved_rate_hz`)."""
+        return achieved_rate_hz(self.timing)
+
+
+def achieved_rate_hz(timing: Sequence[TimingStats]) -> float:
+    """Cycles per second the host achieved [Hz]: all periods of all runs over their total time."""
+    periods = sum(max(0, t.samples - 1) for t in timing)
+    elapsed_s = sum(max(0, t.samples - 1) * t.host_period_mean_s for t in timing if t.samples > 1)
+    return periods / elapsed_s if elapsed_s > 0 else math.nan
+
 
 def _stats(run: int, host: PeriodStats, drive: PeriodStats) -> TimingStats:
     return TimingStats(run, host.samples, host.mean, host.std, host.max, drive.mean, drive.std)
@@ -254,6 +266,9 @@ def _stop_quietly(drive: Drive) -> None:
 
 def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
     extra: dict[str, object] = {k: v for s in timing for k, v in s.as_metadata().items()}
+    achieved = achieved_rate_hz(timing)
+    if math.isfinite(achieved):
+        extra["fs_achieved"] = round(achieved, 4)
     for name, count in drive.link_recoveries().items():
         if count:
             extra[f"link_{name}"] = count

@@ -29,7 +29,10 @@ answers SDOs; this module adds what it lacks:
   set to the consumer time when 0x6007 (abort connection option) is 1,
   or always when the drive has no 0x6007, so host silence faults the axis
   with 0x8130 (the sim_backend watchdog thread does the tripping); an EMCY
-  goes out on every fault.
+  goes out on every fault;
+* host sessions: an NMT command while no host is present (none consumed in
+  0x1016, or its heartbeats stopped) begins a new session: the drive clock
+  restarts at 0 and the command is dropped, as on every served transport.
 
 Simplifications: synchronous RPDOs act on receipt (the device latches the
 torque for the next SYNC anyway, but a controlword changes the state at
@@ -378,6 +381,8 @@ class ServedCiA402Drive:
         if len(data) < 2 or data[1] not in (0, self.node.id):
             return
         with self.lock:
+            if not self.consumer.host_present():
+                self._begin_session()
             old, new = self.nmt, self.node.nmt.state
             if new == "INITIALISING":  # reset node (0x81) or reset communication (0x82)
                 self._reset(application=data[0] == 0x81)
@@ -392,6 +397,18 @@ class ServedCiA402Drive:
                 self.sync.rebuild()
             if self.has(0x1017) and self.node.get_data(0x1017, 0) != b"\x00\x00":
                 self.network.send_message(0x700 + self.node.id, [NMT_STATE_CODES.get(new, 0)])
+
+    def _begin_session(self) -> None:
+        """An NMT command from a host while none is present: a new host session.
+
+        The axis a vanished host left enabled (0x6007 = 0: no reaction) is
+        quick-stopped first, so the CiA 402 state and the device agree; then
+        the device starts clean (:meth:`SimulatedDevice.begin_session`: drive
+        clock at 0, command dropped).
+        """
+        if self.state is S.OPERATION_ENABLED:
+            self._apply_controlword(0x0002)
+        self.device.begin_session()
 
     def _reset(self, application: bool) -> None:
         """NMT reset node (application and communication parameters) or reset communication."""

@@ -9,6 +9,8 @@ tripping itself is the sim_backend watchdog thread's (fault 0x8130).
 
 from __future__ import annotations
 
+import time
+
 import canopen
 
 from servobench.sim_backend.device import SimulatedDevice
@@ -23,6 +25,7 @@ class HeartbeatConsumer:
         self.abort_option = 1  #: 0x6007: 0 no action, 1 fault
         self._cob: int | None = None
         self._time_s: float | None = None
+        self._last_heartbeat = -float("inf")  #: time.monotonic() of the host's last heartbeat
 
     def configure(self, value: int) -> None:
         """A 0x1016:1 entry: bits 22..16 the producer's node id, bits 15..0 the time [ms]."""
@@ -33,6 +36,7 @@ class HeartbeatConsumer:
         if node_id and time_ms:
             self._cob = 0x700 + node_id
             self._time_s = time_ms / 1000.0
+            self._last_heartbeat = time.monotonic()  # the host writing it is present
             if self.network is not None:
                 self.network.subscribe(self._cob, self.on_heartbeat)
         else:
@@ -47,4 +51,13 @@ class HeartbeatConsumer:
         self.device.set_watchdog(self._time_s if self.abort_option == 1 else None)
 
     def on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._last_heartbeat = time.monotonic()
         self.device.feed()
+
+    def host_present(self) -> bool:
+        """True while a host consumed in 0x1016 heartbeats within the consumer time.
+
+        A host that closed cleanly wrote 0x1016:1 = 0; one that vanished fell
+        silent: either way the next host's NMT command begins a new session.
+        """
+        return self._time_s is not None and time.monotonic() - self._last_heartbeat <= self._time_s

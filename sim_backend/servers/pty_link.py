@@ -17,8 +17,12 @@ Modbus RTU t3.5 rule; 0 for protocols that end frames in-band)::
 Bytes that arrive while the previous ones are still "on the wire" extend the
 same frame. Without ``baud`` and gap, bytes pass through at once.
 
-Both slave ends stay open inside the link, so a client may close and reopen
-its end (a killed host, a fresh client) without the link seeing a hang-up.
+The B end's slave stays open inside the link, so the server's side never
+sees a hang-up. The A end's slave is left to the client: while no program
+has it open, the link sees a hang-up on A (and drops every frame then in
+flight: answers to a host that is gone); when one opens it, the link calls ``on_open`` -- a new host session (the
+served drive starts it clean, :meth:`~servobench.sim_backend.device.SimulatedDevice.begin_session`).
+A client may close and reopen its end (a killed host, a fresh client) at any time.
 
 Fault injection: :meth:`PtyLink.tamper_next` rewrites the next frame the B
 end sends (the served drive's next answer) on its way to A, e.g. to corrupt
@@ -43,6 +47,8 @@ from collections.abc import Callable
 BITS_8N1 = 10
 _READ_SIZE = 4096
 _PR_SET_TIMERSLACK = 29
+#: How often a hung-up A end is looked at for a client opening it [s].
+HANGUP_POLL_S = 0.01
 
 
 def _tighten_timer_slack() -> None:
@@ -96,6 +102,11 @@ class _Direction:
     def next_wake(self) -> float | None:
         return self.frames[0][0][0] if self.frames else None
 
+    def drop(self) -> None:
+        """Forget every frame in flight (the receiver hung up)."""
+        self.frames.clear()
+        self.last_due_s = -math.inf
+
 
 class PtyLink:
     """Two pseudo-terminals joined by a (baud-rate emulating) byte pump.
@@ -109,7 +120,11 @@ class PtyLink:
     """
 
     def __init__(
-        self, baud: int | None = None, bits_per_char: int = BITS_8N1, frame_gap_s: float = 0.0
+        self,
+        baud: int | None = None,
+        bits_per_char: int = BITS_8N1,
+        frame_gap_s: float = 0.0,
+        on_open: Callable[[], None] | None = None,
     ) -> None:
         if baud is not None and baud <= 0:
             raise ValueError("baud must be > 0")
@@ -124,18 +139,26 @@ class PtyLink:
         self._wake_r = self._wake_w = -1
         self._stopping = False
         self._dirs: list[_Direction] = []
+        self.on_open = on_open
+        #: Times a client opened the A end.
+        self.opens = 0
 
-    def _pair(self) -> tuple[int, str]:
+    def _pair(self, keep_slave: bool) -> tuple[int, str]:
         master, slave = os.openpty()
         tty.setraw(slave)
         os.set_blocking(master, False)
-        self._fds += [master, slave]
-        return master, os.ttyname(slave)
+        path = os.ttyname(slave)
+        if keep_slave:
+            self._fds += [master, slave]
+        else:
+            os.close(slave)
+            self._fds.append(master)
+        return master, path
 
     def start(self) -> PtyLink:
         """Create the pty pairs and start pumping. Returns ``self``."""
-        master_a, self.a_path = self._pair()
-        master_b, self.b_path = self._pair()
+        master_a, self.a_path = self._pair(keep_slave=False)
+        master_b, self.b_path = self._pair(keep_slave=True)
         self._wake_r, self._wake_w = os.pipe()
         self._fds += [self._wake_r, self._wake_w]
         dirs = [_Direction(master_a, master_b), _Direction(master_b, master_a)]
@@ -148,12 +171,28 @@ class PtyLink:
 
     def _run(self, dirs: list[_Direction]) -> None:
         _tighten_timer_slack()
-        watch = [d.src for d in dirs] + [self._wake_r]
+        master_a = dirs[0].src
+        looks = select.poll()
+        looks.register(master_a, select.POLLIN)  # POLLHUP is reported whatever is asked
+        hung = True
         while not self._stopping:
+            events = looks.poll(0)
+            closed = any(ev & select.POLLHUP for _, ev in events)
+            waiting = any(ev & select.POLLIN for _, ev in events)
+            if closed and not hung:  # the client went: answers in flight have nobody to go to
+                hung = True
+                for d in dirs:
+                    d.drop()
+            if hung and (not closed or waiting):  # a client opened A (and maybe left already)
+                hung = closed
+                self._opened()
+            watch = [d.src for d in dirs if d.src != master_a or not closed or waiting]
             now = time.monotonic()
             wakes = [w for d in dirs if (w := d.next_wake()) is not None]
+            if closed and not waiting:
+                wakes.append(now + HANGUP_POLL_S)
             timeout = max(0.0, min(wakes) - now) if wakes else None
-            readable, _, _ = select.select(watch, [], [], timeout)
+            readable, _, _ = select.select([*watch, self._wake_r], [], [], timeout)
             now = time.monotonic()
             for d in dirs:
                 if d.src in readable:
@@ -161,11 +200,18 @@ class PtyLink:
                         data = os.read(d.src, _READ_SIZE)
                     except (BlockingIOError, InterruptedError):
                         data = b""
-                    except OSError:  # EIO: both slave ends are held open, so only at close
-                        return
+                    except OSError:  # EIO: A hung up (seen next round), or the link closed
+                        if self._stopping:
+                            return
+                        data = b""
                     if data:
                         d.accept(data, now, self.t_char_s, self.frame_gap_s)
                 d.deliver(now)
+
+    def _opened(self) -> None:
+        self.opens += 1
+        if self.on_open is not None:
+            self.on_open()
 
     def tamper_next(self, rewrite: Tamper) -> None:
         """Rewrite the next frame sent from B to A with ``rewrite(frame) -> frame`` (once)."""

@@ -11,7 +11,8 @@ starts its server around the :class:`~servobench.sim_backend.device.SimulatedDev
 calls ``announce(drive_url)`` exactly once when a client can connect, blocks
 until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
-URL, the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
+URL (in wall-clock time, :mod:`servobench.sim_backend.device`: a served axis
+coasts down while nobody polls it), the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
 the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
 handling and printing the URL as the first line on stdout.
 """
@@ -87,7 +88,7 @@ def run_server(
     """
     serve = load_transport(transport)
     sim_url, served_keys = split_served_keys(transport, sim_url)
-    device = device_from_url(sim_url)
+    device = device_from_url(sim_url, wall_clock=True)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {}), "sim_keys": served_keys}
     injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))

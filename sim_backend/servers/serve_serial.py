@@ -12,11 +12,23 @@ the latched command acts over ``[t_k, t_{k+1})``. Property reads (``r``) never
 clock. Units: the plant's command unit is served as Nm, its position unit as
 turn and its velocity unit as turn/s, one to one.
 
-Every valid request line feeds the device watchdog (a real ODrive is fed
-only by ``c``/``v``/``p``/``t``/``u``, not by reads); when the host falls
-silent the device faults by itself (``servobench.sim_backend.servers.serve`` runs a
+A dialect that names a ``firmware_model`` is answered as that firmware
+does: ``odrive-0.5`` is :class:`~servobench.sim_backend.servers.odrive_firmware.OdriveFirmware`
+at the release the ``firmware`` option names (``0.5.1`` ... ``0.5.6``,
+default 0.5.6): its rejection texts, its property tree, a watchdog fed only
+by ``c``/``u`` and closed-loop entry and checked in every axis state.
+Other dialects get the generic server: every valid request line feeds the
+device watchdog, and requests are matched against the dialect's templates.
+When the host falls silent the device faults by itself
+(``servobench.sim_backend.servers.serve`` runs a
 :class:`~servobench.sim_backend.device.WatchdogThread`), and error reads then report the
 dialect's watchdog flag (``WATCHDOG_TIMER_EXPIRED``, 0x800, for ODrive).
+
+Sessions: the server does not hold the pty's client end open, so it sees
+when no client has it open; a client opening it begins a host session
+(:meth:`~servobench.sim_backend.device.SimulatedDevice.begin_session`): the
+drive clock restarts and a half-received line is dropped. Request lines end
+at any of the dialect's ``line_ends`` (ODrive: ``\r``, ``\n`` and ``!``).
 
 Byte time
 ---------
@@ -53,12 +65,17 @@ from urllib.parse import quote
 
 from servobench.clock import sleep_until
 from servobench.drivers.ascii_line import decode_request, encode_line
-from servobench.drivers.dialect import DEFAULT_DIALECT, Dialect, load_dialect
+from servobench.drivers.dialect import DEFAULT_DIALECT, Dialect, load_dialect, parse_version
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.serial import SerialFaultHook
 from servobench.sim_backend.faults.spec import FaultPlan, parse_plan
+from servobench.sim_backend.servers.odrive_firmware import (
+    DEFAULT_VERSION,
+    FEEDBACK,
+    OdriveFirmware,
+)
 
 #: Baud rate announced and emulated when the options name none [bit/s].
 DEFAULT_BAUD = 115200
@@ -72,6 +89,8 @@ SPIN_S = 2e-4
 MAX_LINE_BYTES = 255
 #: DC bus voltage the simulated drive reports [V].
 SIM_VBUS_V = 24.0
+#: How often a port nobody has open is looked at for a client opening it [s].
+HANGUP_POLL_S = 0.01
 
 
 def parse_faults(spec: str) -> FaultPlan:
@@ -90,6 +109,8 @@ class AsciiDriveServer:
         What to understand and how to answer.
     faults : FaultPlan or FaultInjector, optional
         Faults to inject, by feedback-query number (see module doc).
+    firmware : tuple of int, optional
+        Release of the dialect's ``firmware_model`` to emulate (default: the latest modelled).
     """
 
     def __init__(
@@ -97,9 +118,20 @@ class AsciiDriveServer:
         device: SimulatedDevice,
         dialect: Dialect,
         faults: FaultPlan | FaultInjector | None = None,
+        firmware: tuple[int, ...] | None = None,
     ) -> None:
         self.device = device
         self.dialect = dialect
+        self.firmware: OdriveFirmware | None = None
+        if dialect.firmware_model == "odrive-0.5":
+            try:
+                self.firmware = OdriveFirmware(
+                    device, firmware or DEFAULT_VERSION, "set_cycle" in dialect.extensions
+                )
+            except ValueError as err:
+                raise DriveConfigError(str(err)) from None
+        elif firmware is not None:
+            raise DriveConfigError(f"dialect {dialect.name!r} names no firmware model to version")
         if not isinstance(faults, FaultInjector):
             faults = FaultInjector(device, faults or FaultPlan("serial"))
         self.injector = faults
@@ -126,11 +158,22 @@ class AsciiDriveServer:
             "cycle_readback": lambda: [self.dialect.reply("cycle", period_s=self.device.cycle_s)],
         }
 
+    def begin_session(self) -> None:
+        """A client opened the port: the drive starts the session clean."""
+        self.device.begin_session()
+
     def handle(self, raw: bytes) -> bytes:
         """Reply bytes (possibly several lines, possibly none) to one request line."""
         req = decode_request(raw)
-        if not req.valid or not req.body:
-            return b""  # bad checksum, not ASCII, or empty: ignored, as the ODrive does
+        if not req.valid:
+            return b""  # bad checksum or not ASCII: ignored, as the ODrive does
+        if self.firmware is not None:
+            out = self.firmware.handle(req.body)
+            if out is FEEDBACK:
+                return self._feedback_bytes(req.checksummed)
+            return self._encode(out, req.checksummed)  # type: ignore[arg-type]
+        if not req.body:
+            return b""
         d = self.dialect
         parsed = d.match_request(req.body)
         if parsed is None:
@@ -260,20 +303,28 @@ class UartClock:
 class PtyPort:
     """A pseudo-terminal pair in raw mode: the server uses :attr:`master`, clients open :attr:`path`.
 
-    The slave end stays open here too, so a client may close and reopen the
-    port (a killed host, then a fresh one) without the master seeing a hang-up.
+    The client end is not held open here: while no client has it open the
+    master sees a hang-up (:meth:`hung_up`), so the server knows when a
+    client opens the port (a new host session). A client may close and
+    reopen it at any time (a killed host, then a fresh one).
     """
 
     def __init__(self) -> None:
-        self.master, self._slave = os.openpty()
-        tty.setraw(self._slave)
+        self.master, slave = os.openpty()
+        tty.setraw(slave)
         os.set_blocking(self.master, False)
-        self.path = os.ttyname(self._slave)
+        self.path = os.ttyname(slave)
+        os.close(slave)
+        self._hangup = select.poll()
+        self._hangup.register(self.master, 0)  # POLLHUP is always reported
+
+    def hung_up(self) -> bool:
+        """True while no client has the port open."""
+        return bool(self._hangup.poll(0))
 
     def close(self) -> None:
-        for fd in (self.master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        with contextlib.suppress(OSError):
+            os.close(self.master)
 
     def __enter__(self) -> PtyPort:
         return self
@@ -282,11 +333,40 @@ class PtyPort:
         self.close()
 
 
-def pump(fd: int, server: AsciiDriveServer, clock: UartClock, stop: threading.Event) -> None:
-    """Read request lines from ``fd``, answer them at UART pace, until ``stop`` is set."""
+def _lines(data: bytes, ends: bytes) -> list[tuple[int, bytes | None]]:
+    """``(index of the line end, text before it)`` for each line end in ``data``; the rest last.
+
+    The rest (no line end after it) comes as ``(-1, bytes)``.
+    """
+    out: list[tuple[int, bytes | None]] = []
+    start = 0
+    for i, byte in enumerate(data):
+        if byte in ends:
+            out.append((i, data[start:i]))
+            start = i + 1
+    out.append((-1, data[start:]))
+    return out
+
+
+def pump(
+    fd: int,
+    server: AsciiDriveServer,
+    clock: UartClock,
+    stop: threading.Event,
+    port: PtyPort | None = None,
+) -> None:
+    """Read request lines from ``fd``, answer them at UART pace, until ``stop`` is set.
+
+    With ``port``, a client opening it begins a host session (:meth:`AsciiDriveServer.begin_session`).
+    """
     pending = bytearray()
     dropping = False  # inside an over-long line: ignore up to its end
+    ends = server.dialect.line_ends
+    hung = port is not None  # no client has the port open (yet)
     while not stop.is_set():
+        if hung and port is not None and not port.hung_up():
+            hung = False  # a client opened the port: a new host session
+            server.begin_session()
         ready, _, _ = select.select([fd], [], [], STOP_POLL_S)
         if not ready:
             continue
@@ -295,24 +375,26 @@ def pump(fd: int, server: AsciiDriveServer, clock: UartClock, stop: threading.Ev
         except BlockingIOError:
             continue
         except OSError as err:
-            if err.errno != errno.EIO:  # EIO: no client has the port open
+            if err.errno != errno.EIO:  # EIO: no client has the port open, nothing left to read
                 raise
-            time.sleep(STOP_POLL_S)
+            if not hung:
+                hung, dropping = True, False
+                pending.clear()
+            stop.wait(HANGUP_POLL_S)
             continue
+        if hung and port is not None:  # lines of a client that came and went between two looks
+            hung = False
+            server.begin_session()
         start = clock.receive(len(data), time.monotonic())
-        j = 0
-        while j < len(data):
-            ends = [k for k in (data.find(b"\n", j), data.find(b"\r", j)) if k >= 0]
-            if not ends:
-                pending += data[j:]
+        for k, text in _lines(data, ends):
+            if k < 0:
+                pending += text
                 if len(pending) > MAX_LINE_BYTES:
                     pending.clear()
                     dropping = True
                 break
-            k = min(ends)
-            line = bytes(pending) + data[j:k]
+            line = bytes(pending) + text
             pending.clear()
-            j = k + 1
             if dropping or len(line) > MAX_LINE_BYTES:
                 dropping = False
                 continue
@@ -334,16 +416,18 @@ def serve(
     """Serve ``device`` on a pty until ``stop`` is set (see :mod:`servobench.sim_backend.servers.serve`).
 
     Options used: ``dialect`` (name or TOML file, default ``odrive``), ``baud``
-    (emulated bit rate, default 115200) and ``fault`` (``;``-separated
+    (emulated bit rate, default 115200), ``firmware`` (release of the
+    dialect's firmware model, e.g. ``0.5.1``) and ``fault`` (``;``-separated
     ``KIND@N`` specs).
     """
     dialect_ref = options.get("dialect") or DEFAULT_DIALECT
     dialect = load_dialect(dialect_ref)
     baud = int(options.get("baud") or DEFAULT_BAUD)
     clock = UartClock(baud)
+    firmware = parse_version(options["firmware"]) if options.get("firmware") else None
     if injector is None:
         injector = FaultInjector(device, parse_faults(options.get("fault") or ""))
-    server = AsciiDriveServer(device, dialect, injector)
+    server = AsciiDriveServer(device, dialect, injector, firmware)
     with PtyPort() as port:
         announce(f"serial://{port.path}?baud={baud}&dialect={quote(dialect_ref, safe='/')}")
-        pump(port.master, server, clock, stop)
+        pump(port.master, server, clock, stop, port)
