@@ -125,6 +125,9 @@ def test_end_to_end_on_sim(tmp_path, config, drives, capsys):
     assert rc == 0, captured.err
     model = check_record(out)
     assert model["units"]["B"] == "N m s/rad" and model["units"]["coulomb_pos"] == "N m"  # sim:// is rotary SI
+    diag = model["commissioning"]["diagnose"]  # with the diagnosis' verdict (issue 12)
+    assert diag["verdict"] in ("explained", "unexplained") and diag["noise_floor_percent"] > 0
+    assert f"verdict: {diag['verdict']} -- " in (out / "report.html").read_text()
     assert "cannot record bus traffic" in captured.out and "continuing without" in captured.out
     assert len(drives) == 2  # read-only check, then the connection with the limits
     assert drives[1].limits.max_command == 5.0 and drives[1].limits.max_velocity == 20.0

@@ -43,3 +43,22 @@ def test_emps_viscous_asymmetry_has_the_published_direction_and_size(result):
     assert p["B_pos"] < p["B_neg"]
     assert p["B_pos"] == pytest.approx(166.7, rel=0.15)
     assert p["B_neg"] == pytest.approx(240.4, rel=0.15)
+
+
+def test_emps_text_gives_one_set_of_numbers(result):
+    """Issue 12: one line said ``B_pos=158.6, B_neg=231.9`` and the next ``B+ = 163.8``. Every
+    figure printed is the final model's; the evidence carries only percentages."""
+    import re
+
+    from servobench.bench.report.diagnose import summary_lines
+
+    text = "\n".join(summary_lines(result))
+    B, dB = result.base["B"], result.final.effects["viscous_asymmetry"]["dB"]
+    assert [float(x) for x in re.findall(r"B_pos=([-\d.e+]+)", text)] == [pytest.approx(B + dB, rel=1e-3)]
+    assert [float(x) for x in re.findall(r"B_neg=([-\d.e+]+)", text)] == [pytest.approx(B - dB, rel=1e-3)]
+    assert "B+" not in text and "B-" not in text
+    for evidence in (e.evidence for e in result.effects):
+        assert all(n.endswith("%") for n in re.findall(r"\d[\d.]*%?", evidence)), evidence
+    url = dict(kv.split("=") for kv in text.splitlines()[-1].split("?", 1)[1].split("&"))
+    assert float(url["B"]) == pytest.approx(B, rel=1e-9)
+    assert float(url["visc_asym"]) == pytest.approx(dB, rel=1e-9)

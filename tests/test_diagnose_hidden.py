@@ -59,6 +59,8 @@ def run_case(effect: str | None, folder: str) -> dict:
         "after": d.gap_after,
         "truth": case.effects,
         "columns": sorted(("t_host",) if "t_host" in log.runs[0].extra else ()),
+        "families": [f.as_dict() for f in d.families],
+        "coulomb_truth": (case.params.coulomb_pos, case.params.coulomb_neg),
     }
 
 
@@ -103,3 +105,17 @@ def test_the_streamed_case_went_through_the_drive_and_runner(results):
 def test_named_parameters_are_close_to_the_hidden_ones(results, effect, parameter, rel):
     r = results[effect]
     assert r["parameters"][0][parameter] == pytest.approx(r["truth"][effect][parameter], rel=rel)
+
+
+def test_a_named_offset_is_reported_with_the_coulomb_levels_as_one_family(results):
+    r = results["offset"]
+    assert [f["parameters"] for f in r["families"]] == [["offset", "coulomb_pos", "coulomb_neg"]]
+    family = r["families"][0]
+    offset = r["parameters"][0]["offset"]
+    lo, hi = family["offset_range"]
+    assert lo <= offset <= hi and "one family" in family["sentence"]
+    # What the data fix, whatever the split: the friction net of the offset, as hidden.
+    fcp, fcn = r["coulomb_truth"]
+    o = r["truth"]["offset"]["offset"]
+    assert family["net_pos"] == pytest.approx(fcp - o, rel=0.1)
+    assert family["net_neg"] == pytest.approx(fcn + o, rel=0.1)

@@ -159,3 +159,77 @@ def test_motion_in_one_direction_only_is_diagnosed_without_inventing_effects():
         runs.append(RunData(number, np.arange(n) / FS, u * number, v, x))
     d = diagnose(make_log(runs))
     assert d.effects == () and d.base["M"] == pytest.approx(0.1, rel=0.02)
+
+
+def test_an_offset_and_shifted_coulomb_levels_are_one_family_the_simulator_cannot_tell_apart():
+    """Every member of the family the diagnosis reports moves the simulated axis exactly alike,
+    the ends of its offset range included; a wider shift is another plant."""
+    from servobench.bench.diagnose.families import offset_family
+
+    base = {"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.3}
+    family = offset_family(base, {"offset": {"offset": 0.1}}, "N")
+    assert family.parameters == ("offset", "coulomb_pos", "coulomb_neg")
+    assert (family.net_pos, family.net_neg) == pytest.approx((0.4, 0.4))
+    assert "one family" in family.sentence and "0.1 N" in family.sentence
+    u = binary(1000, 9, 1.5)
+
+    def velocity(offset: float) -> np.ndarray:
+        s = offset - 0.1
+        p = PlantParams(  # at the ends of the range a level reaches zero
+            M=0.1,
+            B=1.0,
+            coulomb_pos=round(0.5 + s, 12),
+            coulomb_neg=round(0.3 - s, 12),
+            effects={"offset": {"offset": offset}},
+        )
+        return plant_simulate(u, FS, p, np.random.default_rng(0))[0]
+
+    reference = velocity(0.1)
+    lo, hi = family.offset_range
+    for offset in (lo, 0.0, 0.25, hi):
+        np.testing.assert_allclose(velocity(offset), reference, atol=1e-9)
+    with pytest.raises(Exception, match="coulomb"):
+        velocity(hi + 0.05)  # beyond the range a Coulomb level would be negative
+
+
+def test_unequal_coulomb_levels_are_reported_as_a_family_equal_ones_are_not():
+    from servobench.bench.diagnose.families import offset_family
+
+    equal = {"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.45}
+    assert offset_family(equal, {}, "N") is None
+    family = offset_family({**equal, "coulomb_neg": 0.2}, {}, "N")
+    assert family.offset_range == pytest.approx((-0.5, 0.2))
+    assert "equal levels of 0.35 N plus a constant force of -0.15 N" in family.sentence
+
+
+@pytest.mark.parametrize(
+    ("seed", "shape", "knots"),
+    [(1, "line", (2, 2)), (2, "line", (2, 2)), (1, "wiggle", (5, 8)), (3, "wiggle", (5, 8))],
+)
+def test_position_friction_s_knot_count_is_chosen_on_held_out_samples(seed, shape, knots, tmp_path):
+    """A friction that rises linearly along the travel gets the two knots of a line; one that
+    rises and falls through six knots gets about as many. Seeds 1 and 2 of the line drew six
+    and seven knots under a rule that kept any knot gaining 2% of the held-out error."""
+    from dataclasses import replace
+
+    from servobench.bench.diagnose.screening import screen_input
+    from servobench.bench.logio import read_log
+    from servobench.bench.testing.hidden_effects import (
+        position_friction_params,
+        random_case,
+        write_case_log,
+    )
+    from servobench.sim_backend.physics.effects import position_friction
+
+    rng = np.random.default_rng(seed)
+    case = random_case("position_friction", rng)
+    p, b = case.effects["position_friction"], case.params
+    fc = 0.5 * (b.coulomb_pos + b.coulomb_neg)
+    values = [0.0, fc] if shape == "line" else fc * np.array([0, 0.8, -0.1, 0.9, 0.0, 1.0])
+    effects = {"position_friction": position_friction_params(p["x_from"], p["x_to"], values)}
+    case = replace(case, params=b.with_changes(effects=effects), effects=effects)
+    data = prepare(read_log(write_case_log(case, tmp_path / "log.csv", rng)))
+    truth = Candidate({"M": b.M, "B": b.B, "coulomb_pos": b.coulomb_pos, "coulomb_neg": b.coulomb_neg})
+    s = position_friction.screen(screen_input(data, truth, simulate(data, truth)))
+    assert knots[0] <= s.guess["knots"] <= knots[1]
+    assert all(a["knots"] > s.guess["knots"] for a in s.alternatives)  # more go to simulation

@@ -22,6 +22,7 @@ LIBRARY = (
     "backlash",
     "deadzone",
     "quantization",
+    "position_friction",
 )
 
 
@@ -115,3 +116,19 @@ def test_screening_result_is_frozen():
     s = Screening(0.1, {"a": 1.0}, {"a": (0.0, 2.0)}, "found it")
     with pytest.raises(AttributeError):
         s.score = 0.5  # type: ignore[misc]
+
+
+def test_position_friction_travels_through_its_sim_url_keys():
+    url = (
+        "sim://?fc_pos=0.5&fc_neg=0.4&posfric_from=0&posfric_to=2&posfric_knots=3"
+        "&posfric_0=0&posfric_1=0.2&posfric_2=0.5"
+    )
+    p = plant_from_url(url).effects["position_friction"]
+    assert (p["x_from"], p["x_to"], p["knots"]) == (0.0, 2.0, 3.0)
+    assert [p[f"f{i}"] for i in range(8)] == [0.0, 0.2, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0]
+    query = effects.to_query({"position_friction": p})
+    assert effects.effects_from_query(query) == {"position_friction": p}
+    with pytest.raises(UsageError, match="posfric_4 is set but posfric_knots = 3"):
+        from servobench.sim_backend.physics.plant import Plant
+
+        Plant(plant_from_url(url + "&posfric_4=0.1"))

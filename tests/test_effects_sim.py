@@ -208,3 +208,70 @@ def test_sample_by_sample_equals_one_block(effects):
     pairs = [single.step_block(u[k : k + 1], DT) for k in range(u.size)]
     assert_allclose(np.concatenate([a for a, _ in pairs]), v_block, atol=1e-12)
     assert_allclose(np.concatenate([b for _, b in pairs]), x_block, atol=1e-12)
+
+
+def _posfric(values, x_from=-0.2, x_to=0.6) -> dict:
+    out = {"x_from": x_from, "x_to": x_to, "knots": float(len(values))}
+    out.update({f"f{i}": float(v) for i, v in enumerate(values)})
+    return {"position_friction": out}
+
+
+def test_position_friction_at_zero_is_the_exact_base_plant():
+    u = command()
+    v0, x0, _ = simulate_coulomb(u, DT, BASE)
+    v, x, _ = run(_posfric([0.0, 0.0, 0.0, 0.0]), u)
+    assert_allclose(v, v0, atol=1e-12)
+    assert_allclose(x, x0, atol=1e-12)
+
+
+def test_a_flat_position_friction_is_the_exact_plant_with_both_levels_raised():
+    u = command()
+    raised = BASE.with_changes(
+        coulomb_pos=BASE.coulomb_pos + 0.2, coulomb_neg=BASE.coulomb_neg + 0.2
+    )
+    v0, x0, _ = simulate_coulomb(u, DT, raised)
+    v, x, _ = run(_posfric([0.2, 0.2, 0.2]), u)
+    assert_allclose(v, v0, atol=1e-9)
+    assert_allclose(x, x0, atol=1e-9)
+
+
+def test_position_friction_matches_a_fine_step_reference_with_scipy_s_spline():
+    """Against explicit Euler with tiny steps and the natural cubic spline built by another scipy
+    routine (B-spline interpolation), held at its end values outside the knots."""
+    from scipy.interpolate import make_interp_spline
+
+    u, sub = command(n=800), 200
+    _, x_base, _ = simulate_coulomb(u, DT, BASE)
+    values, x0, x1 = [0.0, 0.35, -0.15, 0.5, 0.2], float(x_base.min()), float(x_base.max())
+    spline = make_interp_spline(np.linspace(x0, x1, 5), values, k=3, bc_type="natural")
+
+    def extra(x):
+        return float(spline(min(max(x, x0), x1)))
+
+    h = DT / sub
+    v = x = 0.0
+    out = []
+    for uk in u:
+        out.append(v)
+        for _ in range(sub):
+            g = extra(x)
+            fcp, fcn = BASE.coulomb_pos + g, BASE.coulomb_neg + g
+            if v == 0.0 and -fcn <= uk <= fcp:
+                continue
+            d = (1 if uk > 0 else -1) if v == 0.0 else (1 if v > 0 else -1)
+            vn = v + h * (uk - (fcp if d > 0 else -fcn) - BASE.B * v) / BASE.M
+            if v != 0.0 and (vn > 0) != (v > 0):
+                vn = 0.0
+            x += h * vn
+            v = vn
+    v_ref = np.array(out)
+    v_sim, x_sim, _ = run(_posfric(values, x0, x1), u)
+    assert np.ptp(x_sim) > 0.5 * (x1 - x0)  # the axis crosses most of the knots
+    assert np.sqrt(np.mean((v_sim - v_ref) ** 2)) < 0.01 * np.std(v_ref)
+
+
+def test_position_friction_below_zero_is_refused_when_the_model_is_built():
+    from servobench.errors import UsageError
+
+    with pytest.raises(UsageError, match="below zero along the travel"):
+        build_model(BASE.with_changes(effects=_posfric([0.0, -0.6, 0.0])))

@@ -60,6 +60,8 @@ def test_every_listed_effect_key_switches_its_effect_on_in_a_sim_drive(tmp_path)
             query[k["key"]] = value
         if e["name"] == "stribeck":
             query["stribeck_fs"] = 1.0  # at least the Coulomb levels
+        if e["name"] == "position_friction":
+            query.update(posfric_knots=2, posfric_to=1.5)  # a whole count, beyond posfric_from
         url = "sim://?" + "&".join(f"{key}={v}" for key, v in query.items())
         with open_drive(url) as drive:
             assert e["name"] in drive.device.params.effects, (e["name"], url)

@@ -1,15 +1,23 @@
-"""``servobench diagnose LOG [--json] [--out DIR]``: name the effect the model lacks.
+"""``servobench diagnose LOG [--json] [--out DIR]``: name the effect the model lacks, and say
+whether the model then explains the data.
 
 Identifies the base model (linear block + Coulomb per direction), compares
 it with the measured velocity, looks for the signatures of the library's
-effects (:mod:`servobench.sim_backend.physics.effects`), adds what pays on held-out data and
-reports the velocity gap before and after. ``--json`` prints exactly one JSON
-object; ``--out DIR`` writes ``comparison.csv``, plots and ``report.md``.
+effects (:mod:`servobench.sim_backend.physics.effects`), adds what pays on held-out data,
+and judges the final model against the noise floor (``explained`` or
+``unexplained``, and where the residual lives). The text output leads with
+that verdict; ``--json`` prints exactly one JSON object; ``--out DIR`` writes
+``report.md``, ``model.json`` (loadable by ``servobench validate``),
+``comparison.csv`` and the figures. The exit status is 0 whatever the
+verdict. On a terminal, stderr shows the stage and the elapsed time while it runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from servobench.bench.commands.log_args import add_log_arguments, read_log_of
 
@@ -17,7 +25,11 @@ from servobench.bench.commands.log_args import add_log_arguments, read_log_of
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_log_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    p.add_argument("--out", metavar="DIR", help="write comparison.csv, plots and report.md here")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="write report.md, model.json, comparison.csv and the figures here",
+    )
     p.add_argument(
         "--horizon",
         type=float,
@@ -27,26 +39,45 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+@contextmanager
+def stage_progress(console=None) -> Iterator[Callable[[str], None]]:
+    """Yield ``say(message)``: on a terminal's stderr, a spinner with the stage and the elapsed
+    time, and at the end one line with the total time; nothing when stderr is not a terminal
+    (an error then stays the one line on stderr)."""
+    from rich.console import Console
+
+    console = console or Console(stderr=True)
+    if not console.is_terminal:
+        yield lambda _m: None
+        return
+    t0 = time.monotonic()
+    with console.status("diagnose: reading the log") as status:
+
+        def spin(message: str) -> None:
+            status.update(f"diagnose [{time.monotonic() - t0:4.0f} s]: {message}")
+
+        yield spin
+    console.print(f"diagnose: done in {time.monotonic() - t0:.0f} s", highlight=False)
+
+
 def run(args: argparse.Namespace) -> int:
     import json
 
     from servobench.bench.diagnose.workflow import diagnose
-    from servobench.bench.report.diagnose import to_json, write_report
+    from servobench.bench.report.diagnose import summary_lines, to_json, write_report
 
-    log = read_log_of(args)
-    result = diagnose(log, horizon_s=args.horizon)
-    report = write_report(result, args.out) if args.out else None
+    with stage_progress() as say:
+        log = read_log_of(args)
+        result = diagnose(log, horizon_s=args.horizon, progress=say)
+        if args.out:
+            say("writing the report")
+        report = write_report(result, args.out) if args.out else None
     if args.json:
         print(json.dumps(to_json(result)))
         return 0
-    print(f"comparison: {result.data.comparison}")
-    print(f"velocity gap: {result.gap_before:.3g}% before, {result.gap_after:.3g}% after")
-    if not result.effects:
-        print("no effect named: nothing in the library pays on held-out data")
-    for i, e in enumerate(result.effects, 1):
-        params = ", ".join(f"{k}={v:.4g}" for k, v in e.parameters.items())
-        print(f"{i}. {e.name} ({params})")
-        print(f"   {e.evidence}")
+    for line in summary_lines(result):
+        print(line)
     if report is not None:
         print(f"report: {report}")
+        print(f"model: {report.parent / 'model.json'}")
     return 0

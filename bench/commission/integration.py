@@ -187,11 +187,13 @@ def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> Diagn
     note = "no effect beyond the base model pays on held-out data" if not d.effects else "; ".join(
         f"{e.name}: {e.evidence}" for e in d.effects
     )
+    note = f"{d.verdict.headline()}. {note}"  # the verdict first, as diagnose's own outputs
     return DiagnoseOutcome(
         effects=tuple(e.name for e in d.effects),
         gap_before=float(d.gap_before),
         gap_after=float(d.gap_after),
         plots=plots,
-        details={k: data[k] for k in ("effects", "gap_before", "gap_after", "comparison", "findings") if k in data},
+        details={k: data[k] for k in ("verdict", "noise_floor_percent", "unexplained_signature", "effects",
+                                      "gap_before", "gap_after", "comparison", "findings") if k in data},  # fmt: skip
         note=note,
     )

@@ -7,9 +7,17 @@ log) for open-loop logs, else -- or when the identifier gives up on the log --
 an equation-error (inverse-dynamics) least-squares fit on the moving samples.
 Either is only a start: :func:`fit_base` refits it on simulation error like
 every candidate.
+
+Viscous friction cannot be negative, but the best linear-plus-Coulomb fit of
+an axis whose friction weakens with speed (a strong Stribeck curve) has a
+negative, or vanishing, ``B``: that is the effect's signature, not a reason to
+stop. The start then takes a small positive ``B`` and says why
+(:attr:`BaseStart.note`); the search looks for the effect.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -21,12 +29,23 @@ from servobench.bench.identify.auto import identify_data
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.effects.spec import base_fit
 
+#: Smallest starting ``B``, as a share of rms(command) / rms(velocity) on the moving samples:
+#: below it the viscous term is lost in the friction and the fit is called velocity-weakening.
+B_MIN_SHARE = 0.02
 
-def equation_error_base(data: DiagnosisData) -> dict[str, float]:
-    """``M, B, coulomb_pos, coulomb_neg`` by equation error.
 
-    ``u = M a + B v + coulomb_pos [v>0] - coulomb_neg [v<0]`` on the moving samples.
-    """
+@dataclass(frozen=True)
+class BaseStart:
+    """Starting base model ``M, B, coulomb_pos, coulomb_neg``, where it came from, and a note
+    when the best fit was not physical (empty otherwise)."""
+
+    base: dict[str, float]
+    source: str
+    note: str = ""
+
+
+def _scale(data: DiagnosisData) -> tuple[float, dict[str, float]]:
+    """``rms(u) / rms(v)`` on the moving samples, and the unconstrained equation-error fit."""
     ctx = screen_input(
         data,
         Candidate({"M": 1.0, "B": 1.0, "coulomb_pos": 0.0, "coulomb_neg": 0.0}),
@@ -35,33 +54,72 @@ def equation_error_base(data: DiagnosisData) -> dict[str, float]:
     if int(ctx.moving.sum()) < 10:
         raise IdentificationError("too few samples in motion to identify the base model")
     coef, _ = base_fit(ctx)
-    M, B, fcp, fcn = (float(c) for c in coef)
-    if not (np.isfinite(coef).all() and M > 0 and B > 0):
+    m = ctx.moving
+    u, v = ctx.cat("u_f")[m], ctx.cat("v_f")[m]
+    scale = float(np.sqrt(np.mean(u * u)) / max(np.sqrt(np.mean(v * v)), 1e-300))
+    fit = dict(zip(("M", "B", "coulomb_pos", "coulomb_neg"), (float(c) for c in coef), strict=True))
+    return scale, fit
+
+
+def physical(fit: dict[str, float], scale: float, source: str) -> BaseStart:
+    """A physical start from a fit: ``B`` at least :data:`B_MIN_SHARE` of ``scale``, Coulomb >= 0.
+
+    Raises
+    ------
+    IdentificationError
+        ``M`` is not positive (or the fit not finite): the log does not determine the inertia.
+    """
+    M, B = fit["M"], fit["B"]
+    if not (np.isfinite(list(fit.values())).all() and M > 0):
         raise IdentificationError(
-            f"the base fit is not physical (M = {M:.3g}, B = {B:.3g}): too little excitation?"
+            f"the base fit is not physical (M = {M:.3g}, B = {B:.3g}): too little excitation? "
+            "Excite with larger, faster-changing commands"
         )
-    return {"M": M, "B": B, "coulomb_pos": max(fcp, 0.0), "coulomb_neg": max(fcn, 0.0)}
-
-
-def initial_base(data: DiagnosisData) -> dict[str, float]:
-    """Starting base model: the project's identifier on open-loop logs, else equation error."""
-    if data.horizon_s is not None:  # closed loop: the identifier assumes open-loop runs
-        return equation_error_base(data)
-    try:
-        model = identify_data(data.prepared).model
-    except ValueError:  # IdentificationError, or a plant the identifier could not simulate
-        return equation_error_base(data)
+    floor = B_MIN_SHARE * scale
+    note = ""
+    if floor > B:
+        note = (
+            f"the best linear-plus-Coulomb fit has B = {B:.3g} (M = {M:.3g}): viscous friction "
+            f"cannot be {'negative' if B < 0 else 'that small'}; friction that weakens with speed "
+            f"(a Stribeck curve) does this, so the base model starts from B = {floor:.3g} and the "
+            "search looks for it"
+        )
     base = {
+        "M": M,
+        "B": max(B, floor),
+        "coulomb_pos": max(fit["coulomb_pos"], 0.0),
+        "coulomb_neg": max(fit["coulomb_neg"], 0.0),
+    }
+    return BaseStart(base, source, note)
+
+
+def initial_base(data: DiagnosisData) -> BaseStart:
+    """Starting base model: the project's identifier on open-loop logs, else equation error."""
+    scale, ee = _scale(data)
+    equation_error = "equation error (inverse dynamics) on the moving samples"
+    if data.horizon_s is not None:  # closed loop: the identifier assumes open-loop runs
+        return physical(ee, scale, equation_error)
+    try:
+        result = identify_data(data.prepared)
+    except ValueError:  # IdentificationError, or a plant the identifier could not simulate
+        return physical(ee, scale, equation_error)
+    model = result.model
+    fit = {
         "M": float(model.M),
         "B": float(model.B),
-        "coulomb_pos": max(float(model.coulomb_pos), 0.0),
-        "coulomb_neg": max(float(model.coulomb_neg), 0.0),
+        "coulomb_pos": float(model.coulomb_pos),
+        "coulomb_neg": float(model.coulomb_neg),
     }
-    if not (base["M"] > 0 and base["B"] > 0):
-        return equation_error_base(data)
-    return base
+    if not fit["M"] > 0:
+        return physical(ee, scale, equation_error)
+    start = physical(fit, scale, f"servobench identify ({result.method})")
+    if not start.note and ee["B"] < B_MIN_SHARE * scale:
+        # The identifier may keep B positive by construction: the free fit tells.
+        start = BaseStart(start.base, start.source, physical(ee, scale, equation_error).note)
+    return start
 
 
-def fit_base(data: DiagnosisData) -> FitResult:
+def fit_base(data: DiagnosisData, start: BaseStart | None = None) -> FitResult:
     """The base model refitted on simulation error (training samples)."""
-    return refit(data, Candidate(initial_base(data)), bounds={})
+    start = initial_base(data) if start is None else start
+    return refit(data, Candidate(start.base), bounds={})

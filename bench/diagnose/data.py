@@ -16,12 +16,18 @@ data:
 
 Held-out samples: every third of ten blocks per run (blocks 2, 5, 8) is kept
 out of every fit and decides whether a term pays.
+
+Fitting windows: refits compare on at most :data:`REFIT_MAX_SAMPLES` training
+samples. A long open-loop log (a default SIDBE log holds 64,000 samples) is
+fitted on windows of :data:`FIT_WINDOW_S` restarted from the measured state,
+an evenly spread subset of them, while every gap the diagnosis reports is
+still that of the comparison above, over all samples.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +35,7 @@ from servobench.bench.identify.dataset import Dataset, Segment
 from servobench.bench.identify.dataset import prepare as prepare_log
 from servobench.bench.logio import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
+from servobench.units import SignalUnits
 
 #: Prediction horizon of closed-loop logs [s].
 DEFAULT_HORIZON_S = 0.5
@@ -37,6 +44,8 @@ BLOCKS = 10
 HELD_OUT_BLOCKS = (2, 5, 8)
 #: Most training samples a refit simulates (windowed comparisons subsample windows).
 REFIT_MAX_SAMPLES = 8000
+#: Length of the fitting windows of long open-loop logs [s].
+FIT_WINDOW_S = 2.0
 #: Fewest samples per run.
 MIN_RUN_SAMPLES = 50
 
@@ -57,6 +66,10 @@ class DiagnosisData:
         Per run, the sample indices where the model restarts from the measured state.
     sigma_v : float
         White velocity-sensor noise [units/s] (see :func:`noise_std`).
+    fit_starts : tuple of ndarray of int
+        Per run, the restarts of the fitting windows (``starts`` unless the log is long).
+    units : SignalUnits
+        Units of ``u``, ``v`` and ``x`` from the log's metadata.
     """
 
     prepared: Dataset
@@ -64,6 +77,12 @@ class DiagnosisData:
     held_out: tuple[np.ndarray, ...]
     starts: tuple[np.ndarray, ...]
     sigma_v: float = 0.0
+    fit_starts: tuple[np.ndarray, ...] = ()
+    units: SignalUnits = field(default_factory=SignalUnits)
+
+    def __post_init__(self) -> None:
+        if not self.fit_starts:
+            object.__setattr__(self, "fit_starts", self.starts)
 
     @property
     def segments(self) -> tuple[Segment, ...]:
@@ -85,6 +104,11 @@ class DiagnosisData:
     def derived(self) -> bool:
         """Velocity derived from position."""
         return self.prepared.derived
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """How the log was prepared, and whether it is complete (:class:`Dataset` notes)."""
+        return self.prepared.notes
 
     @property
     def comparison(self) -> str:
@@ -128,7 +152,30 @@ def prepare(log: ExperimentLog, horizon_s: float | None = None) -> DiagnosisData
     plans = [_plan(len(s), horizon_s, prepared.fs_hz) for s in prepared.segments]
     held_out = tuple(held for held, _ in plans)
     starts = tuple(start for _, start in plans)
-    return DiagnosisData(prepared, horizon_s, held_out, starts, noise_std(prepared))
+    sigma = noise_std(prepared)
+    _check_motion(prepared, sigma)
+    fit_starts = starts
+    if horizon_s is None and sum(len(s) for s in prepared.segments) > REFIT_MAX_SAMPLES:
+        step = max(MIN_RUN_SAMPLES, int(round(FIT_WINDOW_S * prepared.fs_hz)))
+        fit_starts = tuple(np.arange(0, len(s), step) for s in prepared.segments)
+    units = SignalUnits.from_metadata(log.metadata)
+    return DiagnosisData(prepared, horizon_s, held_out, starts, sigma, fit_starts, units)
+
+
+#: A run moves when its velocity's spread exceeds this multiple of the sensor noise.
+MOTION_OVER_NOISE = 3.0
+
+
+def _check_motion(prepared: Dataset, sigma_v: float) -> None:
+    """Raise when no run moves beyond the sensor noise: there is nothing to diagnose."""
+    if sigma_v <= 0:
+        return
+    spread = max(float(np.std(s.v)) for s in prepared.segments)
+    if spread < MOTION_OVER_NOISE * sigma_v:
+        raise IdentificationError(
+            f"the axis does not move beyond the sensor noise (velocity spread {spread:.3g}, "
+            f"noise {sigma_v:.3g}): raise the command amplitude above the breakaway friction"
+        )
 
 
 def _plan(n: int, horizon_s: float | None, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from servobench.bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
-from servobench.bench.diagnose.simulate import Candidate, Window, gap_percent, simulate, windows
+from servobench.bench.diagnose.simulate import (
+    Candidate,
+    Window,
+    gap_percent,
+    simulate,
+    thinned,
+    windows,
+)
 from servobench.errors import UsageError
 from servobench.sim_backend.physics import effects as library
 
@@ -65,8 +72,15 @@ class FitResult:
 
 
 def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitResult:
-    """Simulate a candidate on all windows and measure its gaps."""
-    v = tuple(simulate(data, cand))
+    """Simulate a candidate on all windows and measure its gaps (infinite for parameters the
+    simulator rejects)."""
+    try:
+        v = tuple(simulate(data, cand))
+    except UsageError:
+        inf = float("inf")
+        return FitResult(
+            cand, tuple(np.full(len(r), np.nan) for r in data.segments), inf, inf, inf, evaluations
+        )
     return FitResult(
         cand,
         v,
@@ -78,14 +92,9 @@ def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitR
 
 
 def training_windows(data: DiagnosisData) -> list[Window]:
-    """Windows that carry training samples, thinned to about :data:`REFIT_MAX_SAMPLES`."""
-    chosen = [w for w in windows(data) if not data.held_out[w[0]][w[1] : w[2]].all()]
-    total = sum(e - s for _, s, e in chosen)
-    if total > REFIT_MAX_SAMPLES and len(chosen) > 1:
-        keep = max(1, int(len(chosen) * REFIT_MAX_SAMPLES / total))
-        idx = np.unique(np.linspace(0, len(chosen) - 1, keep).round().astype(int))
-        chosen = [chosen[i] for i in idx]
-    return chosen
+    """Fitting windows that carry training samples, thinned to about :data:`REFIT_MAX_SAMPLES`."""
+    chosen = [w for w in windows(data, fit=True) if not data.held_out[w[0]][w[1] : w[2]].all()]
+    return thinned(chosen, REFIT_MAX_SAMPLES)
 
 
 class _Layout:

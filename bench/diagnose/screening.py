@@ -52,6 +52,7 @@ def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarra
         dict(cand.effects),
         moving,
         command_filter,
+        np.concatenate(data.held_out),
     )
 
 
@@ -62,13 +63,17 @@ def compatible(name: str, present: Iterable[str]) -> bool:
     return not any(name in group and present & (group - {name}) for group in EXCLUSIVE)
 
 
-def screen_all(ctx: ScreenInput, present: Iterable[str]) -> dict[str, Screening]:
-    """Screening of every library effect not yet in the model (and compatible with it)."""
+def screen_all(
+    ctx: ScreenInput, present: Iterable[str], effects: Iterable[str] | None = None
+) -> dict[str, Screening]:
+    """Screening of every library effect (of ``effects``, default all) not yet in the model
+    and compatible with it."""
     present = tuple(present)
+    allowed = library.names() if effects is None else tuple(effects)
     return {
         name: library.module(name).screen(ctx)
         for name in library.names()
-        if compatible(name, present)
+        if name in allowed and compatible(name, present)
     }
 
 

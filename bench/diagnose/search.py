@@ -3,20 +3,26 @@
 Each round screens every library effect against the current model's residual
 (signature score and a quick simulation of the guess), refits the most
 promising single additions and the pairs among them, and compares them on
-held-out samples. Pairs compete with singles so that two wrong terms that
-together mimic one missing effect (viscous plus drag for a Stribeck curve)
-do not win by greed: a pair is taken only when it beats the best single
-clearly, a single only when it beats the current model clearly. The loop
-stops when nothing pays, or when the model reaches the sensor-noise floor.
+held-out samples. A candidate *pays* when its held-out gap is :data:`MIN_GAIN`
+below the reference's and the gain is one the noise cannot produce
+(:data:`MIN_Z` standard deviations of what noise adds to it, :mod:`.evidence`). Pairs compete with
+singles so that two wrong terms that together mimic one missing effect
+(viscous plus drag for a Stribeck curve) do not win by greed: a pair is taken
+only when it pays against the best single, a single when it pays against the
+current model. Every candidate refitted carries the reason it was chosen or
+rejected (:class:`Tried`). The loop stops when nothing pays, or when the
+model reaches the sensor-noise floor.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.evidence import MIN_GAIN, MIN_Z, Payoff, payoff
 from servobench.bench.diagnose.refit import FitResult, evaluate, refit
 from servobench.bench.diagnose.screening import (
     QuickScore,
@@ -26,10 +32,9 @@ from servobench.bench.diagnose.screening import (
     screen_input,
 )
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects.spec import Screening
 
-#: Relative held-out improvement a term (or a pair over a single) must bring.
-MIN_GAIN = 0.15
 #: Singles refitted per round: the best quick guesses that beat the current model, and
 #: the best screening scores of at least MIN_SCORE.
 TOP_BY_QUICK = 2
@@ -39,11 +44,13 @@ MIN_SCORE = 0.05
 PAIR_POOL = 3
 #: Rounds of additions.
 MAX_ROUNDS = 3
-#: A gap within this factor of the noise floor leaves nothing to explain.
+#: A gap within this factor of the sensor-noise floor leaves nothing to explain.
 FLOOR_FACTOR = 1.25
 #: Pairs are tried only when the best single leaves more than this share of the
 #: unexplained (above-noise) residual energy.
 PAIR_BELOW = 0.8
+
+Progress = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -56,11 +63,32 @@ class Step:
 
 
 @dataclass(frozen=True)
-class SearchTrace:
-    """What each round tried: ``(names, held-out gap [%])`` per refitted candidate."""
+class Tried:
+    """A refitted candidate of one round: its held-out gap [%], whether it was chosen, and why."""
 
-    rounds: tuple[tuple[tuple[tuple[str, ...], float], ...], ...]
+    effects: tuple[str, ...]
+    gap_held_out: float
+    chosen: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round: the current model's held-out gap [%], the candidates refitted, and the
+    effects screened but not refitted ``(name, screening score, quick held-out gap [%])``."""
+
+    reference_gap: float
+    tried: tuple[Tried, ...]
+    not_refitted: tuple[tuple[str, float, float], ...]
+
+
+@dataclass(frozen=True)
+class SearchTrace:
+    """What each round tried, the sensor-noise floor [%] the stop rule used, why it stopped."""
+
+    rounds: tuple[Round, ...]
     noise_floor: float
+    stop: str
 
 
 def _explained(before: FitResult, after: FitResult, floor: float) -> float:
@@ -73,17 +101,18 @@ def _explained(before: FitResult, after: FitResult, floor: float) -> float:
 
 def _ablate(
     data: DiagnosisData, chosen: tuple[str, ...], fit: FitResult
-) -> tuple[tuple[str, ...], FitResult]:
+) -> tuple[tuple[str, ...], FitResult, list[str]]:
     """Drop new terms the fitted model does not need (it does as well on held-out data without)."""
-    kept = chosen
+    kept, dropped = chosen, []
     for name in chosen:
         cand = fit.candidate
         without = Candidate(dict(cand.base), {k: v for k, v in cand.effects.items() if k != name})
         trial = evaluate(data, without)
         if trial.gap_held_out * (1 - MIN_GAIN) <= fit.gap_held_out:
             kept = tuple(n for n in kept if n != name)
+            dropped.append(name)
             fit = trial
-    return kept, fit
+    return kept, fit, dropped
 
 
 @dataclass
@@ -123,61 +152,183 @@ def _pool(
     return pool + [n for n in by_score if screens[n].score >= MIN_SCORE and n not in pool]
 
 
+def _why_not(p: Payoff, against: str) -> str:
+    """Why a candidate does not pay against ``against`` (its reference)."""
+    if p.gain <= 0:
+        return f"no better than {against} ({p.reference_gap:.3g}%) on held-out data"
+    if p.gain < MIN_GAIN:
+        return (
+            f"only {100 * p.gain:.0f}% below {against} ({p.reference_gap:.3g}%) on held-out "
+            f"data; a term must bring {100 * MIN_GAIN:.0f}%"
+        )
+    return (
+        f"its held-out gain over {against} is within what the noise produces "
+        f"(its drop of the squared error is {p.z:.1f} noise standard deviations, "
+        f"{MIN_Z:g} needed)"
+    )
+
+
+def _decide(
+    data: DiagnosisData, current: FitResult, singles: dict[str, FitResult], pairs: dict
+) -> tuple[tuple[str, ...], FitResult | None, dict[tuple[str, ...], str]]:
+    """The round's choice, its fit, and the reason for every candidate's outcome."""
+    reasons: dict[tuple[str, ...], str] = {}
+    pays = {n: payoff(data, current, f) for n, f in singles.items()}
+    eligible = sorted((n for n in singles if pays[n].pays), key=lambda n: singles[n].gap_held_out)
+    for n in singles:
+        if not pays[n].pays:
+            reasons[(n,)] = _why_not(pays[n], "the current model")
+    best = eligible[0] if eligible else None
+    chosen, fit = ((best,), singles[best]) if best else ((), None)
+    reference = singles[best] if best else current
+    against = f"{best} alone" if best else "the current model"
+    for key in sorted(pairs, key=lambda k: pairs[k].gap_held_out):
+        p = payoff(data, reference, pairs[key])
+        if p.pays and len(chosen) < 2:  # the best pair that pays
+            chosen, fit = key, pairs[key]
+        elif p.pays:
+            reasons[key] = f"pays, but {'+'.join(chosen)} does better"
+        else:
+            reasons[key] = _why_not(p, against)
+    for n in eligible:
+        if (n,) != chosen:
+            reasons[(n,)] = f"pays, but {'+'.join(chosen)} does better ({fit.gap_held_out:.3g}%)"
+    if chosen:
+        reasons[chosen] = (
+            f"held-out gap {current.gap_held_out:.3g}% -> {fit.gap_held_out:.3g}%, the best "
+            "candidate that pays"
+        )
+    return chosen, fit, reasons
+
+
+def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitResult:
+    """The refit of effect ``name`` to keep, of those from its different starts: of one model
+    order, the lowest training gap; of several (a spline's knot count, the module's ``order``),
+    the lowest order, and a higher one only when it pays against it on held-out data."""
+    order = getattr(library.module(name), "order", None)
+
+    def rank(f: FitResult) -> int:
+        return order(f.candidate.effects[name]) if order is not None else 0
+
+    by_order: dict[int, FitResult] = {}
+    for f in fits:
+        k = rank(f)
+        if k not in by_order or f.gap_train < by_order[k].gap_train:
+            by_order[k] = f
+    chosen = by_order[min(by_order)]
+    for k in sorted(by_order)[1:]:
+        if payoff(data, chosen, by_order[k]).pays:
+            chosen = by_order[k]
+    return chosen
+
+
 def _round(
-    fitter: _Fitter, current: FitResult, quick: dict[str, QuickScore], trace: list
-) -> tuple[tuple[str, ...], FitResult | None]:
-    """One round of additions: the chosen names (possibly none) and their fit."""
+    fitter: _Fitter, current: FitResult, quick: dict[str, QuickScore], progress: Progress
+) -> tuple[tuple[str, ...], FitResult | None, Round]:
+    """One round of additions: the chosen names (possibly none), their fit and the round."""
     singles: dict[str, FitResult] = {}
-    for n in _pool(current, fitter.screens, quick):
+    pool = _pool(current, fitter.screens, quick)
+    for i, n in enumerate(pool, 1):
+        progress(f"refitting {n} ({i}/{len(pool)})")
         fits = [fitter.fit(start, (n,)) for start in quick[n].starts]
-        singles[n] = min(fits, key=lambda f: f.gap_train)
-    tried = [((n,), f.gap_held_out) for n, f in singles.items()]
-    trace.append(tried)
+        singles[n] = _best_start(fitter.data, n, fits)
     order = sorted(singles, key=lambda n: singles[n].gap_held_out)
-    if not order:
-        return (), None
-    chosen: tuple[str, ...] = ()
-    best = None
-    if singles[order[0]].gap_held_out <= (1 - MIN_GAIN) * current.gap_held_out:
-        chosen, best = (order[0],), singles[order[0]]
+    pairs: dict[tuple[str, str], FitResult] = {}
+    top = singles[order[0]] if order else None
     # Pairs can pay where no single does only if some single at least helps.
-    improving = singles[order[0]].gap_held_out <= (1 - MIN_GAIN / 3) * current.gap_held_out
-    if not improving or (
-        best is not None and _explained(current, best, fitter.floor) >= PAIR_BELOW
-    ):
-        return chosen, best
-    for a, b in itertools.combinations(order[:PAIR_POOL], 2):
-        if not compatible(b, [a]):
-            continue
-        fa, fb = singles[a].candidate, singles[b].candidate
-        pair = fitter.fit(Candidate(dict(fa.base), {**fa.effects, b: fb.effects[b]}), (a, b), False)
-        tried.append(((a, b), pair.gap_held_out))
-        reference = best.gap_held_out if best is not None else current.gap_held_out
-        if pair.gap_held_out <= (1 - MIN_GAIN) * reference:
-            chosen, best = (a, b), pair
-    return chosen, best
+    improving = top is not None and top.gap_held_out <= (1 - MIN_GAIN / 3) * current.gap_held_out
+    if improving and _explained(current, top, fitter.floor) < PAIR_BELOW:
+        for a, b in itertools.combinations(order[:PAIR_POOL], 2):
+            if not compatible(b, [a]):
+                continue
+            progress(f"refitting the pair {a} + {b}")
+            fa, fb = singles[a].candidate, singles[b].candidate
+            start = Candidate(dict(fa.base), {**fa.effects, b: fb.effects[b]})
+            pairs[(a, b)] = fitter.fit(start, (a, b), False)
+    chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
+    tried = [
+        Tried((n,), f.gap_held_out, (n,) == chosen, reasons.get((n,), ""))
+        for n, f in singles.items()
+    ] + [Tried(k, f.gap_held_out, k == chosen, reasons.get(k, "")) for k, f in pairs.items()]
+    skipped = tuple(
+        (n, float(fitter.screens[n].score), float(quick[n].held_out_gap))
+        for n in fitter.screens
+        if n not in singles
+    )
+    return chosen, best, Round(current.gap_held_out, tuple(tried), skipped)
 
 
-def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrace]:
-    """Add effects to ``base`` while they pay on held-out data; see the module docstring."""
-    floor = noise_floor_percent(data)
+def _with_ablation(
+    rnd: Round, chosen: tuple[str, ...], dropped: list[str], fit: FitResult
+) -> Round:
+    """The round with the chosen candidate's reason saying which terms ablation dropped."""
+    if not dropped:
+        return rnd
+    tried = tuple(
+        Tried(
+            t.effects,
+            t.gap_held_out,
+            t.chosen,
+            f"{t.reason}; then {', '.join(dropped)} dropped: the refitted model does as well "
+            f"without (held-out gap {fit.gap_held_out:.3g}%)"
+            if t.chosen
+            else t.reason,
+        )
+        for t in rnd.tried
+    )
+    return Round(rnd.reference_gap, tried, rnd.not_refitted)
+
+
+def search(
+    data: DiagnosisData,
+    base: FitResult,
+    floor: float,
+    effects: tuple[str, ...] | None = None,
+    progress: Progress | None = None,
+) -> tuple[list[Step], SearchTrace]:
+    """Add effects to ``base`` while they pay on held-out data; see the module docstring.
+
+    Parameters
+    ----------
+    floor : float
+        Sensor-noise floor of the gap [%]: a model within :data:`FLOOR_FACTOR` of it stops
+        the search.
+    effects : tuple of str, optional
+        The library effects to consider (default: all).
+    progress : callable, optional
+        Called with a short message as each stage starts.
+    """
+    say = progress or (lambda _m: None)
     steps = [Step((), base, {})]
     current = base
     fitter = _Fitter(data, floor, {}, {}, {})
-    trace: list[list] = []
-    for _ in range(MAX_ROUNDS):
+    rounds: list[Round] = []
+    stop = f"stopped after {MAX_ROUNDS} rounds"
+    for number in range(1, MAX_ROUNDS + 1):
         if current.gap_held_out <= FLOOR_FACTOR * floor:
+            stop = (
+                f"the held-out gap {current.gap_held_out:.3g}% is within {FLOOR_FACTOR:g} times "
+                f"the sensor-noise floor ({floor:.3g}%)"
+            )
             break
+        say(f"round {number}: screening the effect library")
         cand = current.candidate
-        fitter.screens = screen_all(screen_input(data, cand, current.v_sim), cand.names)
+        ctx = screen_input(data, cand, current.v_sim)
+        fitter.screens = screen_all(ctx, cand.names, effects)
         quick = {n: quick_score(data, cand, n, s) for n, s in fitter.screens.items()}
-        chosen, best = _round(fitter, current, quick, trace)
+        chosen, best, rnd = _round(
+            fitter, current, quick, lambda m, k=number: say(f"round {k}: {m}")
+        )
         if best is None or not chosen:
+            rounds.append(rnd)
+            stop = "nothing in the library pays on held-out data"
             break
-        chosen, best = _ablate(data, chosen, best)
+        chosen, best, dropped = _ablate(data, chosen, best)
+        rounds.append(_with_ablation(rnd, chosen, dropped, best))
         if not chosen:
             # The refit only found a better optimum of the terms already there: keep it, name nothing.
             if best.gap_held_out > (1 - MIN_GAIN) * current.gap_held_out:
+                stop = "nothing in the library pays on held-out data"
                 break
             steps[-1] = Step(steps[-1].added, best, steps[-1].evidence)
             current = best
@@ -190,5 +341,4 @@ def search(data: DiagnosisData, base: FitResult) -> tuple[list[Step], SearchTrac
         fitter.accept(chosen)
         steps.append(Step(chosen, best, evidence))
         current = best
-    rounds = tuple(tuple(r) for r in trace)
-    return steps, SearchTrace(rounds, floor if math.isfinite(floor) else 0.0)
+    return steps, SearchTrace(tuple(rounds), floor if math.isfinite(floor) else 0.0, stop)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
 from servobench.bench.identify.dataset import initial_velocity
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 from servobench.sim_backend.physics.rich_plant import build_model
@@ -46,24 +46,43 @@ class Candidate:
 Window = tuple[int, int, int]  # run index, first sample, end sample (exclusive)
 
 
-def windows(data: DiagnosisData) -> list[Window]:
-    """Every comparison window of the data, in order."""
+def windows(data: DiagnosisData, fit: bool = False) -> list[Window]:
+    """Every comparison window of the data (``fit``: every fitting window), in order."""
     out = []
-    for i, (r, starts) in enumerate(zip(data.segments, data.starts, strict=True)):
+    every = data.fit_starts if fit else data.starts
+    for i, (r, starts) in enumerate(zip(data.segments, every, strict=True)):
         ends = np.append(starts[1:], len(r))
         out.extend((i, int(s), int(e)) for s, e in zip(starts, ends, strict=True))
     return out
 
 
+def thinned(chosen: list[Window], samples: int) -> list[Window]:
+    """An evenly spread subset of ``chosen`` holding about ``samples`` samples."""
+    total = sum(e - s for _, s, e in chosen)
+    if total > samples and len(chosen) > 1:
+        keep = max(1, int(len(chosen) * samples / total))
+        idx = np.unique(np.linspace(0, len(chosen) - 1, keep).round().astype(int))
+        chosen = [chosen[i] for i in idx]
+    return chosen
+
+
 def held_out_windows(data: DiagnosisData) -> list[Window]:
-    """Windows that hold held-out samples (all of them for whole-run simulation)."""
-    return [w for w in windows(data) if data.held_out[w[0]][w[1] : w[2]].any()]
+    """Fitting windows that hold held-out samples, thinned to about REFIT_MAX_SAMPLES (all of
+    them for whole-run simulation of a short log): where quick scores are judged."""
+    chosen = [w for w in windows(data, fit=True) if data.held_out[w[0]][w[1] : w[2]].any()]
+    return thinned(chosen, REFIT_MAX_SAMPLES)
 
 
 def simulate(
-    data: DiagnosisData, cand: Candidate, which: Sequence[Window] | None = None
+    data: DiagnosisData,
+    cand: Candidate,
+    which: Sequence[Window] | None = None,
+    added: Sequence[np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Simulated velocity per run (NaN outside the windows simulated).
+
+    ``added`` holds, per run, a force [command units] added to the logged command (the
+    sensitivity of the simulation to a force, :mod:`.verdict`).
 
     Raises
     ------
@@ -77,13 +96,14 @@ def simulate(
     out = [np.full(len(r), np.nan) for r in data.segments]
     for i, s, e in windows(data) if which is None else which:
         r = data.segments[i]
+        u = r.u if added is None else r.u + added[i]
         state = PlantState(initial_velocity(r, sigma, s), float(r.position[s]))
         if model is None:
-            v, _, _ = simulate_coulomb(r.u[s:e], dt, params, state)
+            v, _, _ = simulate_coulomb(u[s:e], dt, params, state)
         else:
             model.reset()
-            model.prime(r.u[:s], dt)
-            v, _, _ = model.simulate(r.u[s:e], dt, state)
+            model.prime(u[:s], dt)
+            v, _, _ = model.simulate(u[s:e], dt, state)
         out[i][s:e] = v
     return out
 

@@ -5,29 +5,40 @@
 3. Locate the disagreement in time, against velocity, position, acceleration
    and direction, and in frequency, :mod:`.signatures`.
 4. Rank the library's effects by their signatures and choose over
-   combinations on held-out data, :mod:`.screening`, :mod:`.search`.
+   combinations on held-out data, :mod:`.screening`, :mod:`.search`; a term is
+   added only when it pays by a margin the noise cannot produce, :mod:`.evidence`.
 5. Refit everything on simulation error (:mod:`.refit`) and repeat while it pays.
+6. Judge the final model against the noise floor: ``explained`` or
+   ``unexplained``, and where the residual lives, :mod:`.verdict`; say which
+   parameters only the data fix together, :mod:`.families`.
 
-``diagnose(log)`` returns a :class:`Diagnosis`; :mod:`.report` turns it
-into JSON, a comparison CSV and a Markdown report with plots.
+``diagnose(log)`` returns a :class:`Diagnosis`; :mod:`servobench.bench.report.diagnose`
+turns it into JSON, ``model.json``, a comparison CSV and a Markdown report with plots.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from servobench.bench.diagnose.basefit import fit_base
-from servobench.bench.diagnose.data import DiagnosisData, prepare
+from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
+from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent, prepare
+from servobench.bench.diagnose.families import Family, offset_family
 from servobench.bench.diagnose.search import SearchTrace, Step, search
 from servobench.bench.diagnose.signatures import Signatures, compute_signatures
+from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.diagnose.verdict import Verdict, judge
 from servobench.bench.logio import ExperimentLog
+from servobench.sim_backend.physics import effects as library
+from servobench.sim_backend.physics.effects import position_friction
 
 __all__ = ["Diagnosis", "NamedEffect", "diagnose"]
 
 
 @dataclass(frozen=True)
 class NamedEffect:
-    """An effect the diagnosis added: name, fitted parameters, the signature that named it."""
+    """An effect the diagnosis added: name, fitted parameters (those of the final model), the
+    signature that named it."""
 
     name: str
     parameters: dict[str, float]
@@ -41,7 +52,7 @@ class Diagnosis:
     Attributes
     ----------
     effects : tuple of NamedEffect
-        Effects added, in order.
+        Effects added, in order, with the final model's parameters.
     gap_before, gap_after : float
         NRMSE [%] of simulated against measured velocity, base model and final model.
     steps : tuple of Step
@@ -50,6 +61,14 @@ class Diagnosis:
         Where the base model disagrees with the data.
     data : DiagnosisData
     trace : SearchTrace
+    verdict : Verdict
+        Whether the final model explains the data, the noise floor, where the residual lives.
+    start : BaseStart
+        Where the base model's starting values came from.
+    families : tuple of Family
+        Parameters the data fix only together.
+    notes : tuple of str
+        Caveats: an incomplete log, a derived velocity, an unphysical base fit.
     """
 
     effects: tuple[NamedEffect, ...]
@@ -59,13 +78,46 @@ class Diagnosis:
     signatures: Signatures
     data: DiagnosisData
     trace: SearchTrace
+    verdict: Verdict
+    start: BaseStart
+    families: tuple[Family, ...] = ()
+    notes: tuple[str, ...] = ()
+
+    @property
+    def final(self) -> Candidate:
+        """The final model: base and effects as refitted together."""
+        return self.steps[-1].fit.candidate
 
     @property
     def base(self) -> dict[str, float]:
-        return dict(self.steps[-1].fit.candidate.base)
+        """Base parameters of the final model (refitted with its effects)."""
+        return dict(self.final.base)
+
+    @property
+    def base_before(self) -> dict[str, float]:
+        """Base parameters fitted before any effect was added."""
+        return dict(self.steps[0].fit.candidate.base)
 
 
-def diagnose(log: ExperimentLog, horizon_s: float | None = None) -> Diagnosis:
+def named_parameters(name: str, values: dict[str, float], base: dict[str, float]) -> dict:
+    """An effect's parameters as reported: unused spline knots left out, the directional
+    viscous coefficients spelled out."""
+    params = dict(values)
+    if name == "viscous_asymmetry":
+        params["B_pos"] = base["B"] + params["dB"]
+        params["B_neg"] = base["B"] - params["dB"]
+    if name == "position_friction":
+        params = position_friction.compact(params)
+    return params
+
+
+def diagnose(
+    log: ExperimentLog,
+    horizon_s: float | None = None,
+    *,
+    effects: Iterable[str] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Diagnosis:
     """Run the discrepancy workflow on a log.
 
     Parameters
@@ -75,33 +127,49 @@ def diagnose(log: ExperimentLog, horizon_s: float | None = None) -> Diagnosis:
     horizon_s : float, optional
         Compare by predictions restarted every ``horizon_s`` [s] instead of whole-run
         simulation (default for logs whose ``loop`` metadata says closed).
+    effects : iterable of str, optional
+        Library effects the search may name (default: all of them).
+    progress : callable, optional
+        Called with a short message as each stage starts.
 
     Raises
     ------
     IdentificationError
         The log cannot yield a base model.
+    UsageError
+        Unknown effect names, a non-positive horizon.
     """
+    say = progress or (lambda _m: None)
+    allowed = None if effects is None else tuple(library.module(n).EFFECT.name for n in effects)
     data = prepare(log, horizon_s)
-    base = fit_base(data)
+    say("fitting the base model")
+    start = initial_base(data)
+    base = fit_base(data, start)
     signatures = compute_signatures(data, base.v_sim)
-    steps, trace = search(data, base)
-    final = steps[-1].fit.candidate
+    steps, trace = search(data, base, noise_floor_percent(data), allowed, say)
+    say("judging the final model against the noise floor")
+    last = steps[-1].fit
+    verdict = judge(data, last.candidate, last.v_sim, last.gap)
+    final = last.candidate
     named = []
     for step in steps[1:]:
         for name in step.added:
-            params = dict(final.effects[name])
-            if name == "viscous_asymmetry":
-                params["B_pos"] = final.base["B"] + params["dB"]
-                params["B_neg"] = final.base["B"] - params["dB"]
+            params = named_parameters(name, dict(final.effects[name]), dict(final.base))
             clause = signatures.support(name)
             evidence = step.evidence[name] if not clause else f"{step.evidence[name]}; {clause}"
             named.append(NamedEffect(name, params, evidence))
+    family = offset_family(final.base, final.effects, data.units.of("u"))
+    notes = tuple(data.notes) + ((start.note,) if start.note else ())
     return Diagnosis(
         tuple(named),
         steps[0].fit.gap,
-        steps[-1].fit.gap,
+        last.gap,
         tuple(steps),
         signatures,
         data,
         trace,
+        verdict,
+        start,
+        (family,) if family else (),
+        notes,
     )

@@ -1,20 +1,29 @@
-"""Outputs of a diagnosis: the JSON object, ``comparison.csv`` and a Markdown report with plots.
+"""Outputs of a diagnosis: the JSON object, ``model.json``, ``comparison.csv`` and ``report.md``.
 
-Everything here consumes a :class:`~servobench.bench.diagnose.workflow.Diagnosis`; nothing is recomputed
-except the residual analysis of the final model, for the before/after plots.
+Everything here consumes a :class:`~servobench.bench.diagnose.workflow.Diagnosis`.
+One set of numbers: every parameter printed is the final model's (base
+refitted with the effects), beside the base fit from before any effect,
+labelled as such; the evidence sentences carry no parameter values of
+their own. The text output and the report lead with the verdict.
+``model.json`` is described in :mod:`servobench.bench.diagnose.model_file`.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.diagnose.signatures import compute_signatures
+from servobench.bench.diagnose.model_file import model_record, parameter_units, sim_url
+from servobench.bench.diagnose.verdict import LABELS
 from servobench.bench.diagnose.workflow import Diagnosis
-from servobench.bench.report.figure import new_figure, save_png
+
+MODEL_FILE = "model.json"
+REPORT_FILE = "report.md"
+COMPARISON_FILE = "comparison.csv"
 
 
 def _clean(value):
@@ -30,18 +39,77 @@ def _clean(value):
     return value
 
 
+def _base_json(base) -> dict:
+    b = {k: float(base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+    return {**b, "pole": -b["B"] / b["M"], "dc_gain": 1.0 / b["B"]}
+
+
+def model_json(d: Diagnosis) -> dict:
+    """The content of ``model.json`` (:mod:`servobench.bench.diagnose.model_file`)."""
+    return _clean(
+        model_record(
+            d.final,
+            d.data.units,
+            d.gap_after,
+            noise_floor_percent=d.verdict.floor.percent,
+            verdict=d.verdict.verdict,
+            comparison=d.data.comparison,
+            source=d.data.source,
+        )
+    )
+
+
+def _rounds_json(d: Diagnosis) -> list[dict]:
+    return [
+        {
+            "round": i,
+            "reference_gap_held_out": rnd.reference_gap,
+            "candidates": [
+                {
+                    "effects": list(t.effects),
+                    "gap_held_out": t.gap_held_out,
+                    "chosen": t.chosen,
+                    "reason": t.reason,
+                }
+                for t in rnd.tried
+            ],
+            "not_refitted": [
+                {"effect": n, "score": score, "quick_gap_held_out": gap}
+                for n, score, gap in rnd.not_refitted
+            ],
+        }
+        for i, rnd in enumerate(d.trace.rounds, 1)
+    ]
+
+
 def to_json(d: Diagnosis) -> dict:
-    """The one JSON object ``servobench diagnose --json`` prints."""
-    base_before = d.steps[0].fit.candidate.base
+    """The one JSON object ``servobench diagnose --json`` prints; the verdict comes first."""
+    v = d.verdict
     out = {
+        "verdict": v.verdict,
+        "noise_floor_percent": v.floor.percent,
+        "unexplained_signature": v.signature,
+        "gap_before": d.gap_before,
+        "gap_after": d.gap_after,
         "effects": [
             {"name": e.name, "parameters": dict(e.parameters), "evidence": e.evidence}
             for e in d.effects
         ],
-        "gap_before": d.gap_before,
-        "gap_after": d.gap_after,
-        "base_before": dict(base_before),
-        "base_after": d.base,
+        "base_before": _base_json(d.base_before),
+        "base_after": _base_json(d.base),
+        "base_start": d.start.source,
+        "sim_url": sim_url(d.final),
+        "units": parameter_units(d.final, d.data.units),
+        "noise": {
+            "sensor_percent": v.floor.sensor_percent,
+            "repeat_percent": v.floor.repeat_percent,
+            "unpredictable_percent": v.floor.unpredictable_percent,
+            "floor_from": v.floor.source,
+        },
+        "residual": {
+            "places": [{"place": p.name, "held_out_share": p.share} for p in v.places],
+            "spectrum": v.spectrum,
+        },
         "steps": [
             {
                 "added": list(s.added),
@@ -51,16 +119,44 @@ def to_json(d: Diagnosis) -> dict:
             }
             for s in d.steps
         ],
+        "families": [f.as_dict() for f in d.families],
+        "notes": list(d.notes),
         "comparison": d.data.comparison,
         "velocity": "derived from position" if d.data.derived else "measured",
-        "noise_floor": d.trace.noise_floor,
         "findings": d.signatures.findings(),
-        "tried": [
-            [{"effects": list(names), "gap_held_out": gap} for names, gap in rnd]
-            for rnd in d.trace.rounds
-        ],
+        "tried": _rounds_json(d),
+        "search_stop": d.trace.stop,
     }
     return _clean(out)
+
+
+def _params_text(d: Diagnosis, name: str, params: dict, sep: str = " = ") -> str:
+    units = parameter_units(d.final, d.data.units)
+    parts = []
+    for k, value in params.items():
+        unit = units.get(f"{name}.{k}") or (units["B"] if k in ("B_pos", "B_neg") else "")
+        unit = "" if unit in ("", "1") else f" {unit}"
+        parts.append(f"{k}{sep}{value:.4g}{unit}")
+    return ", ".join(parts)
+
+
+def summary_lines(d: Diagnosis) -> list[str]:
+    """What ``servobench diagnose`` prints (and the report opens with): the verdict first."""
+    v = d.verdict
+    lines = [v.headline()]
+    lines.append(
+        f"noise floor {v.floor.percent:.3g}% ({v.floor.source}); comparison: {d.data.comparison}"
+    )
+    lines.append(f"velocity gap: {d.gap_before:.3g}% before, {d.gap_after:.3g}% after")
+    if not d.effects:
+        lines.append(f"no effect named: {d.trace.stop}")
+    for i, e in enumerate(d.effects, 1):
+        lines.append(f"{i}. {e.name} ({_params_text(d, e.name, e.parameters, '=')})")
+        lines.append(f"   {e.evidence}")
+    lines += [f"note: {f.sentence}" for f in d.families]
+    lines += [f"note: {n}" for n in d.notes]
+    lines.append(f"diagnosed plant: {sim_url(d.final)}")
+    return lines
 
 
 def write_comparison_csv(d: Diagnosis, path: str | Path) -> Path:
@@ -76,120 +172,107 @@ def write_comparison_csv(d: Diagnosis, path: str | Path) -> Path:
     return path
 
 
-def _plots(d: Diagnosis, out: Path) -> list[tuple[str, str]]:
-    data = d.data
-    before, after = d.steps[0].fit.v_sim, d.steps[-1].fit.v_sim
-    sig_b = d.signatures
-    sig_a = compute_signatures(data, after)
-    figs: list[tuple[str, str]] = []
-
-    fig = new_figure(3.6, 10)
-    axes = fig.subplots(1, 2)
-    for ax, attr, label in (
-        (axes[0], "vs_velocity", "velocity"),
-        (axes[1], "vs_position", "position"),
-    ):
-        for sig, name, style in ((sig_b, "base model", "o-"), (sig_a, "final model", "s-")):
-            b = getattr(sig, attr)
-            ax.plot(b.centres, b.means, style, ms=3, label=f"{name} (eta2 {b.eta2:.2f})")
-        ax.axhline(0, color="0.5", lw=0.8)
-        ax.set_xlabel(f"{label} [units{'/s' if label == 'velocity' else ''}]")
-        ax.set_ylabel("mean residual [units/s]")
-        ax.legend(fontsize=8)
-    fig.suptitle("Residual (measured - simulated velocity) against velocity and position")
-    figs.append(_save(fig, out / "residual_vs_state.png"))
-
-    fig = new_figure(3.6, 7)
-    ax = fig.subplots()
-    ax.semilogy(sig_b.spectrum_hz[1:], sig_b.spectrum[1:], label="base model")
-    ax.semilogy(sig_a.spectrum_hz[1:], sig_a.spectrum[1:], label="final model")
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("residual PSD [(units/s)^2/Hz]")
-    ax.legend()
-    ax.set_title("Residual spectrum")
-    figs.append(_save(fig, out / "residual_spectrum.png"))
-
-    n = len(data.segments)
-    fig = new_figure(2.8 * n, 10)
-    axes = fig.subplots(n, 1, squeeze=False)
-    for ax, r, vb, va in zip(axes[:, 0], data.segments, before, after, strict=True):
-        ax.plot(r.t, r.v, color="0.2", lw=0.8, label="measured")
-        ax.plot(r.t, vb, lw=0.8, label=f"base model ({d.gap_before:.2f}%)")
-        ax.plot(r.t, va, lw=0.8, ls="--", label=f"final model ({d.gap_after:.2f}%)")
-        ax.set_ylabel(f"run {r.run} v [units/s]")
-        ax.legend(fontsize=8, loc="upper right")
-    axes[-1, 0].set_xlabel("t [s]")
-    fig.suptitle("Measured velocity against the simulated models")
-    figs.append(_save(fig, out / "overlay.png"))
-
-    fig = new_figure(3.6, 7)
-    ax = fig.subplots()
-    labels = ["base"] + ["+" + "+".join(s.added) for s in d.steps[1:]]
-    gaps = [s.fit.gap for s in d.steps]
-    held = [s.fit.gap_held_out for s in d.steps]
-    xs = np.arange(len(labels))
-    ax.bar(xs - 0.2, gaps, 0.4, label="all samples")
-    ax.bar(xs + 0.2, held, 0.4, label="held-out samples")
-    if d.trace.noise_floor > 0:
-        ax.axhline(d.trace.noise_floor, color="0.4", ls=":", label="sensor-noise floor")
-    ax.set_xticks(xs, labels, rotation=15)
-    ax.set_ylabel("velocity gap [% NRMSE]")
-    ax.legend()
-    ax.set_title("Gap at each step")
-    figs.append(_save(fig, out / "gap_steps.png"))
-    return figs
+def write_model(d: Diagnosis, path: str | Path) -> Path:
+    """``model.json`` of the diagnosed plant."""
+    path = Path(path)
+    path.write_text(json.dumps(model_json(d), indent=2) + "\n", encoding="utf-8")
+    return path
 
 
-def _save(fig, path: Path) -> tuple[str, str]:
-    save_png(fig, path, dpi=110)
-    return path.name, path.stem.replace("_", " ")
+def _model_table(d: Diagnosis) -> list[str]:
+    units = parameter_units(d.final, d.data.units)
+    before, after = _base_json(d.base_before), _base_json(d.base)
+    effects = "+".join(d.final.names)
+    head = f"refitted with {effects}" if effects else "refitted (no effect added)"
+    lines = [
+        f"| parameter | base fit, before any effect | final model, {head} | unit |",
+        "| --- | --- | --- | --- |",
+    ]
+    for k in ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain"):
+        lines.append(f"| {k} | {before[k]:.4g} | {after[k]:.4g} | {units[k]} |")
+    return lines
+
+
+def _rounds_md(d: Diagnosis) -> list[str]:
+    lines = []
+    for i, rnd in enumerate(d.trace.rounds, 1):
+        lines.append(f"Round {i} (current model: held-out gap {rnd.reference_gap:.3g}%):")
+        lines.append("")
+        for t in sorted(rnd.tried, key=lambda t: t.gap_held_out):
+            mark = "**chosen**" if t.chosen else "rejected"
+            lines.append(f"- {'+'.join(t.effects)}: {t.gap_held_out:.3g}%, {mark}: {t.reason}")
+        if rnd.not_refitted:
+            skipped = ", ".join(f"{n} ({q:.3g}%)" for n, _, q in rnd.not_refitted)
+            lines.append(
+                f"- not refitted (no signature in screening, and the quick simulation of their "
+                f"guess did not beat the current model; held-out gap of that guess): {skipped}"
+            )
+        lines.append("")
+    lines.append(f"The search stopped: {d.trace.stop}.")
+    return lines
 
 
 def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
-    """Write ``comparison.csv``, the plots and ``report.md`` into ``out_dir``; return the report."""
+    """Write ``comparison.csv``, ``model.json``, the figures and ``report.md`` into ``out_dir``."""
+    from servobench.bench.report.diagnose_figures import write_figures
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_comparison_csv(d, out / "comparison.csv")
-    figs = _plots(d, out)
-    lines = [
-        "# servobench diagnose",
+    write_comparison_csv(d, out / COMPARISON_FILE)
+    write_model(d, out / MODEL_FILE)
+    figures = write_figures(d, out)
+    v = d.verdict
+    lines = ["# servobench diagnose", "", f"**{v.headline()}**", ""]
+    lines += [
+        f"Noise floor {v.floor.percent:.3g}%: {v.floor.source} (white sensor noise "
+        f"{v.floor.sensor_percent:.3g}%"
+        + (
+            f", period-to-period scatter {v.floor.repeat_percent:.3g}%"
+            if v.floor.repeat_percent is not None
+            else ""
+        )
+        + f", unpredictable part of the final residual {v.floor.unpredictable_percent:.3g}%).",
         "",
-        f"Log: `{Path(d.data.source).name or 'log'}`; velocity {('derived from position' if d.data.derived else 'measured')}; "
-        f"comparison: {d.data.comparison}.",
+        f"Log: `{Path(d.data.source).name or 'log'}`; velocity "
+        f"{'derived from position' if d.data.derived else 'measured'}; comparison: "
+        f"{d.data.comparison}; base model started from {d.start.source}.",
         "",
-        f"**Velocity gap (NRMSE): {d.gap_before:.3g}% before, {d.gap_after:.3g}% after.**",
+        f"Velocity gap (NRMSE): {d.gap_before:.3g}% before, {d.gap_after:.3g}% after.",
+        "",
+        "## Model",
+        "",
+        *_model_table(d),
         "",
         "## Effects added",
         "",
     ]
     if not d.effects:
-        lines.append("None: no library effect pays on held-out data; the base model stands.")
+        lines.append(f"None: {d.trace.stop}.")
     for i, e in enumerate(d.effects, 1):
-        params = ", ".join(f"{k} = {v:.4g}" for k, v in e.parameters.items())
-        lines.append(f"{i}. **{e.name}** ({params}): {e.evidence}.")
-    lines += ["", "## Steps", "", "| model | gap [%] | held-out gap [%] |", "| --- | --- | --- |"]
+        lines.append(f"{i}. **{e.name}** ({_params_text(d, e.name, e.parameters)}): {e.evidence}.")
+    lines += ["", f"Diagnosed plant, to simulate or serve: `{sim_url(d.final)}`", ""]
+    if d.families or d.notes:
+        lines += ["## Notes", ""] + [f"- {f.sentence}" for f in d.families]
+        lines += [f"- {n}" for n in d.notes] + [""]
+    lines += ["## Steps", "", "| model | gap [%] | held-out gap [%] |", "| --- | --- | --- |"]
     for s in d.steps:
-        name = (
-            "base" if not s.fit.candidate.names else "base + " + " + ".join(s.fit.candidate.names)
+        names = s.fit.candidate.names
+        lines.append(
+            f"| {'base' if not names else 'base + ' + ' + '.join(names)} | {s.fit.gap:.3g} | "
+            f"{s.fit.gap_held_out:.3g} |"
         )
-        lines.append(f"| {name} | {s.fit.gap:.3g} | {s.fit.gap_held_out:.3g} |")
-    base = d.steps[0].fit.candidate.base
+    lines += ["", "## Where the final model's residual lives", ""]
     lines += [
-        "",
-        f"Base model: M = {base['M']:.4g}, B = {base['B']:.4g}, coulomb_pos = {base['coulomb_pos']:.4g}, "
-        f"coulomb_neg = {base['coulomb_neg']:.4g}; sensor-noise floor {d.trace.noise_floor:.3g}%.",
-        "",
-        "## Where the base model disagrees",
+        "Share of the final residual each place predicts on held-out samples "
+        "(the places are fitted on the training samples):",
         "",
     ]
+    lines += [f"- {LABELS[p.name]}: {100 * p.share:.0f}%" for p in v.places]
+    lines += ["", f"In frequency: {v.spectrum}.", "", "## Where the base model disagrees", ""]
     lines += [f"- {s}" for s in d.signatures.findings()]
-    lines += ["", "## Candidates refitted", ""]
-    for i, rnd in enumerate(d.trace.rounds, 1):
-        tried = ", ".join(f"{'+'.join(n)} {g:.3g}%" for n, g in rnd)
-        lines.append(f"- round {i} (held-out gap): {tried}")
-    lines.append("")
-    for name, title in figs:
-        lines += [f"![{title}]({name})", ""]
-    path = out / "report.md"
+    lines += ["", "## Candidates refitted", "", *_rounds_md(d), "", "## Figures", ""]
+    for i, fig in enumerate(figures, 1):
+        lines += [f"![Figure {i}]({fig.name})", "", f"*Figure {i}. {fig.caption}*", ""]
+    path = out / REPORT_FILE
     path.write_text("\n".join(lines), encoding="utf-8")
     return path

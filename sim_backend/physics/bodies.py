@@ -22,13 +22,17 @@ def consts(h: float, M: float, Bp: float, Bn: float) -> tuple[float, ...]:
     return (h, Bp, Bn, tp, tn, ap, an, tp * (1.0 - ap), tn * (1.0 - an))
 
 
-def friction_force(v: float, f: float, fr: tuple) -> float | None:
+def friction_force(v: float, f: float, fr: tuple, x: float = 0.0) -> float | None:
     """Friction on a body [command units, signed]: at velocity ``v``, or at rest under ``f``.
 
     ``None`` when the body rests and ``f`` is within breakaway (it stays at rest).
-    ``fr`` as for :func:`slider`, which inlines the same rule on its hot path.
+    ``fr`` as for :func:`slider`, which inlines the same rule on its hot path; ``x``
+    [units] is the body's position, read only by a position-dependent friction term.
     """
-    fcp, fcn, bkp, bkn, exc = fr
+    fcp, fcn, bkp, bkn, exc, at_x = fr
+    if at_x is not None:
+        extra = at_x(x)
+        fcp, fcn, bkp, bkn = fcp + extra, fcn + extra, bkp + extra, bkn + extra
     if v > 0.0 or (v == 0.0 and f > bkp):
         return fcp if exc is None else fcp + exc(v, 1)
     if v < 0.0 or (v == 0.0 and f < -bkn):
@@ -44,8 +48,10 @@ def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], t
     k : tuple
         :func:`consts` of the segment.
     fr : tuple
-        ``(coulomb_pos, coulomb_neg, breakaway_pos, breakaway_neg, excess)``: Coulomb and
-        breakaway magnitudes, and the velocity-dependent friction excess or ``None``.
+        ``(coulomb_pos, coulomb_neg, breakaway_pos, breakaway_neg, excess, at_x)``: Coulomb
+        and breakaway magnitudes, the velocity-dependent friction excess or ``None``, and
+        the position-dependent friction ``at_x(x)`` [command units] added to all four
+        levels at the segment's start position, or ``None``.
 
     Returns
     -------
@@ -54,10 +60,12 @@ def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], t
         the applied force except friction and the body's own viscous term.
     """
     h, Bp, Bn, tp, tn, ap, an, gp, gn = k
-    fcp, fcn, bkp, bkn, exc = fr
+    fcp0, fcn0, bkp0, bkn0, exc, at_x = fr
     log, exp = math.log, math.exp
 
-    def step(v: float, x: float, f: float) -> tuple[float, float]:
+    def step(
+        v: float, x: float, f: float, fcp=fcp0, fcn=fcn0, bkp=bkp0, bkn=bkn0
+    ) -> tuple[float, float]:
         if v > 0.0:
             F = fcp if exc is None else fcp + exc(v, 1)
             B, tau, a, g = Bp, tp, ap, gp
@@ -95,7 +103,14 @@ def slider(k: tuple[float, ...], fr: tuple) -> Callable[[float, float, float], t
         e2 = exp(-rest / tau2)
         return vinf2 * (1.0 - e2), x + vinf2 * rest - vinf2 * tau2 * (1.0 - e2)
 
-    return step
+    if at_x is None:
+        return step
+
+    def step_at(v: float, x: float, f: float) -> tuple[float, float]:
+        extra = at_x(x)
+        return step(v, x, f, fcp0 + extra, fcn0 + extra, bkp0 + extra, bkn0 + extra)
+
+    return step_at
 
 
 class Propagator:

@@ -73,7 +73,7 @@ class CouplingMixin:
         )
         rest = (1.0 - th) * h
         net = f + c.stiffness * (xl - xm) + c.damping * vl
-        F = friction_force(0.0, net, self.friction)
+        F = friction_force(0.0, net, self.friction, xm)
         if F is None:
             (c00, c01), (c10, c11) = (A2 := self._spring_step(rest, 1, sl, True, cache=False))[0]
             d0, d1 = A2[1]
@@ -110,7 +110,7 @@ class CouplingMixin:
                     f -= pf(xm)
                 sl = 1 if vl >= 0.0 else -1
                 net = f + kk * (xl - xm) + cc * (vl - vm)
-                F = friction_force(vm, net, fr)
+                F = friction_force(vm, net, fr, xm)
                 if F is None:  # the motor is held: the load moves alone
                     (c00, c01), (c10, c11) = step(h, 1, sl, True)[0]
                     d0, d1 = step(h, 1, sl, True)[1]
@@ -165,7 +165,7 @@ class CouplingMixin:
                     f -= pf(xm)
                 if side:
                     # Friction the joint body would feel; the contact force is r (f - F).
-                    F = friction_force(vm, f, fr)
+                    F = friction_force(vm, f, fr, xm)
                     if F is not None and side * (f - F) < 0.0:
                         side = 0
                 if side:

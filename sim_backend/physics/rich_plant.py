@@ -7,7 +7,8 @@ The base physics is that of :mod:`servobench.sim_backend.physics.coulomb`; the e
   transport delay act on ``u`` before the integrator (whole samples by
   shifting, the fraction by splitting each interval at the delay boundary);
 * direction-dependent viscous friction, a velocity-dependent friction excess
-  (Stribeck) and position-dependent forces (cogging) act on the motor body;
+  (Stribeck), friction that varies along the travel (position friction) and
+  position-dependent forces (cogging) act on the motor body;
 * a coupling adds a second body: a spring-damper (resonance; the sensor sits
   on the load) or a play (backlash; the sensor sits on the motor).
 
@@ -77,6 +78,7 @@ class RichModel(CouplingMixin):
             max(params.breakaway_pos, terms.static_pos),
             max(params.breakaway_neg, terms.static_neg),
             terms.friction_excess,
+            terms.friction_at,
         )
         inputs = [fn for _, fn in sorted(terms.inputs, key=lambda item: item[0])]
         self._inputs = inputs
@@ -88,7 +90,10 @@ class RichModel(CouplingMixin):
         else:
             self._pos_force = lambda x: sum(fn(x) for fn in forces)
         self.exact = (
-            terms.friction_excess is None and self._pos_force is None and terms.coupling is None
+            terms.friction_excess is None
+            and terms.friction_at is None
+            and self._pos_force is None
+            and terms.coupling is None
         )
         self._dt: float | None = None
         self._mats: dict[tuple, tuple] = {}

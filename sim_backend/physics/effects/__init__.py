@@ -19,6 +19,8 @@ effect                        keys [units]                                   ter
 ``backlash``                  backlash [unit], backlash_ratio                play motor -> load
 ``deadzone``                  deadzone [u]                                   dead band of u
 ``quantization``              quant [u]                                      quant * round(u / quant)
+``position_friction``         posfric_from, posfric_to [unit],               Coulomb + spline g(x)
+                              posfric_knots, posfric_0 .. posfric_7 [u]
 ============================  =============================================  ==========================
 """
 
@@ -44,6 +46,7 @@ EFFECT_MODULES: dict[str, str] = {
     "backlash": "servobench.sim_backend.physics.effects.backlash",
     "deadzone": "servobench.sim_backend.physics.effects.deadzone",
     "quantization": "servobench.sim_backend.physics.effects.quantization",
+    "position_friction": "servobench.sim_backend.physics.effects.position_friction",
 }
 
 

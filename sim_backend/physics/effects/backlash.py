@@ -93,8 +93,8 @@ def screen(ctx: ScreenInput) -> Screening:
     sse, gap, coef = best
     ratio = float(np.clip(coef[4] / (coef[0] + coef[4]), 0.1, 0.8))
     evidence = (
-        f"the apparent inertia drops to {100 * (1 - ratio):.0f}% until the axis has moved "
-        f"{gap:.3g} units after a reversal: a play (equation error {100 * (1 - sse / sse0):.0f}% lower)"
+        f"the apparent inertia drops after each reversal until the axis has crossed a play "
+        f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0] + coef[4], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     guess = {"gap": gap, "ratio": ratio}

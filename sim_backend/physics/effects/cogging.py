@@ -124,8 +124,8 @@ def screen(ctx: ScreenInput) -> Screening:
         "phase": (-3 * math.pi, 3 * math.pi),
     }
     evidence = (
-        f"the force residual repeats every {period:.4g} position units "
-        f"(amplitude {amp:.3g}; equation error {100 * (1 - sse / sse0):.0f}% lower)"
+        f"the force residual repeats with position at a fixed spatial period "
+        f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     score = explained(sse0, sse, 3, y.size)

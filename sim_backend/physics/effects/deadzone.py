@@ -61,7 +61,7 @@ def screen(ctx: ScreenInput) -> Screening:
             best = (sse, w, coef)
     sse, w, coef = best
     evidence = (
-        f"the command acts only beyond a dead band of +/-{w:.3g} (the force residual steps with "
+        f"the command acts only beyond a dead band (the force residual steps with "
         f"the sign of u, not of v; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}

@@ -53,8 +53,8 @@ def screen(ctx: ScreenInput) -> Screening:
     score = max(0.0, 1.0 - sse_free / sse_con) if sse_con > 0 else 0.0
     side = "positive" if fcp < 0 else "negative"
     evidence = (
-        f"the free Coulomb fit puts the {side}-direction level below zero "
-        f"({min(fcp, fcn):.3g}): a constant force of about {guess:.3g} acts whatever the motion"
+        f"the free Coulomb fit puts the {side}-direction level below zero: a constant force "
+        f"acts whatever the motion (equation error {100 * score:.0f}% lower than with that level at zero)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp + guess, "coulomb_neg": fcn - guess}
     return Screening(score, {"offset": guess}, bounds, evidence, base=base)

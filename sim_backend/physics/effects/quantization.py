@@ -63,7 +63,7 @@ def screen(ctx: ScreenInput) -> Screening:
     fine = [f for c in coarse[:3] for f in best_of(c[2] * np.linspace(0.985, 1.015, 15))]
     sse, coef, q = min(coarse[:1] + fine, key=lambda f: f[0])
     evidence = (
-        f"the force residual follows the rounding error of the command for a step of {q:.3g} "
+        f"the force residual follows the rounding error of the command in steps "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}

@@ -59,8 +59,8 @@ def screen(ctx: ScreenInput) -> Screening:
     sse, lim, coef = best
     share = float(np.mean(mag > lim))
     evidence = (
-        f"the applied command looks clipped at |u| = {lim:.3g} ({100 * share:.0f}% of samples "
-        f"beyond it; equation error {100 * (1 - sse / sse0):.0f}% lower)"
+        f"the applied command looks clipped at its largest values ({100 * share:.0f}% of "
+        f"samples beyond the limit; equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     n = int(ctx.moving.sum())

@@ -8,7 +8,12 @@ Every effect module in :mod:`servobench.sim_backend.physics.effects` defines
   collection that :mod:`servobench.sim_backend.physics.rich_plant` integrates;
 * ``screen(ctx)`` -- looks for its signature in a :class:`ScreenInput` and
   returns a :class:`Screening` (score, parameter guess, bounds, evidence);
-* optionally ``check(p, plant)`` -- cross-checks against the base plant.
+* optionally ``check(p, plant)`` -- cross-checks against the base plant;
+* optionally ``project(p, base)`` -- keeps refitted parameters physical (the
+  diagnosis applies it at every step of a refit);
+* optionally ``order(p)`` -- the model order of a parameter set (a spline's
+  knot count) when a screening's alternatives differ in it: the diagnosis
+  then keeps a higher order only when it pays on held-out data.
 
 All are pure functions of numbers and arrays: no I/O, no globals.
 """
@@ -118,6 +123,9 @@ class Terms:
         Viscous asymmetry: ``B_pos = B + dB``, ``B_neg = B - dB``.
     friction_excess : callable(speed, direction) -> float, optional
         Friction magnitude added to the Coulomb level of that direction at ``|v| = speed``.
+    friction_at : callable(x) -> float, optional
+        Friction magnitude added to both Coulomb levels and both breakaway levels at motor
+        position ``x`` [command units]; held over each integration sub-step.
     static_pos, static_neg : float
         Breakaway levels at rest (the larger of these and the plant's breakaway applies).
     position_forces : list of callable(x) -> float
@@ -131,6 +139,7 @@ class Terms:
     delay_s: float = 0.0
     dB: float = 0.0
     friction_excess: Callable[[float, int], float] | None = None
+    friction_at: Callable[[float], float] | None = None
     static_pos: float = 0.0
     static_neg: float = 0.0
     position_forces: list[Callable[[float], float]] = field(default_factory=list)
@@ -175,6 +184,9 @@ class ScreenInput:
         Samples (all runs concatenated) where the inverse-dynamics equation holds.
     command_filter : callable
         What made ``u_f`` from one run's command: ZOH centring and the zero-phase low-pass.
+    held_out : ndarray of bool
+        Samples (all runs concatenated) kept out of every fit, for choices made on held-out
+        data (all False when the caller holds nothing out).
     """
 
     runs: tuple[RunSignals, ...]
@@ -183,6 +195,11 @@ class ScreenInput:
     effects: Mapping[str, Mapping[str, float]]
     moving: np.ndarray
     command_filter: Callable[[np.ndarray], np.ndarray]
+    held_out: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.held_out is None:
+            object.__setattr__(self, "held_out", np.zeros(self.moving.size, dtype=bool))
 
     def cat(self, name: str) -> np.ndarray:
         """Signal ``name`` of all runs, concatenated."""

@@ -22,9 +22,7 @@ from servobench.sim_backend.physics.effects.spec import (
     ScreenInput,
     Terms,
     base_columns,
-    base_fit,
     explained,
-    regress,
     target,
 )
 
@@ -46,6 +44,8 @@ EFFECT = EffectSpec(
 
 #: Largest static excess over Coulomb the screening accepts, in Coulomb levels.
 MAX_EXCESS = 5.0
+#: Smallest viscous coefficient of the screening fits, as a share of rms(u) / rms(v).
+B_FLOOR = 0.01
 
 
 def check(p, plant) -> None:
@@ -84,25 +84,45 @@ def _spread(coef0: np.ndarray, scale: float) -> tuple[dict[str, float], ...]:
     )
 
 
+def bounded_fit(
+    columns: list[np.ndarray], y: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """Least squares of ``y`` on ``columns`` within bounds; coefficients and residual SSE."""
+    from scipy.optimize import lsq_linear
+
+    A = np.column_stack(columns)
+    q, r = np.linalg.qr(A)
+    qty = q.T @ y
+    sol = lsq_linear(r, qty, bounds=(lower, upper), method="bvls")
+    rest = max(float(y @ y - qty @ qty), 0.0)  # what no combination of the columns reaches
+    miss = r @ sol.x - qty
+    return sol.x, rest + float(miss @ miss)
+
+
 def screen(ctx: ScreenInput) -> Screening:
     m = ctx.moving
     v = ctx.cat("v_f")[m]
     y = target(ctx)
     cols = base_columns(ctx)
-    coef0, sse0 = base_fit(ctx)
     speed = np.abs(v)
     scale = float(np.sqrt(np.mean(v * v))) or 1.0
+    # Viscous friction is not negative: a base fit that wants it so is the signature of
+    # friction falling with speed, and the curve is fitted with B held at or above a floor.
+    b_min = B_FLOOR * float(np.sqrt(np.mean(y * y))) / scale
+    inf = np.inf
+    coef0, sse0 = bounded_fit(cols, y, np.array([0, b_min, 0, 0]), np.array([inf] * 4))
     # Friction levels beyond a few times the Coulomb level are not a Stribeck curve but a
     # regressor that vanishes on the moving samples.
     ceiling = MAX_EXCESS * max(abs(coef0[2]), abs(coef0[3]), 1e-12)
+    lower, upper = np.array([0, b_min, 0, 0, 0]), np.array([inf, inf, inf, inf, ceiling])
     slowest = float(np.min(speed)) if speed.size else 0.0
     best = None
     for vs in scale * np.geomspace(0.01, 1.0, 40):
         if vs < 0.5 * slowest:
             continue
         col = np.sign(v) * np.exp(-((speed / vs) ** 2))
-        coef, sse = regress([*cols, col], y)
-        if 0 < coef[4] < ceiling and (best is None or sse < best[0]):
+        coef, sse = bounded_fit([*cols, col], y, lower, upper)
+        if coef[4] > 0 and (best is None or sse < best[0]):
             best = (sse, vs, coef)
     bounds = {
         "fs": (0.0, 10.0 * max(abs(coef0[2]), abs(coef0[3]), 1e-9)),
@@ -124,8 +144,7 @@ def screen(ctx: ScreenInput) -> Screening:
     fs = max(fs, fcp, fcn)
     bounds["fs"] = (0.0, max(bounds["fs"][1], 3 * fs))
     evidence = (
-        f"friction rises at low speed: the force residual follows a Stribeck curve with "
-        f"static level {fs:.3g} over vs = {vs:.3g} units/s "
+        f"friction rises at low speed: the force residual follows a Stribeck curve "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp, "coulomb_neg": fcn}

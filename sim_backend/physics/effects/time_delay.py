@@ -58,8 +58,8 @@ def screen(ctx: ScreenInput) -> Screening:
     sse, d, coef = best
     dt = ctx.dt_s
     evidence = (
-        f"the response lags the command by about {d:g} samples ({d * dt * 1e3:.3g} ms; "
-        f"equation error {100 * (1 - sse / sse0):.0f}% lower with the delayed command)"
+        f"the response lags the command "
+        f"(equation error {100 * (1 - sse / sse0):.0f}% lower with the delayed command)"
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     bounds = {"delay": (0.0, (MAX_DELAY_SAMPLES + 2) * dt)}

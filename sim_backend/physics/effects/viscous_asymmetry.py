@@ -62,7 +62,7 @@ def screen(ctx: ScreenInput) -> Screening:
     lim = 0.95 * abs(B) if B > 0 else 1.0
     score = explained(sse0, sse, 1, y.size)
     evidence = (
-        f"the force-velocity slope differs by direction: B+ = {Bp:.4g}, B- = {Bn:.4g} "
+        f"the force-velocity slope differs by direction "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower than with one slope)"
         if sse0 > 0
         else "no equation error to explain"
