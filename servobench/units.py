@@ -108,6 +108,25 @@ class SignalUnits:
             "x": x,
         }
 
+    def effect_parameter(self, unit: str) -> str:
+        """An effect parameter's unit in these signal units.
+
+        The effect library declares its parameters in units relative to the axis
+        (``"command units"``, ``"units/s"``, ``"units"``, ``"command units*s/unit"``);
+        this names them as the log or drive does. Absolute units (``"s"``, ``"rad"``
+        of a phase, ``"Hz"``) are returned unchanged.
+
+        >>> ROTARY.effect_parameter("command units"), LINEAR.effect_parameter("units/s")
+        ('N m', 'm/s')
+        """
+        table = {
+            "command units": self.of("u"),
+            "units/s": self.of("v"),
+            "units": self.of("x"),
+            "command units*s/unit": self.parameters()["B"],
+        }
+        return table.get(unit, unit)
+
 
 #: A rotary axis in SI units.
 ROTARY = SignalUnits("N m", "rad/s", "rad")

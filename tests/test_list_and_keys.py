@@ -67,6 +67,27 @@ def test_every_listed_effect_key_switches_its_effect_on_in_a_sim_drive(tmp_path)
             assert e["name"] in drive.device.params.effects, (e["name"], url)
 
 
+def test_listed_effect_units_are_those_of_the_sim_axis_they_switch_on(tmp_path):
+    """An effect parameter in "command units" reads N m on the default (rotary) sim:// axis and
+    N with units=linear: the units the simulated drive itself reports for u, v and x."""
+    effects = {e["name"]: e for e in listed("effects", tmp_path)}
+    by_key = {k["key"]: k for e in effects.values() for k in e["keys"]}
+    relative = {"command units": "u", "units/s": "v", "units": "x"}
+    for axis in ("rotary", "linear"):
+        with open_drive(f"sim://?units={axis}") as drive:
+            signal = drive.info().units
+        for key, k in by_key.items():
+            if k["unit"] in relative:
+                assert k["units"][axis] == signal[relative[k["unit"]]], (key, axis)
+            elif k["unit"] == "command units*s/unit":
+                assert k["units"][axis] == {"rotary": "N m s/rad", "linear": "N s/m"}[axis]
+            else:  # absolute units (s, rad of a phase, 1) read the same on both axes
+                assert k["units"][axis] == k["unit"], key
+    assert by_key["stribeck_fs"]["units"] == {"rotary": "N m", "linear": "N"}
+    text = servobench("list", "effects", cwd=tmp_path).stdout
+    assert "stribeck_vs      [rad/s | m/s]" in text and "command units" not in text
+
+
 def test_listed_keys_are_exactly_the_keys_each_scheme_takes(tmp_path):
     table = listed("keys", tmp_path)
     assert {"max_u", "watchdog", "pace"} <= set(table["common"])

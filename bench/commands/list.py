@@ -3,7 +3,9 @@
 * ``maps`` -- the shipped Modbus register maps (``map=NAME``), with their units;
 * ``dialects`` -- the shipped serial dialects (``dialect=NAME``);
 * ``effects`` -- the simulated drive's effects, each with its ``sim://`` keys,
-  units, ranges and defaults (from the effect modules' own declarations);
+  units (the library's relative unit, and as it reads on a rotary and on a
+  linear ``sim://`` axis), ranges and defaults (from the effect modules' own
+  declarations);
 * ``keys`` -- the URL query keys of every registered scheme (built-in and
   entry points).
 
@@ -65,13 +67,15 @@ def dialects() -> list[dict[str, Any]]:
 def effects() -> list[dict[str, Any]]:
     """Every effect of the simulator with its parameters as the effect module declares them."""
     from servobench.sim_backend.physics import effects as library
+    from servobench.sim_backend.simurl import AXIS_UNITS
 
     out = []
     for name in library.names():
         spec = library.spec(name)
         params = [
-            {"key": p.key, "parameter": p.name, "unit": p.unit, "range": _range(p),
-             "default": p.default, "meaning": p.doc}  # fmt: skip
+            {"key": p.key, "parameter": p.name, "unit": p.unit,
+             "units": {axis: su.effect_parameter(p.unit) for axis, su in AXIS_UNITS.items()},
+             "range": _range(p), "default": p.default, "meaning": p.doc}  # fmt: skip
             for p in spec.params
         ]
         out.append({"name": name, "summary": spec.summary, "keys": params})
@@ -122,12 +126,14 @@ def _print_dialects(rows: list[dict[str, Any]]) -> str:
 
 
 def _print_effects(rows: list[dict[str, Any]]) -> str:
-    lines = ["Effects of the simulated drive: sim://?KEY=VALUE switches an effect on by any of its keys."]
+    lines = ["Effects of the simulated drive: sim://?KEY=VALUE switches an effect on by any of its keys.",
+             "Units: rotary axis (the default) | linear axis (units=linear)."]  # fmt: skip
     for r in rows:
         lines.append(f"  {r['name']}: {r['summary']}")
         for k in r["keys"]:
             default = "required" if k["default"] is None else f"default {k['default']:g}"
-            lines.append(f"      {k['key']:<16} [{k['unit']}] {k['range']}, {default}: {k['meaning']}")
+            unit = " | ".join(dict.fromkeys(k["units"].values()))
+            lines.append(f"      {k['key']:<16} [{unit}] {k['range']}, {default}: {k['meaning']}")
     return "\n".join(lines) + "\n"
 
 

@@ -64,17 +64,6 @@ def _compact(name: str, params: Mapping[str, float]) -> dict[str, float]:
     return {k: float(v) for k, v in params.items()}
 
 
-def effect_unit(unit: str, units: SignalUnits) -> str:
-    """A library parameter's unit (``"command units"``, ``"units/s"`` ...) in the log's units."""
-    table = {
-        "command units": units.of("u"),
-        "units/s": units.of("v"),
-        "units": units.of("x"),
-        "command units*s/unit": units.parameters()["B"],
-    }
-    return table.get(unit, unit)
-
-
 def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
     out = dict(units.parameters())
@@ -82,7 +71,7 @@ def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
         kept = _compact(name, values)
         for p in library.spec(name).params:
             if p.name in kept:
-                out[f"{name}.{p.name}"] = effect_unit(p.unit, units)
+                out[f"{name}.{p.name}"] = units.effect_parameter(p.unit)
     return out
 
 
