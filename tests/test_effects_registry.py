@@ -132,3 +132,24 @@ def test_position_friction_travels_through_its_sim_url_keys():
         from servobench.sim_backend.physics.plant import Plant
 
         Plant(plant_from_url(url + "&posfric_4=0.1"))
+
+
+def test_optional_functions_come_from_the_module_or_the_registry_s_declared_defaults():
+    from servobench.sim_backend.physics.effects import position_friction, stribeck
+
+    base = {"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
+    # stribeck defines project: a static level below the Coulomb level is raised to it.
+    low = {"fs": 0.1, "vs": 0.05}
+    assert effects.project("stribeck", low, base) == stribeck.project(low, base)
+    assert effects.project("stribeck", low, base)["fs"] >= 0.5
+    # cogging defines none of the three: parameters unchanged, one order, nothing to check.
+    cog = {"amp": 0.2, "period": 0.01, "phase": 0.0}
+    assert effects.project("cogging", cog, base) == cog
+    assert effects.order("cogging", cog) == 0
+    assert effects.check("cogging", cog, plant_from_url("sim://")) is None
+    # position_friction defines order: its knot count.
+    p = plant_from_url("sim://?posfric_from=0&posfric_to=2&posfric_knots=3&posfric_1=0.2").effects[
+        "position_friction"
+    ]
+    assert effects.order("position_friction", p) == position_friction.order(p) == 3
+    assert set(effects.OPTIONAL) == {"check", "project", "order"}

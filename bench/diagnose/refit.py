@@ -142,9 +142,7 @@ class _Layout:
         for (name, pname, scale, _, _), value in zip(self.slots, z[4:], strict=True):
             effects[name][pname] = float(value * scale)
         for name in effects:
-            project = getattr(library.module(name), "project", None)
-            if project is not None:
-                effects[name] = project(effects[name], base)
+            effects[name] = library.project(name, effects[name], base)
         return Candidate(base, effects)
 
 

@@ -104,13 +104,10 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
             }
             trials.append((b, dict(s.guess), True))
     trials += [(dict(current.base), dict(g), False) for g in s.alternatives]
-    mod = library.module(name)
-    project = getattr(mod, "project", None)
     which = held_out_windows(data)
     best: dict[bool, tuple[float, Candidate]] = {}
     for base, guess, main in trials:
-        if project is not None:
-            guess = project(guess, base)
+        guess = library.project(name, guess, base)
         cand = Candidate(base, {**current.effects, name: guess})
         try:
             gap = gap_percent(data, simulate(data, cand, which), "held_out")

@@ -205,10 +205,8 @@ def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitRes
     """The refit of effect ``name`` to keep, of those from its different starts: of one model
     order, the lowest training gap; of several (a spline's knot count, the module's ``order``),
     the lowest order, and a higher one only when it pays against it on held-out data."""
-    order = getattr(library.module(name), "order", None)
-
     def rank(f: FitResult) -> int:
-        return order(f.candidate.effects[name]) if order is not None else 0
+        return library.order(name, f.candidate.effects[name])
 
     by_order: dict[int, FitResult] = {}
     for f in fits:

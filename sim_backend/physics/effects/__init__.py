@@ -69,6 +69,48 @@ def names() -> tuple[str, ...]:
     return tuple(EFFECT_MODULES)
 
 
+# ------------------------------------------------ the optional functions, with their defaults
+def _no_check(p: Mapping[str, float], plant) -> None:
+    """Nothing to cross-check against the base plant."""
+
+
+def _unchanged(p: Mapping[str, float], base: Mapping[str, float]) -> dict[str, float]:
+    """Every value in range is physical: the parameters as they are."""
+    return dict(p)
+
+
+def _one_order(p: Mapping[str, float]) -> int:
+    """One model order: the parameter sets of a screening differ in values only."""
+    return 0
+
+
+#: The optional functions of an effect module (see :mod:`.spec`) and what an effect that does
+#: not define one gets: callers use :func:`check`, :func:`project` and :func:`order`, never the
+#: module's attributes, so a module defines only what it needs.
+OPTIONAL = {"check": _no_check, "project": _unchanged, "order": _one_order}
+
+
+def _optional(name: str, which: str):
+    return vars(module(name)).get(which, OPTIONAL[which])
+
+
+def check(name: str, p: Mapping[str, float], plant) -> None:
+    """Cross-check effect ``name``'s parameters against the base plant (raises UsageError)."""
+    _optional(name, "check")(p, plant)
+
+
+def project(name: str, p: Mapping[str, float], base: Mapping[str, float]) -> dict[str, float]:
+    """Effect ``name``'s parameters made physical against the base model (``M``, ``B``,
+    ``coulomb_pos``, ``coulomb_neg``); the diagnosis applies it at every step of a refit."""
+    return _optional(name, "project")(p, base)
+
+
+def order(name: str, p: Mapping[str, float]) -> int:
+    """The model order of a parameter set of effect ``name`` (a spline's knot count; 0 for
+    effects of one order)."""
+    return _optional(name, "order")(p)
+
+
 @cache
 def _key_table() -> dict[str, tuple[str, str]]:
     """``sim://`` key -> (effect, parameter)."""
@@ -147,10 +189,7 @@ def collect_terms(params) -> Terms:
     """The :class:`Terms` of every effect of a :class:`~servobench.sim_backend.physics.coulomb.PlantParams`."""
     terms = Terms()
     for name, values in params.effects.items():
-        mod = module(name)
         values = validate(name, values)
-        check = getattr(mod, "check", None)
-        if check is not None:
-            check(values, params)
-        mod.contribute(values, params, terms)
+        check(name, values, params)
+        module(name).contribute(values, params, terms)
     return terms

@@ -15,6 +15,11 @@ Every effect module in :mod:`servobench.sim_backend.physics.effects` defines
   knot count) when a screening's alternatives differ in it: the diagnosis
   then keeps a higher order only when it pays on held-out data.
 
+Callers reach the optional three through the registry's ``check``, ``project``
+and ``order`` (:mod:`servobench.sim_backend.physics.effects`), which supply the
+defaults for a module that does not define them: nothing to check, parameters
+unchanged, one model order.
+
 All are pure functions of numbers and arrays: no I/O, no globals.
 """
 
