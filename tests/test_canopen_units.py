@@ -142,3 +142,48 @@ def test_linear_axes_are_served_and_read_in_n_m_s_and_m(keys, u_per_lsb, v_per_l
     v_ref, x_ref = simulate(u, 1000.0, PlantParams(M=2, B=20, coulomb_pos=5, coulomb_neg=4))
     np.testing.assert_allclose([f.velocity for f in fb], v_ref, atol=v_per_lsb)
     np.testing.assert_allclose([f.position for f in fb], x_ref, atol=1e-6)
+
+
+def test_commission_and_validate_give_the_si_model_and_the_drive_s_own_units(tmp_path, capsys) -> None:
+    """The commissioning plant behind the realistic factor group (per mille of a 2 N m rated
+    torque, rpm, 131072 increments per revolution): the record is in N m, rad/s and kg m^2,
+    its values to program also in the drive's units, and validate reads the same model back."""
+    from test_commission_cli import CONFIG, PLANT, check_record
+
+    from servobench.bench.cli import main
+
+    plant = "sim://?M={M}&B={B}&fc_pos={coulomb_pos}&fc_neg={coulomb_neg}".format(**PLANT)
+    config = tmp_path / "bench.toml"
+    config.write_text(CONFIG)
+    out = tmp_path / "record"
+    with ServedSim("canopen", f"{plant}&rated_torque=2&inc_per_rev=131072&vel_unit=rpm") as sim:
+        assert "scale" not in sim.url
+        rc = main(["commission", "--drive", sim.url + "&pace=fast", "--yes", "--config", str(config),
+                   "--out", str(out)])  # fmt: skip
+        assert rc == 0, capsys.readouterr().err
+    model = check_record(out)  # pole and DC gain of the SI plant within 1 %
+    for key in ("M", "B", "coulomb_pos", "coulomb_neg"):
+        assert model[key] == pytest.approx(PLANT[key], rel=0.03), key
+    units = {"M": "kg m^2", "B": "N m s/rad", "coulomb_pos": "N m", "pole": "1/s"}
+    assert {k: model["units"][k] for k in units} == units
+    meta = read_log(out / "log.csv").metadata
+    assert (meta["unit_u"], meta["unit_v"], meta["unit_x"]) == ("N m", "rad/s", "rad")
+    rpm = 2 * math.pi / 60
+    assert (float(meta["scale_u"]), float(meta["scale_v"])) == pytest.approx((0.002, rpm))
+    program = {p["name"]: p for p in model["program"]}
+    ff = program["friction feed-forward, positive motion (Coulomb +)"]
+    assert ff["unit"] == "N m" and ff["drive_value"] == pytest.approx(ff["value"] / 0.002)
+    kp = program["velocity PI: proportional gain Kp"]
+    assert kp["unit"] == "N m s/rad" and kp["drive_value"] == pytest.approx(kp["value"] * rpm / 0.002)
+    # 1 rpm steps in the velocity are noise of 1 rpm/sqrt(12) to the diagnosis, not an unexplained gap
+    report = (out / "diagnose" / "report.md").read_text()
+    assert "**verdict: explained" in report and "reported in steps of 0.1047 rad/s" in report
+    html = (out / "report.html").read_text()
+    assert "1 drive u unit = 0.002 N m (0x6076 rated torque 2000 mN m, per mille)" in html
+    assert "1 drive v unit = 0.10472 rad/s (0x60A9 rpm (0x00B44700))" in html
+    # validate: the record's model against its own log, in the same units, nothing to warn of
+    capsys.readouterr()
+    assert main(["validate", str(out / "model.json"), str(out / "log.csv"), "--json"]) == 0
+    checked = json.loads(capsys.readouterr().out)
+    assert checked["units"] == {"unit_u": "N m", "unit_v": "rad/s", "unit_x": "rad"}
+    assert not [n for n in checked["notes"] if "units" in n] and checked["fit_percent"] > 90

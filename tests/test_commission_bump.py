@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import io
+import math
 
+import numpy as np
 import pytest
 
 from servobench.bench.commission.bump import run_bump_test
@@ -45,6 +47,25 @@ class Inverted(SimDrive):
 
 class BadScale(SimDrive):
     """Position counts three times what the velocity integrates to."""
+
+    def _exchange(self, u):
+        fb = super()._exchange(u)
+        return Feedback(fb.t_s, fb.velocity, 3.0 * fb.position)
+
+
+RPM = 2 * math.pi / 60
+
+
+class WholeRpm(SimDrive):
+    """A drive whose velocity (0x606C) is in whole rpm, rounded; position fine."""
+
+    def _exchange(self, u):
+        fb = super()._exchange(u)
+        return Feedback(fb.t_s, RPM * round(fb.velocity / RPM), fb.position)
+
+
+class WholeRpmBadScale(WholeRpm):
+    """Whole rpm, and a position that counts three times what the velocity integrates to."""
 
     def _exchange(self, u):
         fb = super()._exchange(u)
@@ -107,6 +128,33 @@ def test_wrong_direction_tells_what_to_change(tmp_path):
 def test_position_inconsistent_with_velocity_refuses(tmp_path):
     with pytest.raises(CommissionRefused, match=r"disagree.*ratio 3"):
         bump(sim(cls=BadScale), tmp_path)
+
+
+def test_signal_step_is_found_in_stepped_feedback_only():
+    from servobench.bench.identify.resolution import signal_step
+
+    rng = np.random.default_rng(0)
+    smooth = np.cumsum(rng.normal(0.0, 0.01, 200))
+    assert signal_step(smooth) == 0.0  # every sample distinct: no step
+    assert signal_step(RPM * np.round(smooth * 20 / RPM)) == pytest.approx(RPM)
+    assert signal_step(np.zeros(50)) == 0.0
+
+
+def test_velocity_in_whole_rpm_is_not_mistaken_for_a_scaling_error(tmp_path):
+    """Slow bumps on a drive reporting whole rpm: the integral of the stepped velocity is off
+    by up to one rpm times the duration, which is not a disagreement of the two signals."""
+    result = bump(sim(cls=WholeRpm), tmp_path, BumpSettings(fractions=(0.05, 0.1, 0.2, 0.4)))
+    moved = [p for p in result.pulses if p.moved]
+    assert moved and all(p.integral_resolution > 0 for p in moved)
+    for p in moved:
+        assert abs(p.displacement - p.integrated) <= p.integral_resolution + 0.25 * abs(p.displacement)
+
+
+def test_a_scaling_error_is_still_found_through_whole_rpm(tmp_path):
+    # pulses long and strong enough that one rpm over their duration is small against the motion
+    settings = BumpSettings(fractions=(0.2, 0.4), pulse_s=0.5)
+    with pytest.raises(CommissionRefused, match=r"disagree.*ratio (3|2\.9)"):
+        bump(sim(cls=WholeRpmBadScale), tmp_path, settings)
 
 
 def test_frozen_feedback_refuses(tmp_path):

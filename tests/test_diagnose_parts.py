@@ -95,6 +95,21 @@ def test_noise_floor_estimates_white_sensor_noise():
     assert noise_floor_percent(data) == pytest.approx(expected, rel=0.15)
 
 
+def test_noise_floor_counts_the_rounding_of_a_velocity_reported_in_whole_steps():
+    """A drive reporting velocity in whole rpm: second differences of the stepped velocity are
+    mostly 0, yet its rounding is noise of step/sqrt(12) the model cannot reproduce."""
+    rpm = 2 * math.pi / 60
+    log = plant_log(PlantParams(noise=0.0), n=4000)
+    run = log.runs[0]
+    stepped = RunData(run.run, run.t, run.u, rpm * np.round(run.v / rpm), run.x)
+    data = prepare(make_log([stepped]))
+    assert data.v_step == pytest.approx(rpm)
+    expected = 100 * rpm / math.sqrt(12) / np.std(data.cat("v"))
+    assert noise_floor_percent(data) == pytest.approx(expected, rel=0.05)
+    smooth = prepare(make_log([run]))
+    assert smooth.v_step == 0.0 and noise_floor_percent(smooth) < 0.2 * expected
+
+
 def test_the_true_base_model_leaves_only_the_noise():
     params = PlantParams(noise=0.01)
     data = prepare(plant_log(params))

@@ -8,7 +8,9 @@ For each direction the test answers:
 * does it move (peak ``|v|`` or ``|dx|`` above the noise seen at rest)?
 * in the right direction (positive command -> positive velocity)?
 * is the feedback sane: finite, the drive clock advancing, and the position
-  change consistent with the integrated velocity?
+  change consistent with the integrated velocity (judged where the motion is
+  large against the position noise and against what the velocity's own
+  resolution, e.g. whole rpm, can put into its integral)?
 
 Any "no" refuses commissioning with what to change. Every sample goes to
 ``bump.csv`` as it is taken (run = pulse number), kept even on Ctrl-C.
@@ -28,6 +30,7 @@ import numpy as np
 from servobench.bench.commission.config import BumpSettings
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.limits import ConfirmedLimits
+from servobench.bench.identify.resolution import signal_step
 from servobench.bench.logio import LogWriter
 from servobench.bench.run.runner import LOG_COLUMNS
 from servobench.clock import sleep_until
@@ -68,6 +71,10 @@ class BumpPulse:
         Trapezoidal integral of the velocity over the same samples [position units].
     moved : bool
         Peak speed or displacement above the rest noise.
+    integral_resolution : float
+        How far the integral can be off through the velocity's own resolution alone: the
+        velocity step the drive reports in (1 rpm on a drive whose 0x606C is in rpm; 0 for
+        a velocity with no visible step) times the duration [position units].
     """
 
     number: int
@@ -76,6 +83,7 @@ class BumpPulse:
     displacement: float
     integrated: float
     moved: bool
+    integral_resolution: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -293,7 +301,10 @@ def analyse_pulse(
     moved = abs(peak) > noise.speed_threshold or (
         at_rest and abs(displacement) > noise.travel_threshold
     )
-    return BumpPulse(number, float(amplitude), peak, displacement, integrated, moved)
+    # A velocity reported in whole steps (rounded or truncated) is off by up to one step at
+    # every sample, the same way while the speed sweeps few steps: bound its integral so.
+    resolution = signal_step(v) * float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    return BumpPulse(number, float(amplitude), peak, displacement, integrated, moved, resolution)
 
 
 def judge(
@@ -337,6 +348,8 @@ def judge(
         scale = max(abs(p.displacement), abs(p.integrated))
         if scale <= POSITION_JUDGE_FACTOR * noise.travel_threshold:
             continue
+        if p.integral_resolution > settings.position_tolerance * scale:
+            continue  # the velocity's steps alone could account for the tolerance: not judged
         checked = True
         if np.sign(p.displacement) != np.sign(p.integrated):
             raise CommissionRefused(
@@ -344,7 +357,7 @@ def judge(
                 f"integral of v = {p.integrated:.4g}); invert the position (encoder) direction "
                 "or the velocity sign in the drive's configuration"
             )
-        mismatch = abs(p.displacement - p.integrated) / scale
+        mismatch = max(abs(p.displacement - p.integrated) - p.integral_resolution, 0.0) / scale
         if mismatch > settings.position_tolerance:
             raise CommissionRefused(
                 f"position and velocity feedback disagree in the bump test: dx = {p.displacement:.4g} "

@@ -33,6 +33,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset, Segment
 from servobench.bench.identify.dataset import prepare as prepare_log
+from servobench.bench.identify.resolution import signal_step, step_noise_std
 from servobench.bench.logio import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
 from servobench.units import SignalUnits
@@ -87,6 +88,12 @@ class DiagnosisData:
     @property
     def segments(self) -> tuple[Segment, ...]:
         return self.prepared.segments
+
+    @property
+    def v_step(self) -> float:
+        """The step the drive reports velocity in [units/s]; 0 when it shows none or the
+        velocity is derived (see :mod:`servobench.bench.identify.resolution`)."""
+        return velocity_step(self.prepared)
 
     @property
     def fs_hz(self) -> float:
@@ -192,11 +199,21 @@ def _plan(n: int, horizon_s: float | None, fs_hz: float) -> tuple[np.ndarray, np
 
 def noise_std(prepared: Dataset) -> float:
     """Standard deviation of white velocity-sensor noise [units/s], robustly from second
-    differences (0 for velocity derived from position, already smooth)."""
+    differences, together with the rounding of a velocity the drive reports in steps (whole
+    rpm: :mod:`servobench.bench.identify.resolution`), which second differences do not see;
+    0 for velocity derived from position, already smooth."""
     if prepared.derived:
         return 0.0
     d2 = np.concatenate([np.diff(s.v, 2) for s in prepared.segments])
-    return float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
+    white = float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
+    return math.hypot(white, step_noise_std(velocity_step(prepared)))
+
+
+def velocity_step(prepared: Dataset) -> float:
+    """The step a measured velocity is reported in [units/s] (0: none, or derived)."""
+    if prepared.derived:
+        return 0.0
+    return signal_step(np.concatenate([s.v for s in prepared.segments]))
 
 
 def noise_floor_percent(data: DiagnosisData) -> float:

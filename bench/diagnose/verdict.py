@@ -377,6 +377,11 @@ def noise_floor(data: DiagnosisData, gap: float, together: float) -> NoiseFloor:
             else "measured velocity"
         ),
     )
+    if data.v_step > 0:
+        source += (
+            f" and the rounding of a velocity reported in steps of {data.v_step:.4g} "
+            f"{data.units.of('v')} (step / sqrt 12)"
+        )
     if together < STRUCTURED:
         upper = min([unpredictable] + ([repeat] if repeat is not None else []))
         if upper > COLOURED * sensor:
