@@ -57,6 +57,9 @@ SERVE_ARGS: dict[str, tuple[str, ...]] = {
 }
 #: Host URL keys of every scenario: stream as fast as the lock-step drive answers.
 HOST_KEYS = "&pace=fast"
+#: Host URL keys of the fault-free reference runs and of the cases that must not time out, on
+#: transports whose client would otherwise take a drive late under CPU load for a silent one.
+PATIENT = {"modbus-tcp": "&timeout=1", "modbus-rtu": "&timeout=1"}
 
 
 @dataclass(frozen=True)
@@ -144,9 +147,18 @@ def _cases() -> tuple[Case, ...]:
         Case("serial", f"delay@{n}:250", error="DriveTimeoutError", match="no reply"),
     ]
     # the serial feedback reply carries no drive state: poll the error register often
-    return tuple(
+    out = [
         Case(c.transport, c.spec, c.rides, c.error, c.match, c.final_state, "&poll=0.005")
         if c.transport == "serial" and c.kind == "fault"
+        else c
+        for c in out
+    ]
+    # Modbus cases that must not time out wait up to 1 s for an answer (the default 0.25 s
+    # stays for those that must): a served drive starved of CPU on a busy CI machine is late,
+    # not wrong, and these cases judge the log and the drive's state, not the link's latency.
+    return tuple(
+        Case(c.transport, c.spec, c.rides, c.error, c.match, c.final_state, PATIENT[c.transport])
+        if c.transport in PATIENT and c.error != "DriveTimeoutError"
         else c
         for c in out
     )
@@ -298,7 +310,7 @@ def run_case(
     try:
         if served.proc is None:
             served.start()
-        url = served.url + HOST_KEYS + (case.host_keys if case is not None else "")
+        url = served.url + HOST_KEYS + (case.host_keys if case is not None else PATIENT.get(transport, ""))
         try:
             with open_drive(url) as drive:
                 stream_runs(drive, excitation(), FS_HZ, log_path, settle_s=SETTLE_S)
