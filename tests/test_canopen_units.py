@@ -187,3 +187,37 @@ def test_commission_and_validate_give_the_si_model_and_the_drive_s_own_units(tmp
     checked = json.loads(capsys.readouterr().out)
     assert checked["units"] == {"unit_u": "N m", "unit_v": "rad/s", "unit_x": "rad"}
     assert not [n for n in checked["notes"] if "units" in n] and checked["fit_percent"] > 90
+
+
+def test_the_served_factor_group_can_come_from_the_drive_s_eds(tmp_path) -> None:
+    """A drive's EDS with its factor group as default values (a 1.27 N m motor, a 10000-count
+    encoder behind a 5:1 gear, position in increments, velocity in rpm): served with no factor keys, the driver reads
+    exactly those objects and scales to the driving shaft (behind the gear) in SI."""
+    from importlib import resources
+
+    text = resources.files("servobench.drivers").joinpath("data/cia402.eds").read_text("ascii")
+
+    def set_default(section: str, value: str) -> None:
+        nonlocal text
+        head = text.index(f"[{section}]\n")
+        at = text.index("DefaultValue=", head)
+        end = text.index("\n", at)
+        text = text[:at] + f"DefaultValue={value}" + text[end:]
+
+    set_default("6076", "1270")
+    set_default("608Fsub1", "10000")
+    set_default("6091sub1", "5")
+    set_default("60A8", "0x00B50000")  # position in increments
+    set_default("60A9", "0x00B44700")  # velocity in rpm
+    eds = tmp_path / "drive.eds"
+    eds.write_text(text, encoding="ascii")
+    plant = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
+    with served(plant, eds=str(eds)) as (_, url), open_drive(url) as drive:
+        meta = drive.log_metadata()
+    assert drive.units == {"u": "N m", "v": "rad/s", "x": "rad"}
+    assert float(meta["scale_u"]) == pytest.approx(1.27e-3 * 5)  # torque at the load: x gear
+    assert meta["scale_u_source"].startswith("0x6076 rated torque 1270 mN m, per mille")
+    assert meta["scale_v_source"].startswith("0x60A9 rpm (0x00B44700)")
+    assert "0x608F 10000 inc / 1 rev" in meta["scale_x_source"] and "gear 5/1" in meta["scale_x_source"]
+    assert float(meta["scale_x"]) == pytest.approx(2 * math.pi / (10000 * 5))
+    assert float(meta["scale_v"]) == pytest.approx(2 * math.pi / 60)  # rpm of the driving shaft
