@@ -7,15 +7,13 @@ a lost link, write-then-read vs FC23, timestamp roll-over, the ZLAC8015D map.
 from __future__ import annotations
 
 import contextlib
-import queue
 import socket
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from servobench.bench.testing.served_modbus import served_modbus
 from servobench.drivers.modbus import ModbusDrive, exception_error
 from servobench.drivers.registry import open_drive
 from servobench.drivers.regmap import resolve_map
@@ -29,11 +27,8 @@ from servobench.sim_backend.device import (
     GENERIC_FAULT,
     PowerState,
     SimulatedDevice,
-    WatchdogThread,
-    device_from_url,
 )
 from servobench.sim_backend.physics.plant import PlantParams, simulate
-from servobench.sim_backend.servers import serve_modbus
 from servobench.sim_backend.servers.serve_modbus import parse_faults
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
@@ -41,39 +36,11 @@ PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 SIM_MAP = Path(resolve_map("servobench-sim")).read_text()
 
 
-@contextlib.contextmanager
 def served(
     map_name: str = "servobench-sim", transport: str = "modbus-tcp", fault: str = ""
-) -> Iterator[tuple[SimulatedDevice, str]]:
+) -> contextlib.AbstractContextManager[tuple[SimulatedDevice, str]]:
     """The simulated drive served in a thread; yields (device, URL)."""
-    device = device_from_url(SIM_URL)
-    stop, urls = threading.Event(), queue.Queue()
-
-    def run() -> None:
-        try:
-            serve_modbus.serve(
-                device,
-                stop,
-                urls.put,
-                {"transport": transport, "port": "0", "map": map_name, "fault": fault},
-            )
-        except BaseException as err:  # surface start-up errors in the test
-            urls.put(err)
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    url = urls.get(timeout=10)
-    if isinstance(url, BaseException):
-        raise url
-    watchdog = WatchdogThread(device)
-    watchdog.start()
-    try:
-        yield device, url
-    finally:
-        stop.set()
-        thread.join(5)
-        watchdog.stop()
-        assert not thread.is_alive()
+    return served_modbus(transport, SIM_URL, map=map_name, fault=fault)
 
 
 def client_map(tmp_path: Path, old: str, new: str) -> str:

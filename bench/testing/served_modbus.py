@@ -52,6 +52,8 @@ def served_modbus(
         stop.set()
         thread.join(5)
         watchdog.stop()
+        if thread.is_alive():
+            raise RuntimeError("the served Modbus drive did not stop within 5 s of the test's end")
 
 
 def host_port(url: str) -> tuple[str, int]:
