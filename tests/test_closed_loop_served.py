@@ -25,6 +25,8 @@ import pytest
 from servobench.bench.logio import read_log
 from servobench.bench.testing.served import ServedSim
 
+pytestmark = pytest.mark.slow  # closed-loop sidbe over served drives, 20 s
+
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.01&seed=2"
 SHORT = ["--period", "2", "--periods", "3", "--no-plots"]
 

@@ -16,6 +16,8 @@ import pytest
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.logio import read_log
 
+pytestmark = pytest.mark.slow  # the EMPS diagnosis, 18 s
+
 EMPS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "emps" / "emps.csv"
 
 

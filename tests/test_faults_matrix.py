@@ -32,6 +32,8 @@ from servobench.bench.testing.fault_scenarios import (
 )
 from servobench.sim_backend.faults.spec import TRANSPORTS
 
+pytestmark = pytest.mark.slow  # every fault on every transport, 35 s
+
 ORDERED = sorted(CASES, key=lambda c: TRANSPORTS.index(c.transport))
 
 

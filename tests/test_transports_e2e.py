@@ -19,6 +19,8 @@ from servobench.bench.testing.served import ServedSim
 from servobench.drivers.registry import BACKENDS
 from servobench.sim_backend.servers.serve import TRANSPORTS
 
+pytestmark = pytest.mark.slow  # sidbe over every served transport, 27 s
+
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 TRUE_POLE, TRUE_GAIN = -10.0, 1.0
 # A short excitation: 4 s period at 50 Hz, so the slowest link (RTU) finishes in seconds.

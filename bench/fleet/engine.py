@@ -186,7 +186,10 @@ def _local_cluster(distributed: Any, workers: int | None) -> Any:
             processes=True,
             host="127.0.0.1",
             dashboard_address=":0",
-            silence_logs=logging.ERROR,
+            # A worker's failures reach the client as the task's exception, which fleet reports
+            # per log; what the workers would print besides is shutdown noise (a heartbeat to a
+            # scheduler already closing, with its traceback, on a busy machine).
+            silence_logs=logging.CRITICAL,
         )
     except Exception as err:  # noqa: BLE001 -- distributed raises many kinds here
         raise FleetEngineError(
