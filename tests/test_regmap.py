@@ -239,6 +239,13 @@ _DELETE = object()
         ),
         ("units.t", "s", r"\[units\] t: unknown key"),
         ("extra", {}, r"\[top level\] extra: unknown key"),
+        # units, fc23 = "auto" and turnaround_ms
+        ("registers.vendor.unit", "V", r"\[registers.vendor\] unit: only scaled values take a unit"),
+        ("registers.control.unit", "1", r"\[registers.control\] unit: only scaled values"),
+        ("registers.cycle.unit", "ms", r"\[registers.cycle\] unit: 'ms': the host reads and writes"),
+        ("units.v", "rpm", r"\[units\] v: 'rpm' contradicts \[registers.velocity\] unit 'rad/s'"),
+        ("map.turnaround_ms", -1.0, r"\[map\] turnaround_ms: -1.0 must be >= 0"),
+        ("map.fc23", "sometimes", r"\[map\] fc23: expected bool, got 'sometimes' \(or 'auto'\)"),
     ],
 )
 def test_malformed_entries_name_file_and_key(dotted, value, expect):
@@ -293,24 +300,6 @@ def test_register_units_give_the_drive_units():
     assert sim["timestamp"].unit == sim["watchdog"].unit == "s"
     # 0.1 r/min per count, in rad/s: 0.1 * 2 pi / 60
     assert z["velocity"].scale == pytest.approx(0.1 * 2 * 3.141592653589793 / 60, rel=1e-15)
-
-
-@pytest.mark.parametrize(
-    ("dotted", "value", "expect"),
-    [
-        ("registers.vendor.unit", "V", r"\[registers.vendor\] unit: only scaled values take a unit"),
-        ("registers.control.unit", "1", r"\[registers.control\] unit: only scaled values"),
-        ("registers.cycle.unit", "ms", r"\[registers.cycle\] unit: 'ms': the host reads and writes"),
-        ("units.v", "rpm", r"\[units\] v: 'rpm' contradicts \[registers.velocity\] unit 'rad/s'"),
-        ("map.turnaround_ms", -1.0, r"\[map\] turnaround_ms: -1.0 must be >= 0"),
-        ("map.fc23", "sometimes", r"\[map\] fc23: expected bool, got 'sometimes' \(or 'auto'\)"),
-    ],
-)
-def test_units_fc23_and_turnaround_are_checked(dotted, value, expect):
-    doc = copy.deepcopy(SIM_DOC)
-    _set(doc, dotted, value)
-    with pytest.raises(DriveConfigError, match=r"^my-map\.toml: " + expect):
-        parse_map(doc, "my-map.toml")
 
 
 def test_fc23_auto_and_turnaround():
