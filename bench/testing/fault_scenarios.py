@@ -24,7 +24,7 @@ import signal
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -146,22 +146,19 @@ def _cases() -> tuple[Case, ...]:
         Case("serial", f"delay@{n}:30", rides=True),
         Case("serial", f"delay@{n}:250", error="DriveTimeoutError", match="no reply"),
     ]
-    # the serial feedback reply carries no drive state: poll the error register often
-    out = [
-        Case(c.transport, c.spec, c.rides, c.error, c.match, c.final_state, "&poll=0.005")
-        if c.transport == "serial" and c.kind == "fault"
-        else c
-        for c in out
-    ]
+    return tuple(replace(c, host_keys=_host_keys(c)) for c in out)
+
+
+def _host_keys(case: Case) -> str:
+    """The extra host URL keys a case needs."""
+    if case.transport == "serial" and case.kind == "fault":
+        return "&poll=0.005"  # the serial feedback reply carries no drive state: poll often
     # Modbus cases that must not time out wait up to 1 s for an answer (the default 0.25 s
     # stays for those that must): a served drive starved of CPU on a busy CI machine is late,
     # not wrong, and these cases judge the log and the drive's state, not the link's latency.
-    return tuple(
-        Case(c.transport, c.spec, c.rides, c.error, c.match, c.final_state, PATIENT[c.transport])
-        if c.transport in PATIENT and c.error != "DriveTimeoutError"
-        else c
-        for c in out
-    )
+    if case.transport in PATIENT and case.error != "DriveTimeoutError":
+        return PATIENT[case.transport]
+    return case.host_keys
 
 
 #: Every scenario: each fault kind on each transport it applies to, some twice.
