@@ -358,6 +358,18 @@ class SimulatedDevice:
             self._wall_due = self._clock() + self.cycle_s
             return t, v, x
 
+    def true_state(self) -> tuple[float, float, float]:
+        """``(t_s, v, x)``: drive clock [s] and plant state now, unmeasured (no noise drawn).
+
+        ``real``: integrated up to now; lockstep: as of the last clocked cycle
+        (after any wall-clock catch-up of an idle axis).
+        """
+        with self._lock:
+            self._catch_up()
+            if self.timed is not None:
+                self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+            return float(self._t_s), float(self.plant.state.v), float(self.plant.state.x)
+
     def _sample_now(self) -> DeviceSample:
         """``real``: the measurement of the plant as integrated up to now, on the drive clock."""
         v, x = self.timed.measure()

@@ -183,8 +183,8 @@ def test_the_modbus_timestamp_register_counts_microseconds_and_is_absent_without
 
 
 # ---------------------------------------------------------------- serve-sim
-def test_rt_priority_is_asked_for_and_reported_and_the_url_stays_first():
-    with ServedSim("modbus-tcp", PLANT, ["--rt-priority", "5"], clock="real") as sim:
+def test_real_time_is_the_default_and_rt_priority_is_asked_for_and_reported():
+    with ServedSim("modbus-tcp", PLANT, ["--rt-priority", "5"]) as sim:  # serve-sim's default clock
         assert sim.url.startswith("modbus+tcp://")
         policy = os.sched_getscheduler(sim.proc.pid)
         rows = bracketed_reads(sim.url)
