@@ -215,3 +215,30 @@ def test_sim_clock_real_integrates_wall_clock_time_in_process():
     check_wall_clock_motion(rows, 1e-12)
     with pytest.raises(DriveConfigError, match="sim clock must be"):
         open_drive(PLANT + "&clock=fast")
+
+
+def test_a_vanished_host_is_stopped_by_the_watchdog_and_the_next_session_finds_the_axis_at_rest():
+    """Real time end to end: the watchdog trips in wall-clock time, the axis coasts to rest
+    while nobody polls, and the next session's drive clock starts again from 0."""
+    with ServedSim("modbus-tcp", PLANT, clock="real") as sim:
+        url = sim.url + "&watchdog=0.2"
+        gone = open_drive(url)
+        gone.open()
+        gone.set_cycle(1e-3)
+        gone.enable()
+        for _ in range(50):
+            moving = gone.exchange(1.0)[0]
+            time.sleep(1e-3)
+        gone._close()  # the link drops: no stop, no disable
+        time.sleep(0.6)  # watchdog 0.2 s, then a coast of a few tau
+        with open_drive(url) as fresh:
+            assert fresh.fault_code() == 0x8130  # the watchdog's fault
+            fresh.reset_fault()
+            first = fresh.read()
+            time.sleep(0.1)
+            second = fresh.read()
+    assert moving.velocity > 0.5
+    assert first.velocity == 0.0 and second.velocity == 0.0  # at rest (no friction: exactly 0 in µrad/s)
+    assert second.position == first.position > moving.position
+    assert 0.1 - 0.01 <= second.t_s - first.t_s <= 0.5  # wall time between two reads
+    assert first.t_s < 0.5  # the session restarted the drive clock
