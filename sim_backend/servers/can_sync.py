@@ -11,7 +11,8 @@ position -> the drive's callbacks), and on each SYNC:
 2. in cyclic synchronous position, runs the drive's position loop on the
    feedback sampled at this SYNC and latches its torque;
 3. clocks the device once (``injector.step()``: feedback sampled at the SYNC,
-   then the latched command held for one cycle);
+   then the latched command held for one cycle; a ``clock="real"`` device
+   samples the axis as it stands in wall-clock time when the SYNC is handled);
 4. packs the synchronous TPDOs from that sample, 0x6077 being the command
    that acted over the cycle before this SYNC, and hands them to the CAN
    fault hook, which sends, drops, repeats or delays them.

@@ -30,7 +30,10 @@ disable / quick stop / reset by the map's ``[control]`` values, to
 ``watchdog`` and ``cycle`` set them; a read that covers ``velocity`` clocks
 the drive one cycle (sample at ``t_k``, then the latched command acts),
 other feedback reads see the present state. FC23 writes before it reads, so
-one FC23 is one lock-step cycle.
+one FC23 is one lock-step cycle. A ``clock="real"`` device is not clocked:
+the read samples the axis as it stands in wall-clock time
+(:mod:`servobench.sim_backend.device`), and ``timestamp`` carries the
+drive's clock at that instant in whole ticks of the register's ``scale``.
 """
 
 from __future__ import annotations
