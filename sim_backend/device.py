@@ -59,10 +59,11 @@ cycle settings.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
 
@@ -176,6 +177,7 @@ class SimulatedDevice:
         self._t_base_s = 0.0  # drive clock at the last rebase [s]
         self._t_s = 0.0
         self._wall_due = clock()  # wall time up to which the plant has been integrated
+        self._pinned: float | None = None  # the instant of the request being handled (instant())
         self._wall_base = self._wall_due  # wall time at which the drive clock read _t_base_s
         #: The plant in wall-clock time (``clock="real"`` only).
         self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
@@ -194,6 +196,29 @@ class SimulatedDevice:
         self.frozen_feedback: DeviceSample | None = None
 
     # ------------------------------------------------------------ host side
+    @contextlib.contextmanager
+    def instant(self) -> Iterator[None]:
+        """Handle one request at one instant: the wall clock stands still inside (``real``).
+
+        A request that carries a command and asks for feedback (a Modbus FC23,
+        a SYNC that applies the synchronous RPDO before it) is handled at the
+        instant it arrived, as a drive does: the command latches and the
+        feedback is sampled at that same instant, however long the simulator
+        takes over it. Holds the device lock throughout; nests.
+        """
+        with self._lock:
+            if self._pinned is not None:
+                yield
+                return
+            self._pinned = self._clock()
+            try:
+                yield
+            finally:
+                self._pinned = None
+
+    def _now(self) -> float:
+        return self._clock() if self._pinned is None else self._pinned
+
     def feed(self) -> None:
         """Note host activity (any valid message counts)."""
         self.last_host_activity = self._clock()
@@ -396,7 +421,7 @@ class SimulatedDevice:
         ``real`` devices integrate in every state, with the command in force.
         """
         if self.timed is not None:
-            now = self._clock() if until is None else until
+            now = self._now() if until is None else until
             if now > self._wall_due:
                 span_s = self.timed.advance_to(now)
                 self._wall_due = now

@@ -33,7 +33,10 @@ other feedback reads see the present state. FC23 writes before it reads, so
 one FC23 is one lock-step cycle. A ``clock="real"`` device is not clocked:
 the read samples the axis as it stands in wall-clock time
 (:mod:`servobench.sim_backend.device`), and ``timestamp`` carries the
-drive's clock at that instant in whole ticks of the register's ``scale``.
+drive's clock at that instant in whole ticks of the register's ``scale``;
+each request is handled at the instant it arrived
+(:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`), so an FC23's
+command takes force exactly when its feedback is sampled.
 """
 
 from __future__ import annotations
@@ -277,7 +280,8 @@ class PduHandler:
         try:
             if handler is None:
                 raise ModbusException(ILLEGAL_FUNCTION)
-            out = handler(pdu)
+            with self.bridge.device.instant():  # one request, one instant (FC23: write, then read)
+                out = handler(pdu)
         except ModbusException as exc:
             return bytes([fc | 0x80, exc.code])
         self.bridge.device.feed()
