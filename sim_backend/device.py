@@ -358,8 +358,11 @@ class SimulatedDevice:
             return self.frozen_feedback or sample
 
     def exchange(self, u: float) -> DeviceSample:
-        """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts."""
-        with self._lock:
+        """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts.
+
+        ``real``: both at one instant (:meth:`instant`).
+        """
+        with self.instant():
             self.set_command(u)
             return self.step()
 

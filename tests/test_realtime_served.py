@@ -111,21 +111,30 @@ def test_each_stamped_sample_follows_from_the_last_under_the_command_sent_with_i
     command that took force before its sample (or after) by even 10 µs shows
     as 2e-3 [rad/s] here; the stamps and the velocity are good to about 2e-4.
     """
+    with ServedSim(transport, PLANT, clock="real") as sim:
+        assert worst_one_step_error(sim.url) < 3e-4
+
+
+def test_sim_clock_real_samples_follow_the_log_model_exactly():
+    assert worst_one_step_error(PLANT + "&clock=real") < 1e-9  # in-process: exact stamps
+
+
+def worst_one_step_error(url: str) -> float:
+    """Flip the command at every exchange, wait irregularly; the worst one-step prediction error."""
     rng = random.Random(3)
     rows = []
-    with ServedSim(transport, PLANT, clock="real") as sim, open_drive(sim.url) as drive:
+    with open_drive(url) as drive:
         drive.set_cycle(1e-3)
         drive.enable()
         for k in range(60):
-            fb, applied = drive.exchange(1.0 if k % 2 else -1.0)
-            rows.append((fb, applied))
+            rows.append(drive.exchange(1.0 if k % 2 else -1.0))
             time.sleep(rng.uniform(0.5e-3, 3e-3))
         drive.disable()
     worst = 0.0
     for (f1, u1), (f2, _) in zip(rows, rows[1:], strict=False):
         predicted = u1 + (f1.velocity - u1) * math.exp(-(f2.t_s - f1.t_s) / TAU_S)
         worst = max(worst, abs(f2.velocity - predicted))
-    assert worst < 3e-4, worst
+    return worst
 
 
 def test_a_lockstep_drive_sees_one_cycle_per_read_however_long_the_host_waits():
