@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import time
 
 import can
@@ -140,3 +141,47 @@ def test_hub_is_a_bus_for_python_can_clients_and_local_ports() -> None:
 def test_hub_refuses_an_unknown_channel() -> None:
     with SocketcandHub() as hub, pytest.raises(can.CanError, match="error"):
         _bus(hub, channel="can7")
+
+
+def _raw_client(hub: SocketcandHub) -> socket.socket:
+    """A bare TCP client through socketcand's handshake, in raw mode."""
+    sock = socket.create_connection(hub.address, timeout=5)
+    assert _reply(sock) == "< hi >"
+    for command in ("< open vcan0 >", "< rawmode >"):
+        sock.sendall(command.encode())
+        assert _reply(sock) == "< ok >"
+    return sock
+
+
+def _reply(sock: socket.socket) -> str:
+    """One ``< ... >`` reply (read byte by byte, so nothing after it is taken)."""
+    text = ""
+    while not text.endswith(">") or text.count("<") != text.count(">"):
+        byte = sock.recv(1)
+        assert byte, f"connection closed after {text!r}"
+        text += byte.decode("ascii")
+        if len(text) > 200:
+            break
+    return text
+
+
+def test_error_replies_have_socketcands_form_without_nested_brackets() -> None:
+    """socketcand answers an unknown command with ``< error unknown command >``
+    (state_raw.c, state_nobus.c); no reply carries a bracket inside its text."""
+    with SocketcandHub() as hub:
+        sock = _raw_client(hub)
+        try:
+            sock.sendall(b"< subscribe 0 0 123 >")  # a BCM-mode command, not served in raw mode
+            assert _reply(sock) == "< error unknown command >"
+            sock.sendall(b"< send 12G 1 5 >")  # not a hex id
+            reply = _reply(sock)
+            assert reply.startswith("< error ") and reply.endswith(" >"), reply
+            assert reply.count("<") == reply.count(">") == 1, reply
+        finally:
+            sock.close()
+        with socket.create_connection(hub.address, timeout=5) as sock:
+            assert _reply(sock) == "< hi >"
+            sock.sendall(b"< open can7 >")
+            reply = _reply(sock)
+            assert reply.startswith("< error ") and reply.count("<") == reply.count(">") == 1, reply
+

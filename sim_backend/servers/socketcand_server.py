@@ -12,6 +12,10 @@ and the host driver can run in separate processes on any machine, and a
 second ``serve-sim`` can join the same hub as a TCP client to put another
 node on the bus.
 
+Error replies have socketcand's form, ``< error TEXT >`` with no bracket
+inside the text (``< error unknown command >`` as socketcand answers an
+unknown command).
+
 Threading: one selector thread accepts clients and reads their commands;
 frames are forwarded from the thread that received or sent them, local
 ports are called synchronously in that thread. Each TCP client has its own
@@ -67,6 +71,11 @@ class LocalPort:
 
     def close(self) -> None:
         self._hub.detach(self)
+
+
+def error_reply(text: str) -> str:
+    """``< error TEXT >``, socketcand's error form: no bracket inside, one command."""
+    return f"< error {text.replace('<', '').replace('>', '').strip()} >"
 
 
 class _Client:
@@ -281,7 +290,7 @@ class SocketcandHub:
             try:
                 frame = parse_send(command)
             except WireError as err:
-                client.send_text(f"< error {err} >")
+                client.send_text(error_reply(str(err)))
                 return None
             client.has_sent = True
             return frame
@@ -290,7 +299,7 @@ class SocketcandHub:
                 client.state = "open"
                 client.send_text("< ok >")
             else:
-                client.send_text(f"< error no bus {' '.join(words[1:])!r}, only {self.channel} >")
+                client.send_text(error_reply(f"could not open bus {' '.join(words[1:])}"))
         elif verb == "rawmode" and client.state in ("open", "raw"):
             client.send_text("< ok >")
             client.state = "raw"
@@ -298,5 +307,5 @@ class SocketcandHub:
         elif verb == "echo":
             client.send_text("< echo >")
         else:
-            client.send_text(f"< error unsupported command {command!r} >")
+            client.send_text(error_reply("unknown command"))
         return None
