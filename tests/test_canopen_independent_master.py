@@ -8,7 +8,8 @@ any CANopen tool would. What it checks is CiA 301, not servobench's host:
 * only the master's heartbeat feeds the drive's heartbeat consumer
   (0x1016; CiA 301 7.2.8.3.2.4): a master whose heartbeat stops while its
   PDOs go on is detected, and the drive faults as 0x6007 = 1 says
-  (0x8130, EMCY, torque off).
+  (0x8130, EMCY, torque off);
+* in NMT STOPPED the drive answers no SDO (only NMT and error control).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from contextlib import contextmanager
 from importlib.resources import files
 
 import canopen
+import pytest
 
 from servobench.bench.testing.served_canopen import served
 from servobench.drivers.url import parse_drive_url
@@ -101,3 +103,16 @@ def test_a_master_whose_heartbeat_stops_while_its_pdos_run_is_detected():
         finally:
             rpdo.stop()
 
+
+def test_no_sdo_is_answered_in_nmt_stopped():
+    with served() as (_, url), master(url) as (_, node):
+        node.nmt.state = "PRE-OPERATIONAL"
+        device_type = node.sdo.upload(0x1000, 0)
+        node.nmt.state = "STOPPED"
+        with pytest.raises(canopen.SdoCommunicationError):
+            node.sdo.upload(0x1000, 0)
+        with pytest.raises(canopen.SdoCommunicationError):
+            node.sdo.download(0x6060, 0, bytes([PROFILE_TORQUE]))
+        node.nmt.state = "PRE-OPERATIONAL"
+        assert node.sdo.upload(0x1000, 0) == device_type
+        assert node.sdo[0x6060].raw != PROFILE_TORQUE  # the write in STOPPED did nothing
