@@ -25,7 +25,7 @@ from servobench.bench.testing.hidden_effects import (
 )
 from servobench.sim_backend.physics import effects as library
 
-pytestmark = pytest.mark.slow  # hidden-effect diagnoses, 25 s
+pytestmark = pytest.mark.slow  # twelve hidden-effect diagnoses, one after the other
 
 #: Seed of each case's generator (plant, parameters, excitation, noise).
 SEEDS = {name: 100 + i for i, name in enumerate(library.names())} | {None: 99}

@@ -32,7 +32,7 @@ from servobench.bench.testing.hidden_effects import (
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.plant import PlantParams
 
-pytestmark = pytest.mark.slow  # eight diagnoses, 25 s
+pytestmark = pytest.mark.slow  # eight diagnoses, one after the other
 
 WITHOUT_POSITION = tuple(n for n in library.names() if n != "position_friction")
 
