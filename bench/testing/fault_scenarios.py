@@ -57,11 +57,6 @@ SERVE_ARGS: dict[str, tuple[str, ...]] = {
 }
 #: Host URL keys of every scenario: stream as fast as the lock-step drive answers.
 HOST_KEYS = "&pace=fast"
-#: Host URL keys of the fault-free reference runs and of every case but a late answer that must
-#: time out (a served drive late under CPU load is not a silent one, nor is its host); a late
-#: answer that must time out keeps the transport's default deadline: that deadline is what it
-#: tests. A silent drive (drop, timeout, CRC, bus-off) times out at any deadline.
-PATIENT = PATIENT_KEYS
 
 
 @dataclass(frozen=True)
@@ -156,11 +151,12 @@ def _host_keys(case: Case) -> str:
     keys = case.host_keys
     if case.transport == "serial" and case.kind == "fault":
         keys += "&poll=0.005"  # the serial feedback reply carries no drive state: poll often
-    # A case judges the log and the drive's state, not the link's latency, unless its fault is
-    # an answer late beyond the default deadline: the others wait as long as a loaded machine
-    # needs (PATIENT).
+    # A case judges the log and the drive's state, not the link's latency (a served drive late
+    # under CPU load is not a silent one, nor is its host), unless its fault is an answer late
+    # beyond the default deadline: that deadline is what it tests. A silent drive (drop,
+    # timeout, CRC, bus-off) times out at any deadline.
     if not (case.kind == "delay" and case.error == "DriveTimeoutError"):
-        keys += PATIENT[case.transport]
+        keys += PATIENT_KEYS[case.transport]
     return keys
 
 
@@ -310,7 +306,7 @@ def run_case(
     try:
         if served.proc is None:
             served.start()
-        url = served.url + HOST_KEYS + (case.host_keys if case is not None else PATIENT[transport])
+        url = served.url + HOST_KEYS + (case.host_keys if case is not None else PATIENT_KEYS[transport])
         try:
             with open_drive(url) as drive:
                 stream_runs(drive, excitation(), FS_HZ, log_path, settle_s=SETTLE_S)

@@ -2,10 +2,11 @@
 
 Host heartbeats (COB-ID 0x700 + the host's node id in 0x1016) feed the
 device watchdog, and nothing else does (CiA 301 7.2.8.3.2.4): a host whose
-heartbeat stops while its PDOs, SYNCs and SDOs go on is detected. The watchdog runs with the consumer time when 0x6007 is 1
-(fault on connection loss), which is also what the served drive does when
-its object dictionary has no 0x6007; with 0x6007 = 0 it does not run. The
-tripping itself is the sim_backend watchdog thread's (fault 0x8130).
+heartbeat stops while its PDOs, SYNCs and SDOs go on is detected. The
+watchdog runs with the consumer time when 0x6007 is 1 (fault on connection
+loss), which is also what the served drive does when its object dictionary
+has no 0x6007; with 0x6007 = 0 it does not run. The tripping itself is the
+sim_backend watchdog thread's (fault 0x8130).
 """
 
 from __future__ import annotations

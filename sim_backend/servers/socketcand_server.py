@@ -124,6 +124,12 @@ class _Client:
             if text:
                 self.sock.sendall(text.encode("ascii"))
 
+    def note_sent(self) -> None:
+        """The client sent a frame, so it has read the ``< ok >``: nothing is held any longer."""
+        with self.send_lock:
+            self.has_sent = True
+        self.deliver("")
+
     def drop(self) -> None:
         """Mark closed and wake the selector (EOF), from any thread."""
         self.closed = True
@@ -337,9 +343,7 @@ class SocketcandHub:
                 client.send_text(error_reply(str(err)))
                 return None
             if not client.has_sent:
-                with client.send_lock:
-                    client.has_sent = True  # it has read the < ok >: nothing held any longer
-                client.deliver("")
+                client.note_sent()
             return frame
         if verb == "open" and client.state == "hello":
             if words[1:] == [self.channel]:
