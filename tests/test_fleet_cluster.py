@@ -216,7 +216,7 @@ def test_diagnose_flags_an_effect_the_first_record_lacked(scheduler, tmp_path):
 
 def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path):
     logs = tmp_path / "logs"
-    for i in range(64):  # far more work than 0.5 s, even for a test process starved of CPU
+    for i in range(16):
         shutil.copytree(fleet / "worn", logs / f"copy{i}")
     out = tmp_path / "out"
     cmd = [*CLI, "fleet", str(logs), "--out", str(out), "--workers", "2", "--json"]
@@ -224,7 +224,7 @@ def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path)
                             start_new_session=True)  # fmt: skip
     try:
         started = proc.stderr.readline()  # the cluster is up: "... logs on 2 Dask workers ..."
-        assert "192 logs on 2 Dask workers" in started, started + proc.stderr.read()
+        assert "48 logs on 2 Dask workers" in started, started + proc.stderr.read()
         family = psutil.Process(proc.pid).children(recursive=True)
         time.sleep(0.5)
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole group
@@ -237,7 +237,7 @@ def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path)
     last = stderr.strip().splitlines()[-1]
     assert json.loads(stdout)["error"] == last.removeprefix("servobench: ")  # one object
     rows = _read_csv(out / "fleet.csv")
-    assert len(rows) == 192
+    assert len(rows) == 48
     assert all(r["error"] in ("", "not processed: interrupted (Ctrl-C)") for r in rows)
     assert any(r["error"] for r in rows)  # the interrupt stopped the work mid-way
     deadline = time.monotonic() + 15
