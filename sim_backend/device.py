@@ -192,6 +192,9 @@ class SimulatedDevice:
         self.fault_code = 0
         self.fault_reason = ""
         self.last_host_activity = clock()
+        #: False: only :meth:`feed_life_signal` feeds the watchdog (a CANopen heartbeat
+        #: consumer, CiA 301 7.2.8.3.2.4), not the host's commands and requests.
+        self.activity_feeds_watchdog = True
         self.watchdog_trips = 0
         self.frozen_feedback: DeviceSample | None = None
 
@@ -220,7 +223,13 @@ class SimulatedDevice:
         return self._clock() if self._pinned is None else self._pinned
 
     def feed(self) -> None:
-        """Note host activity (any valid message counts)."""
+        """Note host activity (any valid message counts, unless :attr:`activity_feeds_watchdog`
+        is False)."""
+        if self.activity_feeds_watchdog:
+            self.last_host_activity = self._clock()
+
+    def feed_life_signal(self) -> None:
+        """The host's life signal (a heartbeat): it always feeds the watchdog."""
         self.last_host_activity = self._clock()
 
     def set_cycle(self, cycle_s: float) -> None:

@@ -1,4 +1,8 @@
-"""Test-run order: the files marked ``slow`` first.
+"""The session's set-up: peers installed first, then the files marked ``slow`` run first.
+
+Before any test runs, the controller makes the peers the selected tests pair
+with present (:mod:`peers`: installed as root, else one line and a non-zero
+exit).
 
 The suite runs on every core with one test file per worker (``--dist loadfile``
 in pyproject.toml); the workers take files in collection order, so a slow file
@@ -8,7 +12,12 @@ Starting the slow files first lets the short ones fill in around them.
 
 from __future__ import annotations
 
+import peers
 import pytest
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    peers.check(config)  # the controller only; a worker returns at once
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

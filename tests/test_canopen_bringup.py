@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from servobench.bench.logio import read_log
-from servobench.bench.testing.served import ServedSim
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.bench.testing.served_canopen import SIM, served
 from servobench.drivers.registry import open_drive
 from servobench.errors import DriveConnectionError, DriveTimeoutError, DriveWarning
@@ -217,7 +217,7 @@ def test_sidbe_through_serve_sim_eds(served_zeroerr: ServedSim, eds_in_url: bool
     if not eds_in_url:
         url = url[: url.index("&eds=")]
     out = subprocess.run(
-        [sys.executable, "-m", "servobench", "sidbe", "--drive", url + "&pace=fast", "--json",
+        [sys.executable, "-m", "servobench", "sidbe", "--drive", url + "&pace=fast" + PATIENT_KEYS["canopen"], "--json",
          "--out", str(tmp_path / "run"), "--no-plots", *SIDBE_ARGS],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip

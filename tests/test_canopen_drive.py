@@ -103,9 +103,9 @@ def test_fault_raises_with_its_code_and_resets() -> None:
 
 
 def test_host_heartbeat_keeps_an_idle_drive_enabled() -> None:
-    with served() as (device, url), open_drive(url + "&watchdog=0.1") as drive:
+    with served() as (device, url), open_drive(url + "&watchdog=0.5") as drive:
         drive.enable()
-        time.sleep(0.5)  # no exchange: only heartbeats feed the consumer
+        time.sleep(1.5)  # no exchange, three consumer times: only heartbeats feed the consumer
         assert device.state is PowerState.ENABLED
         drive.exchange(0.0)
 
@@ -113,13 +113,15 @@ def test_host_heartbeat_keeps_an_idle_drive_enabled() -> None:
 def test_leaving_operational_quick_stops_and_exchange_times_out() -> None:
     with (
         served() as (device, url),
-        open_drive(url + "&pdo_timeout=0.05") as drive,
+        open_drive(url + "&pdo_timeout=1") as drive,  # no TPDO at all once it is timed out
         station(url) as node,
     ):
         drive.enable()
         drive.exchange(1.0)
         node.nmt.send_command(0x80)  # someone else sends the drive to PRE-OPERATIONAL
-        time.sleep(0.05)
+        deadline = time.monotonic() + 5.0  # the NMT command crosses the hub: late under load
+        while device.state is not PowerState.QUICK_STOP and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert device.state is PowerState.QUICK_STOP
         with pytest.raises(DriveTimeoutError, match="no TPDO"):
             drive.exchange(1.0)

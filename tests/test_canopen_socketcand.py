@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import socket
+import struct
+import threading
 import time
 
 import can
@@ -20,7 +23,7 @@ from servobench.sim_backend.servers.can_wire import (
     parse_send,
     split_commands,
 )
-from servobench.sim_backend.servers.socketcand_server import JOIN_GRACE_S, SocketcandHub
+from servobench.sim_backend.servers.socketcand_server import SocketcandHub
 
 FRAMES = [
     CanFrame(0x000, b""),
@@ -103,9 +106,6 @@ def test_hub_is_a_bus_for_python_can_clients_and_local_ports() -> None:
         port = hub.attach(local.append)
         a, b = _bus(hub), _bus(hub)
         try:
-            time.sleep(
-                JOIN_GRACE_S * 1.5
-            )  # listeners that have not sent yet get frames after the grace
             for frame in FRAMES:
                 a.send(
                     can.Message(
@@ -140,3 +140,84 @@ def test_hub_is_a_bus_for_python_can_clients_and_local_ports() -> None:
 def test_hub_refuses_an_unknown_channel() -> None:
     with SocketcandHub() as hub, pytest.raises(can.CanError, match="error"):
         _bus(hub, channel="can7")
+
+
+def _raw_client(hub: SocketcandHub) -> socket.socket:
+    """A bare TCP client through socketcand's handshake, in raw mode."""
+    sock = socket.create_connection(hub.address, timeout=5)
+    assert _reply(sock) == "< hi >"
+    for command in ("< open vcan0 >", "< rawmode >"):
+        sock.sendall(command.encode())
+        assert _reply(sock) == "< ok >"
+    return sock
+
+
+def _reply(sock: socket.socket) -> str:
+    """One ``< ... >`` reply (read byte by byte, so nothing after it is taken)."""
+    text = ""
+    while not text.endswith(">") or text.count("<") != text.count(">"):
+        byte = sock.recv(1)
+        assert byte, f"connection closed after {text!r}"
+        text += byte.decode("ascii")
+        if len(text) > 200:
+            break
+    return text
+
+
+def test_error_replies_have_socketcands_form_without_nested_brackets() -> None:
+    """socketcand answers an unknown command with ``< error unknown command >``
+    (state_raw.c, state_nobus.c); no reply carries a bracket inside its text."""
+    with SocketcandHub() as hub:
+        sock = _raw_client(hub)
+        try:
+            sock.sendall(b"< subscribe 0 0 123 >")  # a BCM-mode command, not served in raw mode
+            assert _reply(sock) == "< error unknown command >"
+            sock.sendall(b"< send 12G 1 5 >")  # not a hex id
+            reply = _reply(sock)
+            assert reply.startswith("< error ") and reply.endswith(" >"), reply
+            assert reply.count("<") == reply.count(">") == 1, reply
+        finally:
+            sock.close()
+        with socket.create_connection(hub.address, timeout=5) as sock:
+            assert _reply(sock) == "< hi >"
+            sock.sendall(b"< open can7 >")
+            reply = _reply(sock)
+            assert reply.startswith("< error ") and reply.count("<") == reply.count(">") == 1, reply
+
+
+def test_a_new_client_gets_every_frame_sent_after_its_rawmode_is_acknowledged() -> None:
+    """python-can's client is connected (its ``< rawmode >`` acknowledged) when ``can.Bus``
+    returns: from there on, no frame another station sends may be missing, even before the
+    new client has sent anything itself."""
+    sent = [0]
+    stop = threading.Event()
+    with SocketcandHub() as hub:
+        port = hub.attach(lambda frame: None)
+
+        def count() -> None:  # a station sending a numbered frame every millisecond
+            while not stop.is_set():
+                port.send(CanFrame(0x181, struct.pack("<I", sent[0])))
+                sent[0] += 1
+                time.sleep(0.001)
+
+        sender = threading.Thread(target=count, daemon=True)
+        sender.start()
+        try:
+            time.sleep(0.05)
+            bus = _bus(hub)
+            joined = sent[0]  # frames numbered from here on were sent after the acknowledgement
+            try:
+                got: list[int] = []
+                deadline = time.monotonic() + 10.0
+                while (not got or got[-1] < joined + 300) and time.monotonic() < deadline:
+                    msg = bus.recv(0.5)
+                    if msg is not None:
+                        got.append(struct.unpack("<I", msg.data)[0])
+            finally:
+                bus.shutdown()
+        finally:
+            stop.set()
+            sender.join(2)
+    assert got, "no frame reached the new client"
+    assert got[0] <= joined, f"frames {joined}..{got[0] - 1} sent after the join were lost"
+    assert got == list(range(got[0], got[0] + len(got))), "a frame was lost or reordered"

@@ -213,7 +213,7 @@ PROBE = (
 def _browser_images(page: Path, profile: Path) -> list[list]:
     chromium = shutil.which("chromium")
     if chromium is None:
-        pytest.fail("chromium is not installed: .ci/run installs it (apt-get install -y chromium)")
+        pytest.fail("chromium is not installed: the test command installs it as root (tests/peers.py)")
     probe = page.with_name(page.stem + "-probe.html")
     probe.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
     done = subprocess.run(

@@ -2,14 +2,13 @@
 
 Each library effect is hidden, with random parameters (explicit seeds) and
 velocity-sensor noise, in a random base plant; a control plant hides
-nothing. The cases run in two worker processes (the machine has two cores).
-One case streams through the real ``sim://`` drive and runner instead of the
+nothing. Each case is diagnosed once, in the test worker, the first time a
+test reads it, and shared across the module. One case streams through the real ``sim://`` drive and runner instead of the
 plant directly, so the effect's URL keys are exercised end to end.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +18,14 @@ from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.logio import read_log
 from servobench.bench.testing.hidden_effects import (
     CASE_FS_HZ,
+    CaseResults,
     case_commands,
     random_case,
     write_case_log,
 )
 from servobench.sim_backend.physics import effects as library
 
-pytestmark = pytest.mark.slow  # hidden-effect diagnoses, 25 s
+pytestmark = pytest.mark.slow  # twelve hidden-effect diagnoses, one after the other
 
 #: Seed of each case's generator (plant, parameters, excitation, noise).
 SEEDS = {name: 100 + i for i, name in enumerate(library.names())} | {None: 99}
@@ -67,12 +67,9 @@ def run_case(effect: str | None, folder: str) -> dict:
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def results(tmp_path_factory) -> CaseResults:
     folder = str(tmp_path_factory.mktemp("hidden"))
-    names = [None, *library.names()]
-    with ProcessPoolExecutor(max_workers=2) as pool:
-        futures = {n: pool.submit(run_case, n, folder) for n in names}
-        return {n: f.result() for n, f in futures.items()}
+    return CaseResults(lambda effect: run_case(effect, folder))
 
 
 @pytest.mark.parametrize("effect", library.names())

@@ -3,8 +3,8 @@
 Plants the workflow was not tuned on, each with explicit seeds; only the log
 goes to the diagnosis. The truth each case is checked against is the
 generator's own: the hidden effects, and the sensor noise it added (the
-noise floor must find it from the data). The cases run in two worker
-processes (the machine has two cores).
+noise floor must find it from the data). Each case is diagnosed once, in
+the test worker, the first time a test reads it, and shared across the module.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import contextlib
 import io
 import json
 import math
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.logio import read_log
 from servobench.bench.report.diagnose import summary_lines, to_json
 from servobench.bench.testing.hidden_effects import (
+    CaseResults,
     HiddenCase,
     issue_case,
     random_case,
@@ -32,7 +32,7 @@ from servobench.bench.testing.hidden_effects import (
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.plant import PlantParams
 
-pytestmark = pytest.mark.slow  # eight diagnoses, 25 s
+pytestmark = pytest.mark.slow  # eight diagnoses, one after the other
 
 WITHOUT_POSITION = tuple(n for n in library.names() if n != "position_friction")
 
@@ -117,11 +117,9 @@ def run_cli(path: Path, out: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def results(tmp_path_factory) -> CaseResults:
     folder = str(tmp_path_factory.mktemp("verdict"))
-    with ProcessPoolExecutor(max_workers=2) as pool:
-        futures = {n: pool.submit(run_case, n, folder) for n in CASES}
-        return {n: f.result() for n, f in futures.items()}
+    return CaseResults(lambda name: run_case(name, folder))
 
 
 def test_issue_case_names_position_friction_and_reaches_the_noise_floor(results):
@@ -219,7 +217,7 @@ def test_a_plant_outside_the_library_is_unexplained_and_the_command_still_succee
 
 
 def test_every_rejected_candidate_says_why(results):
-    rejected = [t for r in results.values() for t in r["rejected"]]
+    rejected = [t for name in CASES for t in results[name]["rejected"]]
     assert rejected
     assert all(reason for _, reason in rejected), [t for t in rejected if not t[1]]
 

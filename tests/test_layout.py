@@ -163,11 +163,28 @@ def test_wheel_holds_one_import_package_and_its_data(wheel):
     assert not [n for n in names if n.startswith(("servobench/bench/testing/", "tests/", "benchmarks/"))]
 
 
+def _site_packages(env_dir: Path) -> Path:
+    """The purelib folder of the venv at ``env_dir``."""
+    import sysconfig
+
+    scheme = "nt_venv" if os.name == "nt" else "venv"
+    if scheme not in sysconfig.get_scheme_names():  # Python < 3.11
+        scheme = "nt" if os.name == "nt" else "posix_prefix"
+    path = sysconfig.get_path("purelib", scheme, vars={"base": str(env_dir), "platbase": str(env_dir)})
+    return Path(path)
+
+
 @pytest.mark.slow
 def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
     """The wheel alone, away from the checkout: the CLI works and ``import bench`` fails."""
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    venv.EnvBuilder(with_pip=False).create(env_dir)
+    # The new venv sees the running environment's dependencies, whether the suite runs in a venv
+    # or in a bare interpreter: its site-packages folders as plain path lines. A path line does
+    # not run the .pth files there, so an editable servobench (an import hook) stays out.
+    (_site_packages(env_dir) / "running-environment.pth").write_text(
+        "\n".join(p for p in sys.path if Path(p).name in ("site-packages", "dist-packages")) + "\n"
+    )
     target = tmp_path / "site"
     subprocess.run(
         [sys.executable, "-m", "pip", "install", "--no-deps", "--disable-pip-version-check",
@@ -185,9 +202,11 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
             [str(python), *args], cwd=work, env=env, capture_output=True, text=True, timeout=300
         )
 
-    where = run("-c", "import servobench.bench.cli as c; print(c.__file__)")
+    where = run("-c", "import servobench.bench.cli as c, rich; print(c.__file__)")
     assert where.returncode == 0, where.stderr
     assert Path(where.stdout.strip()).is_relative_to(target)
+    checkout = run("-c", f"import sys; print(any(p.startswith({str(REPO)!r}) for p in sys.path))")
+    assert checkout.stdout.strip() == "False", checkout.stderr
     for name in ("bench", "drivers", "sim_backend", "udev", "benchmarks"):
         gone = run("-c", f"import {name}")
         assert gone.returncode != 0 and "ModuleNotFoundError" in gone.stderr, name

@@ -160,9 +160,10 @@ def auto_map(tmp_path: Path) -> str:
 def test_fc23_auto_falls_back_to_write_then_read_on_a_drive_without_fc23(auto_map, rtu):
     u = np.where((np.arange(120) // 30) % 2 == 0, 1.5, -1.5)
     with UmodbusDrive(rtu=rtu) as peer:
+        # timeout=2: uModbus answers from a thread of this process, late on a loaded machine
         url = (
-            f"modbus+rtu://{peer.path}?baud={RTU_BAUD}&unit=1&map={auto_map}&watchdog=0.5" if rtu
-            else f"modbus+tcp://127.0.0.1:{peer.port}?unit=1&map={auto_map}&watchdog=0.5"
+            f"modbus+rtu://{peer.path}?baud={RTU_BAUD}&unit=1&map={auto_map}&watchdog=0.5&timeout=2" if rtu
+            else f"modbus+tcp://127.0.0.1:{peer.port}?unit=1&map={auto_map}&watchdog=0.5&timeout=2"
         )  # fmt: skip
         # over TCP the map's any-request feed warns; an RTU line has one master
         warns = contextlib.nullcontext() if rtu else pytest.warns(DriveWarning, match="another Modbus client")
@@ -208,19 +209,21 @@ def test_wrong_unit_ids_say_what_happened():
 def test_any_request_feed_warns_over_tcp_only_and_a_second_client_does_keep_it_alive():
     with served_modbus("modbus-tcp") as (device, url):
         with pytest.warns(DriveWarning, match="another Modbus client polling this drive"):
-            drive = open_drive(url + "&watchdog=0.2")
+            drive = open_drive(url + "&watchdog=0.5")  # ten polls of the other client
             drive.open()
         host, port = host_port(url)
         other = ModbusClient(host=host, port=port, unit_id=1, auto_open=True)
         try:
             drive.enable()
             drive.exchange(0.5)
-            deadline = time.monotonic() + 0.8  # four watchdog periods without this host
+            deadline = time.monotonic() + 2.0  # four watchdog periods without this host
             while time.monotonic() < deadline:
                 assert other.read_holding_registers(0x21, 1) == [0]  # e.g. a SCADA polling
                 time.sleep(0.05)
             assert device.state is PowerState.ENABLED  # the watchdog never tripped
-            time.sleep(0.4)  # once the other client stops too, it does
+            deadline = time.monotonic() + 5.0  # once the other client stops too, it does
+            while device.state is not PowerState.FAULT and time.monotonic() < deadline:
+                time.sleep(0.01)
             assert device.state is PowerState.FAULT
         finally:
             other.close()

@@ -1,7 +1,7 @@
 """Debian's ``mbpoll`` (libmodbus, not servobench) against the served drive, over TCP and RTU.
 
-``mbpoll`` is installed by ``.ci/run`` (``apt-get install -y mbpoll``); without
-it these tests fail, they do not skip. References are 0-based (``-0``): the
+``mbpoll`` is a peer of the test command (``tests/peers.py``), which installs it
+as root and otherwise stops before any test runs: these tests never skip. References are 0-based (``-0``): the
 fault register is PDU address 33 (0x21) in ``servobench-sim.toml``.
 """
 
@@ -21,7 +21,7 @@ MBPOLL = shutil.which("mbpoll")
 
 def mbpoll(url: str, *args: str, values: tuple[str, ...] = ()) -> subprocess.CompletedProcess[str]:
     """Run mbpoll once (``-1``) against the served drive at ``url``."""
-    assert MBPOLL, "mbpoll is not installed: .ci/run installs it (apt-get install -y mbpoll)"
+    assert MBPOLL, "mbpoll is not installed: the test command installs it as root (tests/peers.py)"
     if url.startswith("modbus+tcp"):
         host, port = host_port(url)
         link = ["-m", "tcp", "-p", str(port)]

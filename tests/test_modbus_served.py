@@ -198,7 +198,8 @@ def test_injected_faults():
 def test_injected_silence_is_a_timeout_and_the_link_recovers(transport):
     with (
         served(transport=transport, fault="silence@2") as (_, url),
-        open_drive(url + "&timeout=0.1") as drive,
+        # the silence is for good: 1 s ends it, well inside the drive's watchdog
+        open_drive(url + "&timeout=1&watchdog=5") as drive,
     ):
         drive.enable()
         t0 = drive.exchange(1.0)[0].t_s

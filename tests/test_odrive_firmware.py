@@ -143,7 +143,7 @@ def test_a_watchdog_error_an_earlier_host_left_is_cleared_and_said(firmware):
                          b"w axis0.config.enable_watchdog 1"):  # fmt: skip
                 old_host.write(line + b"\n")
             old_host.flush()
-        time.sleep(0.4)
+        time.sleep(1.5)  # watchdog 0.1 s, plus a margin for a served drive late under load
         drive = open_drive(served.url)
         with pytest.warns(DriveWarning, match=r"0x00000800 \(WATCHDOG_TIMER_EXPIRED\).*cleared"):
             drive.open()

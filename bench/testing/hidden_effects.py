@@ -28,7 +28,7 @@ travel, sensor noise about 1 % of the velocity.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -362,3 +362,21 @@ def write_case_log(case: HiddenCase, path: str | Path, rng: np.random.Generator)
             t = np.arange(u.size) / CASE_FS_HZ
             writer.append_block(np.full(u.size, number), t, u, v, x)
     return path
+
+
+class CaseResults(dict):
+    """Results of named cases, each computed in this process the first time it is asked for.
+
+    What the diagnosis tests share across a module (a module-scoped fixture):
+    one log and one diagnosis per case, made by the test worker itself (never
+    a process pool nested in a worker) and only for the cases the selected
+    tests read.
+    """
+
+    def __init__(self, run: Callable[[Hashable], dict]) -> None:
+        super().__init__()
+        self._run = run
+
+    def __missing__(self, name: Hashable) -> dict:
+        result = self[name] = self._run(name)
+        return result

@@ -26,6 +26,17 @@ from servobench.errors import DriveConnectionError, DriveTimeoutError
 START_TIMEOUT_S = 30.0
 #: Longest wait for a clean exit after SIGINT [s].
 STOP_TIMEOUT_S = 10.0
+#: Host URL keys that wait up to 2 s for a served drive's answer (and a drive-side watchdog of
+#: 5 s, longer than that wait), per transport: for a host whose test judges what the drive
+#: answers, not how fast. A served drive, or a host, starved of CPU on a busy machine is late,
+#: not silent. The defaults (0.1 s for a TPDO or a serial reply, 0.25 s for a Modbus answer,
+#: a 0.5 s watchdog) stay for the tests whose subject is the deadline itself.
+PATIENT_KEYS = {
+    "canopen": "&pdo_timeout=2&watchdog=5",
+    "modbus-tcp": "&timeout=2&watchdog=5",
+    "modbus-rtu": "&timeout=2&watchdog=5",
+    "serial": "&timeout=2&watchdog=5",
+}
 
 
 class ServedSim:

@@ -23,7 +23,8 @@ answers SDOs; this module adds what it lacks:
   clock at the instant the SYNC's sample was taken, in lockstep the cycle
   count times the cycle); 0x6077 reports the torque applied over the cycle before the
   SYNC, as a drive samples its actual value;
-* NMT: PDOs and SYNC only in OPERATIONAL; leaving OPERATIONAL while the
+* NMT: PDOs and SYNC only in OPERATIONAL; no SDO in STOPPED (CiA 301: there
+  only NMT and error control); leaving OPERATIONAL while the
   axis is enabled quick-stops it; a heartbeat goes out at once on a change;
   0x1006 and 0x60C2 (both set the device's cycle) are written in
   PRE-OPERATIONAL only (abort 0x08000022 in OPERATIONAL, as many drives do);
@@ -39,10 +40,9 @@ answers SDOs; this module adds what it lacks:
 Simplifications: synchronous RPDOs act on receipt (the device latches the
 torque for the next SYNC anyway -- a real-time device takes it at the next
 SYNC, :mod:`~servobench.sim_backend.servers.can_sync` -- but a controlword
-changes the state at once); event-driven TPDOs (types 254/255) are not produced; SDO is also
-answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only; the
-quick stop (0x605A) keeps QUICK STOP ACTIVE; profile torque ignores torque
-slopes (the torque steps).
+changes the state at once); event-driven TPDOs (types 254/255) are not produced;
+0x6007 takes 0 (no action) or 1 (fault) only; the quick stop (0x605A) keeps
+QUICK STOP ACTIVE; profile torque ignores torque slopes (the torque steps).
 """
 
 from __future__ import annotations
@@ -188,6 +188,8 @@ class ServedCiA402Drive:
         """Join ``network`` (NMT, SYNC, RPDO and heartbeat subscriptions)."""
         self.network = self.consumer.network = network
         network.add_node(self.node)
+        network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
+        network.subscribe(self.node.sdo.rx_cobid, self._on_sdo)
         network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
         self._load_settings()
 
@@ -383,6 +385,10 @@ class ServedCiA402Drive:
             self.sync.dirty = True
 
     # ------------------------------------------------------------------ NMT
+    def _on_sdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.node.nmt.state != "STOPPED":  # CiA 301: no SDO in STOPPED
+            self.node.sdo.on_request(can_id, data, timestamp)
+
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 2 or data[1] not in (0, self.node.id):
             return

@@ -1,10 +1,12 @@
 """The served CiA 402 drive's heartbeat consumer (0x1016) and abort connection option (0x6007).
 
 Host heartbeats (COB-ID 0x700 + the host's node id in 0x1016) feed the
-device watchdog. The watchdog runs with the consumer time when 0x6007 is 1
-(fault on connection loss), which is also what the served drive does when
-its object dictionary has no 0x6007; with 0x6007 = 0 it does not run. The
-tripping itself is the sim_backend watchdog thread's (fault 0x8130).
+device watchdog, and nothing else does (CiA 301 7.2.8.3.2.4): a host whose
+heartbeat stops while its PDOs, SYNCs and SDOs go on is detected. The
+watchdog runs with the consumer time when 0x6007 is 1 (fault on connection
+loss), which is also what the served drive does when its object dictionary
+has no 0x6007; with 0x6007 = 0 it does not run. The tripping itself is the
+sim_backend watchdog thread's (fault 0x8130).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ class HeartbeatConsumer:
 
     def __init__(self, device: SimulatedDevice) -> None:
         self.device = device
+        device.activity_feeds_watchdog = False  # only the heartbeat counts
         self.network: canopen.Network | None = None
         self.abort_option = 1  #: 0x6007: 0 no action, 1 fault
         self._cob: int | None = None
@@ -49,10 +52,11 @@ class HeartbeatConsumer:
 
     def apply(self) -> None:
         self.device.set_watchdog(self._time_s if self.abort_option == 1 else None)
+        self.device.feed_life_signal()  # the host configuring it is present
 
     def on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         self._last_heartbeat = time.monotonic()
-        self.device.feed()
+        self.device.feed_life_signal()
 
     def host_present(self) -> bool:
         """True while a host consumed in 0x1016 heartbeats within the consumer time.

@@ -12,6 +12,14 @@ and the host driver can run in separate processes on any machine, and a
 second ``serve-sim`` can join the same hub as a TCP client to put another
 node on the bus.
 
+A TCP client gets every frame sent after its ``< rawmode >`` is acknowledged.
+python-can reads that ``< ok >`` with one ``recv`` and fails if a frame
+shares it, so the frames of a client's first :data:`JOIN_GRACE_S` are held
+for it and delivered, in order, when the grace ends or as soon as the
+client sends (it has then read the ``< ok >``). Error replies have
+socketcand's form, ``< error TEXT >`` with no bracket inside the text
+(``< error unknown command >`` as socketcand answers an unknown command).
+
 Threading: one selector thread accepts clients and reads their commands;
 frames are forwarded from the thread that received or sent them, local
 ports are called synchronously in that thread. Each TCP client has its own
@@ -39,8 +47,9 @@ from servobench.sim_backend.servers.can_wire import (
 
 #: Bus name served (the ``< open NAME >`` a client must ask for).
 DEFAULT_CHANNEL = "vcan0"
-#: A client that has not sent yet receives traffic only this long after ``< rawmode >`` [s]:
-#: python-can reads the ``< ok >`` reply with one ``recv`` and fails if a frame shares it.
+#: Frames for a client that has not sent yet are held this long after its ``< rawmode >`` is
+#: acknowledged, then delivered [s]: python-can reads the ``< ok >`` reply with one ``recv``
+#: and fails if a frame shares it.
 JOIN_GRACE_S = 0.1
 #: A client that does not take a frame within this time is dropped [s].
 SEND_TIMEOUT_S = 2.0
@@ -69,6 +78,11 @@ class LocalPort:
         self._hub.detach(self)
 
 
+def error_reply(text: str) -> str:
+    """``< error TEXT >``, socketcand's error form: no bracket inside, one command."""
+    return f"< error {text.replace('<', '').replace('>', '').strip()} >"
+
+
 class _Client:
     """One TCP station and where it is in the socketcand handshake."""
 
@@ -80,13 +94,41 @@ class _Client:
         self.has_sent = False
         self.closed = False
         self.send_lock = threading.Lock()
+        self.held: list[str] = []  #: frames sent during the join grace, in order
 
-    def ready_for_frames(self, now: float) -> bool:
-        return self.state == "raw" and (self.has_sent or now - self.raw_since >= JOIN_GRACE_S)
+    def grace_ends(self) -> float | None:
+        """When the held frames go out (``time.monotonic()``), ``None`` if none are held."""
+        return self.raw_since + JOIN_GRACE_S if self.held else None
 
     def send_text(self, text: str) -> None:
         with self.send_lock:
             self.sock.sendall(text.encode("ascii"))
+
+    def acknowledge_raw(self) -> None:
+        """Answer ``< rawmode >``: from here on every frame is this client's."""
+        with self.send_lock:
+            self.sock.sendall(b"< ok >")
+            self.state = "raw"
+            self.raw_since = time.monotonic()
+
+    def deliver(self, text: str) -> None:
+        """Frames for this client: sent, or held while its join grace lasts."""
+        with self.send_lock:
+            if self.state != "raw":
+                return  # not subscribed yet
+            if not self.has_sent and time.monotonic() - self.raw_since < JOIN_GRACE_S:
+                if text:
+                    self.held.append(text)
+                return
+            text, self.held = "".join(self.held) + text, []
+            if text:
+                self.sock.sendall(text.encode("ascii"))
+
+    def note_sent(self) -> None:
+        """The client sent a frame, so it has read the ``< ok >``: nothing is held any longer."""
+        with self.send_lock:
+            self.has_sent = True
+        self.deliver("")
 
     def drop(self) -> None:
         """Mark closed and wake the selector (EOF), from any thread."""
@@ -193,10 +235,10 @@ class SocketcandHub:
             clients = list(self._clients)
             ports = list(self._ports)
         for client in clients:
-            if client is source or client.closed or not client.ready_for_frames(now):
+            if client is source or client.closed:
                 continue
             try:
-                client.send_text(text)
+                client.deliver(text)
             except OSError:
                 client.drop()
         for port in ports:
@@ -212,11 +254,12 @@ class SocketcandHub:
         sel.register(self._listener, selectors.EVENT_READ, None)
         try:
             while not self._stop.is_set():
-                for key, _ in sel.select(timeout=POLL_S):
+                for key, _ in sel.select(timeout=self._wake_in()):
                     if key.data is None:
                         self._accept(sel)
                     else:
                         self._serve(sel, key.data)
+                self._release_held()
         except BaseException as err:  # a station's receive() failed: stop the bus loudly
             self.failure = err
             raise
@@ -228,6 +271,22 @@ class SocketcandHub:
                 client.sock.close()
             sel.close()
             self._listener.close()
+
+    def _wake_in(self) -> float:
+        """Selector time-out [s]: :data:`POLL_S`, or sooner when a join grace ends."""
+        with self._lock:
+            ends = [t for c in self._clients if (t := c.grace_ends()) is not None]
+        return max(0.0, min([POLL_S, *(t - time.monotonic() for t in ends)]))
+
+    def _release_held(self) -> None:
+        """Deliver the held frames of clients whose join grace has ended."""
+        with self._lock:
+            due = [c for c in self._clients if c.held and not c.closed]
+        for client in due:
+            try:
+                client.deliver("")
+            except OSError:
+                client.drop()
 
     def _accept(self, sel: selectors.BaseSelector) -> None:
         try:
@@ -281,22 +340,21 @@ class SocketcandHub:
             try:
                 frame = parse_send(command)
             except WireError as err:
-                client.send_text(f"< error {err} >")
+                client.send_text(error_reply(str(err)))
                 return None
-            client.has_sent = True
+            if not client.has_sent:
+                client.note_sent()
             return frame
         if verb == "open" and client.state == "hello":
             if words[1:] == [self.channel]:
                 client.state = "open"
                 client.send_text("< ok >")
             else:
-                client.send_text(f"< error no bus {' '.join(words[1:])!r}, only {self.channel} >")
+                client.send_text(error_reply(f"could not open bus {' '.join(words[1:])}"))
         elif verb == "rawmode" and client.state in ("open", "raw"):
-            client.send_text("< ok >")
-            client.state = "raw"
-            client.raw_since = time.time()
+            client.acknowledge_raw()
         elif verb == "echo":
             client.send_text("< echo >")
         else:
-            client.send_text(f"< error unsupported command {command!r} >")
+            client.send_text(error_reply("unknown command"))
         return None
