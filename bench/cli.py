@@ -3,7 +3,10 @@
 Each subcommand lives in ``servobench.bench.commands.<module>`` and exposes
 ``add_arguments(parser)`` and ``run(args) -> int``; a module is imported only
 when its subcommand runs (``servobench --help`` imports none). With no
-arguments, ``servobench`` prints its usage. Any :class:`~servobench.errors.ServobenchError`
+arguments, ``servobench`` prints its usage. ``run`` returns the command's
+verdict (:class:`~servobench.bench.commands.outcome.Verdict`) or None, and
+:func:`~servobench.bench.commands.outcome.exit_status` alone maps it to the
+exit status: 0 pass, 3 fail. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
 The notes an error carries (where the partial log of an interrupted run is
@@ -19,6 +22,7 @@ import json
 import sys
 import warnings
 
+from servobench.bench.commands.outcome import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, exit_status
 from servobench.errors import DriveWarning, ServobenchError, notes_of
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
@@ -45,7 +49,7 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2
         if _Parser.json_errors:
             _print_json_error(message)
-        self.exit(2, f"servobench: error: {message}\n")
+        self.exit(EXIT_USAGE, f"servobench: error: {message}\n")
 
 
 def _print_json_error(message: str) -> None:
@@ -112,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"command {args.command!r} is not available in this build")
     as_json = bool(getattr(args, "json", False))
     try:
-        return int(module.run(args) or 0)
+        return exit_status(module.run(args))
     except ServobenchError as err:
         return _fail(str(err), err, as_json)
     except OSError as err:
@@ -123,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"servobench: {message}", file=sys.stderr)
         if as_json:
             _print_json_error(message)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 def _fail(message: str, err: BaseException, as_json: bool) -> int:
@@ -132,7 +136,7 @@ def _fail(message: str, err: BaseException, as_json: bool) -> int:
     print(f"servobench: error: {message}", file=sys.stderr)
     if as_json:
         _print_json_error(message)
-    return 1
+    return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -260,8 +260,10 @@ class SidbeResult:
         return "open" if self.hold is None else "closed"
 
     def to_json(self) -> dict[str, Any]:
-        """The model keys of :meth:`IdentificationResult.to_json` plus the procedure."""
-        out = self.result.to_json()
+        """``verdict`` (``"pass"`` when the verification fit reached the threshold, else
+        ``"fail"``) first, then the model keys of :meth:`IdentificationResult.to_json` and the
+        procedure."""
+        out = {"verdict": "pass" if self.passed else "fail", **self.result.to_json()}
         d = self.design
         out.update(
             {
