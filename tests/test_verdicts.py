@@ -82,3 +82,26 @@ def test_sidbe_text_keeps_the_whole_output_folder_and_says_what_a_lock_step_rate
     rate = rate_text(1000.0, 2.0e5, pace="fast")
     assert rate == "1000 Hz on the drive's clock (lock-step, pace=fast: streamed 200x faster than real time)"
     assert rate_text(1000.0, 998.7) == "1000 Hz set, 998.7 Hz achieved"
+
+
+def test_validate_leads_with_its_verdict_and_exits_by_it(tmp_path, capsys):
+    log = tmp_path / "log.csv"
+    assert main(["run", "--drive", PLAIN, "--out", str(log), "--periods", "3", "--period", "1"]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(log), "--json"]) == 0
+    model = tmp_path / "model.json"
+    model.write_text(capsys.readouterr().out)
+    assert main(["validate", str(model), str(log)]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("PASS: ") and ">= 90 %" in first and "<= 10 %" in first
+    assert main(["validate", str(model), str(log), "--min-fit", "99.99", "--json"]) == 3
+    obj = json.loads(capsys.readouterr().out)
+    assert list(obj)[0] == "verdict" and obj["verdict"] == "fail"
+    assert obj["thresholds"] == {"min_fit_percent": 99.99, "max_gap_percent": 10.0}
+    # a wrong model: four times the inertia and a fifth of the friction fails the default thresholds
+    wrong = json.loads(model.read_text())
+    wrong.update(M=4 * wrong["M"], coulomb_pos=0.1, coulomb_neg=0.1)
+    model.write_text(json.dumps(wrong))
+    assert main(["validate", str(model), str(log)]) == 3
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("FAIL: ") and "below 90 %" in first

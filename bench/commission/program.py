@@ -125,7 +125,7 @@ class ProgramValue:
         return dict(self.__dict__)
 
 
-def _integral_unit(units: SignalUnits) -> str:
+def integral_unit(units: SignalUnits) -> str:
     """Unit of ``Ki`` (command per velocity per second): ``N m/rad`` when ``v`` is ``x`` per second."""
     u, v, x = units.of("u"), units.of("v"), units.of("x")
     if units.x and v == f"{x}/s":
@@ -158,8 +158,8 @@ def program_values(
         row("feed-forward ramp-in band", ff.sign_band, 0, 1, p["v"], q["v"],
             "the Coulomb term ramps in linearly below this reference speed; 0: a step"),
         row("velocity PI: proportional gain Kp", pi.kp, 1, -1, p["B"], q["B"], gains),
-        row("velocity PI: integral gain Ki = Kp/Ti", pi.ki, 1, -1, _integral_unit(units),
-            _integral_unit(own), gains),
+        row("velocity PI: integral gain Ki = Kp/Ti", pi.ki, 1, -1, integral_unit(units),
+            integral_unit(own), gains),
         row("velocity PI: integral time Ti", pi.ti_s, 0, 0, "s", "s"),
         row("velocity loop sample time", pi.sample_time_s, 0, 0, "s", "s",
             f"designed for {pi.delay_cycles:g} cycle(s) of delay"),
