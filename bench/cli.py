@@ -17,13 +17,17 @@ kept) end that line. Under ``--json``, an error also prints one JSON object
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import json
+import os
 import sys
+import tempfile
 import warnings
+from pathlib import Path
 
 from servobench.bench.commands.outcome import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, exit_status
-from servobench.errors import DriveWarning, ServobenchError, notes_of
+from servobench.errors import DriveWarning, ServobenchError, SessionWarning, notes_of
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 
@@ -95,11 +99,34 @@ _show_warning = warnings.showwarning
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """A :class:`DriveWarning` as one line on stderr; other warnings as Python shows them."""
+    """A :class:`DriveWarning` as one line on stderr (a :class:`SessionWarning` once per terminal
+    session); other warnings as Python shows them."""
+    if issubclass(category, SessionWarning) and said_this_session(str(message)):
+        return
     if issubclass(category, DriveWarning):
         print(f"servobench: warning: {message}", file=file or sys.stderr)
     else:
         _show_warning(message, category, filename, lineno, file, line)
+
+
+def session_file() -> Path:
+    """Where this terminal session's said warnings are remembered (per user, per session id)."""
+    return Path(tempfile.gettempdir()) / f"servobench-{os.getuid()}" / f"said-{os.getsid(0)}"
+
+
+def said_this_session(text: str) -> bool:
+    """True when ``text`` was said in this terminal session already; else remember it, False."""
+    key = hashlib.sha256(text.encode()).hexdigest()[:32]
+    path = session_file()
+    try:
+        if path.exists() and key in path.read_text(encoding="utf-8").split():
+            return True
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(key + "\n")
+    except OSError:  # nowhere to remember: say it
+        return False
+    return False
 
 
 def main(argv: list[str] | None = None) -> int:

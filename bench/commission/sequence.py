@@ -160,6 +160,7 @@ class Commissioning:
 
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
+        created = not self.out.exists()
         self._prepare_out_dir()
         try:
             result = self._steps()
@@ -169,21 +170,38 @@ class Commissioning:
             raise
         except CommissionRefused as err:
             self.progress.status, self.progress.reason = "refused", str(err)
+            if self.o.dry_run and self._leave_nothing(created):  # read only: nothing behind
+                add_note(err, f"nothing was written to {self.out}")
+                self.progress.status = "gone"
             raise
         except BaseException as err:
             self.progress.status, self.progress.reason = "error", str(err) or type(err).__name__
             add_note(err, self._kept())
             raise
         finally:
-            self._keep_files()
-            write_json(self.out / STATUS_FILE, self.progress.as_dict())
+            if self.progress.status != "gone":
+                self._keep_files()
+                write_json(self.out / STATUS_FILE, self.progress.as_dict())
         return result
+
+    def _leave_nothing(self, created: bool) -> bool:
+        """Remove what a refused dry run made: the status file of an earlier dry run or refusal it
+        replaces, and the folder when this run created it. False when the folder holds other files."""
+        others = [p for p in self.out.iterdir() if p.name != STATUS_FILE] if self.out.is_dir() else []
+        if others:
+            return False
+        (self.out / STATUS_FILE).unlink(missing_ok=True)
+        if created:
+            self.out.rmdir()
+        return True
 
     def _kept(self) -> str:
         return f"the record so far is kept in {self.out} ({STATUS_FILE} says how far it got)"
 
     def _prepare_out_dir(self) -> None:
-        if (self.out / STATUS_FILE).exists():
+        """Create the record folder; refuse one holding a record (a dry run's or a refusal's
+        ``commission.json`` alone is no record: it is replaced)."""
+        if (self.out / STATUS_FILE).exists() and not _no_record(self.out):
             raise UsageError(f"{self.out} already holds a commissioning record; choose another --out")
         self.out.mkdir(parents=True, exist_ok=True)
 
@@ -257,7 +275,7 @@ class Commissioning:
         self._check_start_position(limits, check.feedback.position)
         first_pulse = self.o.config.bump.fractions[0] * limits.max_u
         integration.sidbe_options(self.o.config.sidbe, limits.max_u, first_pulse, _finite(limits))  # bad options refuse now
-        self.console.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
+        self.console.ok(f"limits {limits.describe(check.units)} ({limits.how}); enforced by the Drive layer")
         self._done("limits", limits=limits.as_dict())
         return limits, url_with_limits(self.o.drive_url, limits)
 
@@ -271,8 +289,9 @@ class Commissioning:
             c.step(3, "bump test")
             with c.progress("bump test") as tick:
                 bump = run_bump_test(drive, limits, self.bump, self.out / BUMP_LOG, pace=pace, progress=tick)
+            u = drive.units.get("u") or "(drive units)"
             c.ok(
-                f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g}), "
+                f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g} {u}), "
                 "positive command gives positive velocity, feedback consistent"
             )
             self._done("bump", bump=bump.as_dict())
@@ -420,6 +439,20 @@ class Commissioning:
         write_mat(self.out / MAT_FILE, log, sidbe.result, design)
         write_report(self.out / REPORT_FILE, document.page(inputs))
         return banner
+
+
+def _no_record(out: Path) -> bool:
+    """True when ``out`` holds only the ``commission.json`` of a dry run or of a refusal before anything
+    was recorded."""
+    import json
+
+    if any(p.name != STATUS_FILE for p in out.iterdir()):
+        return False
+    try:
+        status = json.loads((out / STATUS_FILE).read_text(encoding="utf-8")).get("status")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return status in ("dry-run", "refused")
 
 
 def _finite(limits: ConfirmedLimits) -> bool:
