@@ -39,6 +39,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve-sim": ("servobench.bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
     "diagnose": ("servobench.bench.commands.diagnose", "find, name and add the effect the model lacks"),
     "validate": ("servobench.bench.commands.validate", "check a saved model against another log"),
+    "program": ("servobench.bench.commands.program", "the values to program into the drive, from a saved model"),
     "list": ("servobench.bench.commands.list", "list shipped maps, dialects, effects and URL keys"),
     "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
     "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),

@@ -435,6 +435,9 @@ class Commissioning:
                                        program, scale, self.progress.started, _version(), source)  # fmt: skip
         banner = document.verdict(document.steps(inputs))
         record = model_record(sidbe.result, design, facts, program, who, source.as_dict())
+        record["fs"] = sidbe.fs_hz
+        if scale.reported:
+            record["drive_scale"] = scale.as_json()
         write_json(self.out / MODEL_FILE, {"verdict": document.VERDICT_WORDS[banner.status], **record})
         write_mat(self.out / MAT_FILE, log, sidbe.result, design)
         write_report(self.out / REPORT_FILE, document.page(inputs))
