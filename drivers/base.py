@@ -253,19 +253,17 @@ class Drive(ABC):
         except Exception as err:  # the error that ended the block matters more
             if hasattr(exc, "add_note") and not _link_lost(exc):  # Python >= 3.11
                 exc.add_note(f"closing the drive also failed: {err}")
-        if _link_lost(exc):
-            raise self._lost_link(exc) from exc
-
-    def _lost_link(self, exc: BaseException) -> DriveConnectionError:
-        """One line for a link lost under a block: which drive, and the state the axis was left in
-        (no stop can reach it: the drive-side watchdog armed at :meth:`open` stops it)."""
-        where = self.url.raw.split("?", 1)[0]
-        why = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        if not _link_lost(exc):
+            return
         state = (f"no stop could reach the axis: the drive-side watchdog armed at open stops it within "
                  f"{self.watchdog_s:g} s of silence; check that it stands before the next run")  # fmt: skip
-        if isinstance(exc, DriveConnectionError) and where in str(exc):
-            return DriveConnectionError(f"{exc}; {state}")
-        return DriveConnectionError(f"lost the link to the drive {where} ({why}); {state}")
+        if isinstance(exc, DriveError):  # worded by the driver already: keep its type, add the state
+            if hasattr(exc, "add_note"):  # Python >= 3.11
+                exc.add_note(state)
+            return
+        where = self.url.raw.split("?", 1)[0]
+        why = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        raise DriveConnectionError(f"lost the link to the drive {where} ({why}); {state}") from exc
 
     def __del__(self) -> None:
         if getattr(self, "_is_open", False):
