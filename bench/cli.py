@@ -4,8 +4,8 @@ Each subcommand lives in ``servobench.bench.commands.<module>`` and exposes
 ``add_arguments(parser)`` and ``run(args) -> int``; a module is imported only
 when its subcommand runs (``servobench --help`` imports none). With no
 arguments, ``servobench`` prints its usage. ``run`` returns the command's
-verdict (:class:`~servobench.bench.commands.outcome.Verdict`) or None, and
-:func:`~servobench.bench.commands.outcome.exit_status` alone maps it to the
+verdict (:class:`~servobench.verdict.Verdict`) or None, and
+:func:`~servobench.verdict.exit_status` alone maps it to the
 exit status: 0 pass, 3 fail. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
@@ -26,8 +26,8 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from servobench.bench.commands.outcome import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, exit_status
 from servobench.errors import DriveWarning, ServobenchError, SessionWarning, notes_of
+from servobench.verdict import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, exit_status
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 
 from servobench.bench.cli import main
-from servobench.bench.commands.outcome import EXIT_FAIL, EXIT_PASS, Verdict, exit_status
 from servobench.bench.report.summary import rate_text
+from servobench.verdict import EXIT_FAIL, EXIT_PASS, Verdict, exit_status
 
 #: An axis whose Stribeck breakaway (1.0) is the amplitude: it never leaves the noise.
 STUCK = "sim://?noise=0.01&seed=1&stribeck_fs=1.0&stribeck_vs=0.3"

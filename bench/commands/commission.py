@@ -38,9 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace):
-    from servobench.bench.commands.outcome import Verdict
     from servobench.bench.commission.config import load_config
     from servobench.bench.commission.sequence import CommissionOptions, commission
+    from servobench.verdict import Verdict
 
     out = Path(args.out) if args.out else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
     options = CommissionOptions(

@@ -82,13 +82,13 @@ def default_out_dir(base: Path | None = None) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from servobench.bench.commands.outcome import Verdict
     from servobench.bench.commands.progress import stream_progress
     from servobench.bench.procedure import SidbeOptions, check_run_folder, run_sidbe
     from servobench.bench.report.summary import print_json, print_result, rate_text
     from servobench.bench.run.runner import default_pace
     from servobench.drivers.registry import open_drive
     from servobench.errors import IdentificationError, add_note
+    from servobench.verdict import Verdict
 
     options = SidbeOptions(
         amplitude=args.amplitude,
@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def verdict_line(result) -> str:
-    from servobench.bench.commands.outcome import Verdict
+    from servobench.verdict import Verdict
 
     """The first line: the verification fit against the threshold, and what to do on a fail."""
     fit, threshold = result.result.fit_percent, result.fit_threshold

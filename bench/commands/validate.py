@@ -38,11 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace):
-    from servobench.bench.commands.outcome import Verdict
     from servobench.bench.modelfile import read_model
     from servobench.bench.report.summary import print_json
     from servobench.bench.validate import judge, validate
     from servobench.units import SignalUnits
+    from servobench.verdict import Verdict
 
     saved = read_model(args.model)
     log = read_log_of(args)

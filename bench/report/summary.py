@@ -42,11 +42,12 @@ def rate_text(fs_hz: float, achieved_hz: float, link_max_hz: float = math.inf, p
     exchange) the axis's time is its own clock at ``fs_hz``; how fast the host
     streamed is said as a multiple of real time, never as a rate the axis ran at.
     """
+    link = f"the link carries {link_max_hz:.0f} Hz" if math.isfinite(link_max_hz) else ""
     if pace == "fast":
         text = f"{fs_hz:g} Hz on the drive's clock (lock-step, pace=fast"
         if math.isfinite(achieved_hz) and fs_hz > 0:
             text += f": streamed {achieved_hz / fs_hz:.3g}x faster than real time"
-        return text + ")"
+        return text + (f"; {link})" if link else ")")
     text = f"{fs_hz:g} Hz set"
     if math.isfinite(achieved_hz):
         text += f", {achieved_hz:.5g} Hz achieved"
