@@ -3,7 +3,10 @@
 Each subcommand lives in ``servobench.bench.commands.<module>`` and exposes
 ``add_arguments(parser)`` and ``run(args) -> int``; a module is imported only
 when its subcommand runs (``servobench --help`` imports none). With no
-arguments, ``servobench`` prints its usage. Any :class:`~servobench.errors.ServobenchError`
+arguments, ``servobench`` prints its usage. ``run`` returns the command's
+verdict (:class:`~servobench.verdict.Verdict`) or None, and
+:func:`~servobench.verdict.exit_status` alone maps it to the
+exit status: 0 pass, 3 fail. Any :class:`~servobench.errors.ServobenchError`
 (and file-system errors) becomes one line on stderr and exit status 1;
 Ctrl-C exits with 130 after the command's own clean-up has stopped the axis.
 The notes an error carries (where the partial log of an interrupted run is
@@ -14,12 +17,17 @@ kept) end that line. Under ``--json``, an error also prints one JSON object
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import json
+import os
 import sys
+import tempfile
 import warnings
+from pathlib import Path
 
-from servobench.errors import DriveWarning, ServobenchError, notes_of
+from servobench.errors import DriveWarning, ServobenchError, SessionWarning, notes_of
+from servobench.verdict import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, exit_status
 
 DESCRIPTION = "Identify servo drives with friction (SIDBE) on a real bus or the simulated drive."
 
@@ -31,6 +39,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve-sim": ("servobench.bench.commands.serve_sim", "serve the simulated drive over a real protocol"),
     "diagnose": ("servobench.bench.commands.diagnose", "find, name and add the effect the model lacks"),
     "validate": ("servobench.bench.commands.validate", "check a saved model against another log"),
+    "program": ("servobench.bench.commands.program", "the values to program into the drive, from a saved model"),
     "list": ("servobench.bench.commands.list", "list shipped maps, dialects, effects and URL keys"),
     "commission": ("servobench.bench.commands.commission", "commission a drive in the field"),
     "udev": ("servobench.bench.commands.udev", "install the udev rules for bench adapters"),
@@ -45,7 +54,7 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2
         if _Parser.json_errors:
             _print_json_error(message)
-        self.exit(2, f"servobench: error: {message}\n")
+        self.exit(EXIT_USAGE, f"servobench: error: {message}\n")
 
 
 def _print_json_error(message: str) -> None:
@@ -91,11 +100,34 @@ _show_warning = warnings.showwarning
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """A :class:`DriveWarning` as one line on stderr; other warnings as Python shows them."""
+    """A :class:`DriveWarning` as one line on stderr (a :class:`SessionWarning` once per terminal
+    session); other warnings as Python shows them."""
+    if issubclass(category, SessionWarning) and said_this_session(str(message)):
+        return
     if issubclass(category, DriveWarning):
         print(f"servobench: warning: {message}", file=file or sys.stderr)
     else:
         _show_warning(message, category, filename, lineno, file, line)
+
+
+def session_file() -> Path:
+    """Where this terminal session's said warnings are remembered (per user, per session id)."""
+    return Path(tempfile.gettempdir()) / f"servobench-{os.getuid()}" / f"said-{os.getsid(0)}"
+
+
+def said_this_session(text: str) -> bool:
+    """True when ``text`` was said in this terminal session already; else remember it, False."""
+    key = hashlib.sha256(text.encode()).hexdigest()[:32]
+    path = session_file()
+    try:
+        if path.exists() and key in path.read_text(encoding="utf-8").split():
+            return True
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        with open(path, "a", encoding="utf-8") as fh:
+            fh.write(key + "\n")
+    except OSError:  # nowhere to remember: say it
+        return False
+    return False
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"command {args.command!r} is not available in this build")
     as_json = bool(getattr(args, "json", False))
     try:
-        return int(module.run(args) or 0)
+        return exit_status(module.run(args))
     except ServobenchError as err:
         return _fail(str(err), err, as_json)
     except OSError as err:
@@ -123,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"servobench: {message}", file=sys.stderr)
         if as_json:
             _print_json_error(message)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 def _fail(message: str, err: BaseException, as_json: bool) -> int:
@@ -132,7 +164,7 @@ def _fail(message: str, err: BaseException, as_json: bool) -> int:
     print(f"servobench: error: {message}", file=sys.stderr)
     if as_json:
         _print_json_error(message)
-    return 1
+    return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -13,7 +13,12 @@ host, port and path and the query keys that select one axis on a shared
 link (``channel``, ``node``, ``unit``, ``axis``), not the limits, timeouts
 or plant keys, which may change between two runs of the same axis.
 ``commission`` names it by its configuration instead when ``[identity]``
-gives an axis (``"Press 7 / Z"``, :func:`configured_axis`). The time is ISO
+gives an axis (``"Press 7 / Z"``, :func:`configured_axis`). The in-process
+simulated drive ``sim://`` has no address: a simulated axis *is* its plant,
+so its name is its plant file (``sim://?plant=press7.toml``), else its
+physics, effect and device keys in a fixed order
+(``sim://?B=1&M=0.1&fc_neg=0.4&fc_pos=0.5&seed=3``), without the safety and
+pace keys; two ``sim://`` logs of different plants are two axes. The time is ISO
 8601 with the local UTC offset, to the second.
 
 A log without these lines (written by another tool, or before they existed)
@@ -35,13 +40,18 @@ AXIS_KEY = "axis"
 TIME_KEY = "time"
 #: Query keys that select one axis on a link shared by several.
 ADDRESS_KEYS = ("channel", "node", "unit", "axis")
+#: Keys every drive URL takes that do not tell one simulated plant from another
+#: (limits, watchdog, pace: servobench.drivers.base.COMMON_QUERY_KEYS).
+NOT_PLANT_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace"})
+#: The scheme of the in-process simulated drive, named by its plant.
+SIM_SCHEME = "sim"
 
 
 def axis_of_url(url: object) -> str:
     """The axis name of a drive URL: its address without limits, timeouts or plant keys.
 
     ``canopen://can0?node=2&max_u=3`` -> ``canopen://can0?node=2``;
-    ``sim://?M=0.1`` -> ``sim://``. ``url`` is a
+    ``sim://?M=0.1&pace=real`` -> ``sim://?M=0.1`` (a simulated axis is its plant). ``url`` is a
     :class:`~servobench.drivers.url.DriveURL` (or anything with ``scheme``,
     ``host``, ``port``, ``path`` and ``query``).
     """
@@ -50,6 +60,11 @@ def axis_of_url(url: object) -> str:
     if port is not None:
         where += f":{port}"
     query: Mapping[str, str] = getattr(url, "query", {}) or {}
+    if url.scheme == SIM_SCHEME:  # type: ignore[attr-defined]
+        plant = {"plant": query["plant"]} if "plant" in query else {
+            k: v for k, v in query.items() if k not in NOT_PLANT_KEYS}  # fmt: skip
+        address = "&".join(f"{k}={plant[k]}" for k in sorted(plant))
+        return f"sim://?{address}" if address else "sim://"
     address = "&".join(f"{k}={query[k]}" for k in ADDRESS_KEYS if k in query)
     name = f"{url.scheme}://{where}{getattr(url, 'path', '') or ''}"  # type: ignore[attr-defined]
     return f"{name}?{address}" if address else name

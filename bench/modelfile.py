@@ -8,6 +8,13 @@ effects, a list of ``{"name": ..., "parameters": {...}}`` (or a mapping
 ``{name: {parameter: value}}``); parameters an effect does not declare
 (``B_pos``, ``B_neg`` of ``viscous_asymmetry``, written for the reader) are
 left out, and the rest are checked against the effect's declared ranges.
+
+What the values to program need beside the model is read too, where the
+file has it: the loop rate (``fs``, the identification rate of ``sidbe`` and
+``identify``), the drive's scale factors (``drive_scale``, written from the
+log's ``scale_u``/``scale_v``/``scale_x``), and, in a commissioning record,
+the model its values were designed from (``program_source``: the diagnosed
+model when the diagnosis closed the gap), which :func:`program_model` returns.
 """
 
 from __future__ import annotations
@@ -42,6 +49,12 @@ class SavedModel:
         The ``units`` object of the file, when it has one.
     source : str
         The file.
+    fs_hz : float or None
+        The identification (loop) rate the file states (``fs``) [Hz].
+    drive_scale : mapping
+        The file's ``drive_scale`` object (the drive's scale factors), empty when none.
+    program_source : mapping
+        A commissioning record's ``program_source`` (the model its values come from), else empty.
     """
 
     model: ServoModel
@@ -49,6 +62,9 @@ class SavedModel:
     kind: str = "identify"
     units: Mapping[str, str] = field(default_factory=dict)
     source: str = ""
+    fs_hz: float | None = None
+    drive_scale: Mapping[str, Any] = field(default_factory=dict)
+    program_source: Mapping[str, Any] = field(default_factory=dict)
 
 
 def read_model(path: str | Path) -> SavedModel:
@@ -90,7 +106,45 @@ def model_from_json(doc: Mapping[str, Any], where: str = "model") -> SavedModel:
         raise UsageError(f"{where}: {err}") from None
     units = doc.get("units") if isinstance(doc.get("units"), Mapping) else {}
     found = _effects(doc.get("effects", []), where)
-    return SavedModel(model, found, kind, {str(k): str(v) for k, v in units.items()}, where)
+    fs = _rate(doc)
+    fs_hz = _number(fs, "fs", where) if fs is not None else None
+    scale = doc.get("drive_scale") if isinstance(doc.get("drive_scale"), Mapping) else {}
+    chosen = doc.get("program_source") if isinstance(doc.get("program_source"), Mapping) else {}
+    return SavedModel(model, found, kind, {str(k): str(v) for k, v in units.items()}, where, fs_hz,
+                      dict(scale), dict(chosen))  # fmt: skip
+
+
+def program_model(saved: SavedModel) -> tuple[ServoModel, str]:
+    """The model to design the values to program from, and one sentence saying which it is.
+
+    A commissioning record's ``program_source`` (the diagnosed model when the diagnosis
+    closed the gap) wins over its top level; a diagnosed model's base is the base refitted
+    together with its effects; otherwise the file's base model.
+    """
+    chosen = saved.program_source
+    if chosen and all(k in chosen for k in BASE_KEYS):
+        values = {k: _number(chosen[k], f"program_source.{k}", saved.source) for k in BASE_KEYS}
+        model = ServoModel(**values, resonance=saved.model.resonance)
+        return model, str(chosen.get("description") or f"the model the record programs ({chosen.get('model')})")
+    if saved.kind == "diagnose" or saved.effects:
+        named = " + ".join(saved.effects) or "no effect"
+        return saved.model, f"the diagnosed model's base, refitted together with {named}"
+    return saved.model, "the identified base model (linear block and Coulomb friction per direction)"
+
+
+def _rate(doc: Mapping[str, Any]) -> Any:
+    """The loop rate a model file states [Hz]: ``fs``, else a commissioning record's SIDBE rate or
+    its PI's sample time; None when it states none."""
+    if doc.get("fs") is not None:
+        return doc["fs"]
+    facts = doc.get("commissioning")
+    sidbe = facts.get("sidbe") if isinstance(facts, Mapping) else None
+    if isinstance(sidbe, Mapping) and sidbe.get("fs") is not None:
+        return sidbe["fs"]
+    pi = doc.get("velocity_pi")
+    if isinstance(pi, Mapping) and isinstance(pi.get("sample_time_s"), (int, float)) and pi["sample_time_s"] > 0:
+        return 1.0 / pi["sample_time_s"]
+    return None
 
 
 def _number(value: Any, key: str, where: str) -> float:

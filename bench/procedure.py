@@ -254,14 +254,18 @@ class SidbeResult:
     hold: Mapping[str, Any] | None = None
     accepted_log: Path | None = None
     fs_achieved_hz: float = math.nan
+    #: The drive's scale factors the log states (``drive_scale`` of model.json), empty when none.
+    drive_scale: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def loop(self) -> str:
         return "open" if self.hold is None else "closed"
 
     def to_json(self) -> dict[str, Any]:
-        """The model keys of :meth:`IdentificationResult.to_json` plus the procedure."""
-        out = self.result.to_json()
+        """``verdict`` (``"pass"`` when the verification fit reached the threshold, else
+        ``"fail"``) first, then the model keys of :meth:`IdentificationResult.to_json` and the
+        procedure."""
+        out = {"verdict": "pass" if self.passed else "fail", **self.result.to_json()}
         d = self.design
         out.update(
             {
@@ -288,6 +292,8 @@ class SidbeResult:
         )
         if self.hold is not None:
             out["hold"] = dict(self.hold)
+        if self.drive_scale:
+            out["drive_scale"] = dict(self.drive_scale)
         return out
 
     def files(self) -> dict[str, str]:
@@ -357,6 +363,8 @@ def run_sidbe(
 
         plots = tuple(write_plots(result, out))
     model_path = out / MODEL_FILE
+    from servobench.bench.commission.program import drive_scale_json
+
     sr = SidbeResult(
         result,
         tuple(iterations),
@@ -370,6 +378,7 @@ def run_sidbe(
         hold,
         best_log,
         achieved_hz,
+        drive_scale_json(read_log(log_path).metadata, str(log_path)),
     )
     model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
     return sr

@@ -91,6 +91,45 @@ class Validation:
         return out
 
 
+#: Default thresholds of ``servobench validate``: the SIDBE verification threshold, and the
+#: velocity gap that leaves the same share of the motion unexplained.
+DEFAULT_MIN_FIT_PERCENT = 90.0
+DEFAULT_MAX_GAP_PERCENT = 10.0
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """A validation against thresholds: ``passed`` and one clause per figure judged."""
+
+    passed: bool
+    clauses: tuple[str, ...]
+    min_fit_percent: float
+    max_gap_percent: float
+
+    def text(self) -> str:
+        return ", ".join(self.clauses)
+
+    def as_dict(self) -> dict[str, float]:
+        return {"min_fit_percent": self.min_fit_percent, "max_gap_percent": self.max_gap_percent}
+
+
+def judge(
+    result: Validation,
+    min_fit_percent: float = DEFAULT_MIN_FIT_PERCENT,
+    max_gap_percent: float = DEFAULT_MAX_GAP_PERCENT,
+) -> Judgement:
+    """Pass when ``fit_percent >= min_fit_percent`` and ``gap_percent <= max_gap_percent``
+    (a figure that could not be computed fails)."""
+    fit, gap = result.fit_percent, result.gap_percent
+    fit_ok = bool(np.isfinite(fit) and fit >= min_fit_percent)
+    gap_ok = bool(np.isfinite(gap) and gap <= max_gap_percent)
+    clauses = (
+        f"fit {fit:.2f} % {'>=' if fit_ok else 'below'} {min_fit_percent:g} %",
+        f"gap {gap:.2f} % {'<=' if gap_ok else 'above'} {max_gap_percent:g} %",
+    )
+    return Judgement(fit_ok and gap_ok, clauses, min_fit_percent, max_gap_percent)
+
+
 def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 

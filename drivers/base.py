@@ -29,7 +29,13 @@ from typing import Any, ClassVar
 import numpy as np
 
 from servobench.drivers.url import DriveURL, parse_drive_url
-from servobench.errors import DriveError, DriveUnavailableError, LimitExceededError, UsageError
+from servobench.errors import (
+    DriveConnectionError,
+    DriveError,
+    DriveUnavailableError,
+    LimitExceededError,
+    UsageError,
+)
 
 #: Query keys every backend accepts: the safety envelope, the watchdog, and the
 #: host pacing (``pace=real``: the host holds the cycle rate, the default;
@@ -244,9 +250,20 @@ class Drive(ABC):
             return
         try:
             self.close()
-        except DriveError as err:  # the error that ended the block matters more
-            if hasattr(exc, "add_note"):  # Python >= 3.11
+        except Exception as err:  # the error that ended the block matters more
+            if hasattr(exc, "add_note") and not _link_lost(exc):  # Python >= 3.11
                 exc.add_note(f"closing the drive also failed: {err}")
+        if not _link_lost(exc):
+            return
+        state = (f"no stop could reach the axis: the drive-side watchdog armed at open stops it within "
+                 f"{self.watchdog_s:g} s of silence; check that it stands before the next run")  # fmt: skip
+        if isinstance(exc, DriveError):  # worded by the driver already: keep its type, add the state
+            if hasattr(exc, "add_note"):  # Python >= 3.11
+                exc.add_note(state)
+            return
+        where = self.url.raw.split("?", 1)[0]
+        why = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        raise DriveConnectionError(f"lost the link to the drive {where} ({why}); {state}") from exc
 
     def __del__(self) -> None:
         if getattr(self, "_is_open", False):
@@ -512,3 +529,9 @@ class Drive(ABC):
         raise DriveUnavailableError(
             f"{self.url.scheme}:// cannot record bus traffic (python-can formats are for CAN links)"
         )
+
+
+def _link_lost(exc: BaseException) -> bool:
+    """True for a transport's connection error (reset, broken pipe, refused, aborted): a socket
+    error the drive layer did not word, or its own :class:`DriveConnectionError`."""
+    return isinstance(exc, ConnectionError) and not getattr(exc, "filename", None)

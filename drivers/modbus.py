@@ -63,7 +63,7 @@ from servobench.errors import (
     DriveConfigError,
     DriveError,
     DriveFaultError,
-    DriveWarning,
+    SessionWarning,
     StateTransitionError,
 )
 
@@ -182,7 +182,7 @@ class ModbusDrive(Drive):
             raise
         if not self.rtu and self.regmap.watchdog_feed == "any_request":
             warnings.warn(
-                DriveWarning(
+                SessionWarning(
                     f"{self.where}: map {self.regmap.name!r} feeds the drive's watchdog with any "
                     "request, so another Modbus client polling this drive keeps the watchdog "
                     "alive even if this host dies; use a watchdog feed register "

@@ -125,6 +125,12 @@ class DriveWarning(UserWarning):
         super().__init__(one_line(message))
 
 
+class SessionWarning(DriveWarning):
+    """A :class:`DriveWarning` about the set-up, not the run (a Modbus map that feeds the watchdog
+    with any request): the same words need saying once per terminal session, not on every command.
+    """
+
+
 def add_note(err: BaseException, note: str) -> None:
     """Attach a one-line note to ``err`` (PEP 678 ``__notes__``), e.g. where the partial log is.
 

@@ -38,7 +38,7 @@ from servobench.sim_backend.physics.plant import PlantParams
 pytestmark = pytest.mark.slow  # clusters start in seconds
 
 WEAR = 0.5
-STRINGS = ("log", "axis", "time", "method", "effects", "error")
+STRINGS = ("log", "axis", "time", "method", "effects", "error", "model")
 CLI = [sys.executable, "-m", "servobench"]
 #: Longest wait for the scheduler and its workers to come up [s].
 START_S = 90.0

@@ -91,7 +91,11 @@ def test_axis_of_url_keeps_the_address_only():
         "canopen://can0?node=2&max_u=3&watchdog=0.5": "canopen://can0?node=2",
         "modbus+tcp://127.0.0.1:5020?unit=3&map=zlac8015d&timeout=1": "modbus+tcp://127.0.0.1:5020?unit=3",
         "serial:///dev/ttyACM0?baud=115200&axis=1": "serial:///dev/ttyACM0?axis=1",
-        "sim://?M=0.2&fc_pos=0.3&pace=fast": "sim://",
+        # a simulated axis is its plant: its keys in a fixed order, without limits and pace
+        "sim://?M=0.2&fc_pos=0.3&pace=fast&max_u=4": "sim://?M=0.2&fc_pos=0.3",
+        "sim://?fc_pos=0.3&M=0.2": "sim://?M=0.2&fc_pos=0.3",
+        "sim://?plant=press7.toml&M=0.3": "sim://?plant=press7.toml",
+        "sim://?pace=fast": "sim://",
     }
     for url, axis in cases.items():
         assert axis_of_url(parse_drive_url(url)) == axis
@@ -140,10 +144,11 @@ def test_tables_read_back_with_pyarrow_readers(tmp_path):
         row("A", 1, effects="cogging;offset"),
         FleetRow("bad.csv", "bad", "", error='x, "y"'),
     ]
+    rows.append(diagnosed(row("A", 2), "base + stribeck", 0.1, 1.0, 0.5, 0.4))
     write_csv(rows, tmp_path / "fleet.csv")
     write_parquet(rows, tmp_path / "fleet.parquet")
     table = pacsv.read_csv(tmp_path / "fleet.csv", convert_options=pacsv.ConvertOptions(
-        column_types={c: "string" for c in ("log", "axis", "time", "method", "effects", "error")},
+        column_types={c: "string" for c in ("log", "axis", "time", "method", "effects", "error", "model")},
         strings_can_be_null=False))  # fmt: skip
     pq_table = pq.read_table(tmp_path / "fleet.parquet")
     assert table.column_names == list(COLUMNS) == pq_table.column_names
@@ -219,3 +224,53 @@ def test_trend_page_puts_flagged_axes_first_with_units_and_failed_logs(tmp_path)
     assert all(base64.b64decode(i).startswith(b"\x89PNG\r\n\x1a\n") for i in images)
     calm = write_page(rows[:2], axis_trends(rows[:2]), 20.0, tmp_path).read_text()
     assert '<div class="verdict pass" id="verdict">No axis flagged.</div>' in calm
+
+
+def diagnosed(row_: FleetRow, model: str, M: float, B: float, fcp: float, fcn: float) -> FleetRow:
+    from dataclasses import replace
+
+    effects = ";".join(model.split(" + ")[1:])
+    return replace(row_, effects=effects, model=model, diagnosed_M=M, diagnosed_B=B,
+                   diagnosed_coulomb_pos=fcp, diagnosed_coulomb_neg=fcn)  # fmt: skip
+
+
+def test_drift_compares_the_diagnosed_models_and_says_when_the_structure_changed():
+    """A Stribeck peak that appears biases the base fit (B -70 %, Coulomb +85 %), not the
+    diagnosed model's base parameters: no drift is reported, the new structure is said."""
+    first = diagnosed(row("A", 0), "base", 0.1, 1.0, 0.5, 0.4)
+    biased = row("A", 1, B=0.303, fcp=0.924, fcn=0.884)  # identify's base fit of the Stribeck axis
+    last = diagnosed(biased, "base + stribeck", 0.1, 1.01, 0.51, 0.4)
+    (t,) = axis_trends([first, last])
+    assert t.drift["B"] == pytest.approx(1.0) and t.drift["coulomb_pos"] == pytest.approx(2.0)
+    assert t.values("B") == [1.0, 1.01]
+    assert t.structure == ("model structure changed on 2026-01-02T00:00:00+00:00: base -> base + stribeck; "
+                           "the drift compares the base parameters of the diagnosed models",)  # fmt: skip
+    assert t.reasons == ("effect stribeck appeared on 2026-01-02T00:00:00+00:00, absent on "
+                         "2026-01-01T00:00:00+00:00",)  # fmt: skip
+    assert t.to_json()["models"] == ["base", "base + stribeck"]
+    # without the diagnosis, identify's numbers are what there is
+    (plain,) = axis_trends([row("A", 0), biased])
+    assert plain.drift["B"] == pytest.approx(-69.7) and plain.structure == ()
+
+
+def test_the_time_axis_is_in_the_natural_unit_of_its_span():
+    from servobench.bench.fleet.page import _elapsed, time_unit
+
+    assert [time_unit(s)[0] for s in (0, 59, 119, 600, 8000, 86400, 3 * 86400)] == [
+        "s", "s", "s", "min", "h", "h", "days"]  # fmt: skip
+    t0 = datetime(2026, 1, 1, tzinfo=timezone.utc)
+    times = [t0 + timedelta(seconds=s) for s in (0, 300, 1290)]  # a fleet run in 21.5 minutes
+    values, unit = _elapsed(times, t0)
+    assert unit == "min" and values == pytest.approx([0, 5, 21.5])
+
+
+def test_sim_logs_of_different_plants_are_different_axes(tmp_path):
+    from servobench.bench.cli import main
+    from servobench.bench.logio import read_log
+
+    for name, url in (("a", "sim://?fc_pos=0.4&pace=fast"), ("b", "sim://?fc_pos=0.6&max_u=5"),
+                      ("c", "sim://?pace=fast&fc_pos=0.4")):  # fmt: skip
+        assert main(["run", "--drive", url, "--out", str(tmp_path / f"{name}.csv"), "--periods", "2",
+                     "--period", "0.5"]) == 0  # fmt: skip
+    axes = [read_log(tmp_path / f"{n}.csv").metadata["axis"] for n in "abc"]
+    assert axes == ["sim://?fc_pos=0.4", "sim://?fc_pos=0.6", "sim://?fc_pos=0.4"]

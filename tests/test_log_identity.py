@@ -31,9 +31,9 @@ def test_run_and_sidbe_logs_name_their_axis_and_time(tmp_path):
     assert main(["sidbe", "--drive", "sim://?max_u=5", "--out", str(tmp_path / "sidbe"), "--periods",
                  "2", "--period", "0.5", "--max-iterations", "1", "--no-plots", "--json"]) == 0  # fmt: skip
     after = datetime.now().astimezone()
-    for path in (tmp_path / "run.csv", tmp_path / "sidbe" / "log.csv"):
+    for path, axis in ((tmp_path / "run.csv", "sim://?fc_pos=0.4"), (tmp_path / "sidbe" / "log.csv", "sim://")):
         meta = read_log(path).metadata
-        assert meta["axis"] == "sim://"
+        assert meta["axis"] == axis  # the plant, without the limits
         assert "+" in meta["time"][19:] or "-" in meta["time"][19:]  # with its UTC offset
         assert _within(meta["time"], before, after)
 

@@ -95,8 +95,9 @@ def test_model_json_explains_log_csv_against_log_n(tmp_path, capsys):
     out.mkdir()  # an empty folder is fine
     args = ["sidbe", "--drive", "sim://?noise=0.02&seed=1", "--out", str(out), "--fit-threshold", "99.99",
             "--max-iterations", "2", "--json", *SHORT]  # fmt: skip
-    assert main(args) == 0
+    assert main(args) == 3  # the threshold was never met: a fail, and the run folder explains it
     model = json.loads(capsys.readouterr().out)
+    assert model["verdict"] == "fail"
     files = model["files"]
     assert set(files) == {p.name for p in out.glob("*.csv")} == {"log.csv", "log-1.csv", "log-2.csv"}
     source = files["log.csv"].split()[2].rstrip(":")
@@ -114,7 +115,10 @@ def test_a_drive_that_dies_names_the_partial_log(command, tmp_path, capsys, driv
     assert main(args) == 1
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()[-1]
-    assert err.startswith("servobench: error: Connection reset by peer; partial log kept: ")
+    # the drive is named, and what became of the axis, not only the socket's words
+    assert err.startswith("servobench: error: lost the link to the drive sim:// (Connection reset by peer); "
+                          "no stop could reach the axis")  # fmt: skip
+    assert "; partial log kept: " in err
     log = partial_log_of(err)
     assert log == (out / "log-1.csv" if command == "sidbe" else out)
     partial = read_log(log)

@@ -5,7 +5,10 @@ link and drive check, limits confirmed (terminal, or ``--config`` with
 ``--yes``), bump test, SIDBE with verification, diagnosis, friction
 feed-forward and velocity-loop PI checked in simulation, and the record in
 ``--out`` (model.json, log.csv, bump.csv, report.html, commission.mat,
-commission.json). Exit 0 on success, 1 on a refusal or error, 130 on Ctrl-C
+commission.json). The last line is the record's verdict, the banner of
+``report.html``; ``commission.json`` leads with the same word (``verdict``).
+Exit 0 when the verdict is a pass (with or without remarks), 3 when it ran
+to the end and the verdict is a fail, 1 on a refusal or error, 130 on Ctrl-C
 (the axis is left stopped and disabled; what was recorded is kept).
 """
 
@@ -34,9 +37,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace):
     from servobench.bench.commission.config import load_config
     from servobench.bench.commission.sequence import CommissionOptions, commission
+    from servobench.verdict import Verdict
 
     out = Path(args.out) if args.out else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
     options = CommissionOptions(
@@ -47,5 +51,7 @@ def run(args: argparse.Namespace) -> int:
         dry_run=args.dry_run,
         record_bus=Path(args.record_bus) if args.record_bus else None,
     )
-    commission(options)
-    return 0
+    result = commission(options)
+    if result.status == "dry-run":
+        return None
+    return Verdict(result.verdict)

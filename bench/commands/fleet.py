@@ -147,6 +147,9 @@ def _print_text(rows, failed, trends, out, page) -> None:
     print(f"{len(rows)} logs, {len(failed)} failed; {len(trends)} axes, {len(flagged)} flagged")
     for t in flagged:
         print(f"FLAGGED {t.axis}: {'; '.join(t.reasons)}")
+    for t in trends:
+        for sentence in t.structure:
+            print(f"note {t.axis}: {sentence}")
     for r in failed:
         print(f"failed {r.log}: {r.error.removeprefix(r.log + ': ')}")
     print(f"wrote {out / 'fleet.csv'}, {out / 'fleet.parquet'}, {page}")

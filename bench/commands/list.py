@@ -47,7 +47,7 @@ def maps() -> list[dict[str, Any]]:
     out = []
     for name in shipped_maps():
         m = load_map(name)
-        out.append({"name": m.name, "description": m.description, "units": dict(m.units),
+        out.append({"name": m.name, "description": m.description, "units": dict(m.signal_units),
                     "fc23": m.fc23, "source": m.source})  # fmt: skip
     return out
 

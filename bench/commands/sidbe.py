@@ -6,6 +6,11 @@ verification fit is below the threshold (step 6), and writes ``log.csv``,
 ``model.json`` and PNG plots to the output folder. On an axis with limited
 travel (``--loop auto``, the default, with ``xmin``/``xmax`` in the URL) the
 excitation runs in closed loop inside the window (``probe.csv`` first).
+
+The verdict leads: the first line is ``PASS: ...`` when the verification
+fit reached ``--fit-threshold``, else ``FAIL: ...`` (exit status 3); under
+``--json`` the object's first key is ``verdict``. An axis that never moved
+above the sensor noise gets no model: one error line (exit status 1).
 """
 
 from __future__ import annotations
@@ -80,7 +85,10 @@ def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
     from servobench.bench.procedure import SidbeOptions, check_run_folder, run_sidbe
     from servobench.bench.report.summary import print_json, print_result, rate_text
+    from servobench.bench.run.runner import default_pace
     from servobench.drivers.registry import open_drive
+    from servobench.errors import IdentificationError, add_note
+    from servobench.verdict import Verdict
 
     options = SidbeOptions(
         amplitude=args.amplitude,
@@ -103,20 +111,26 @@ def run(args: argparse.Namespace) -> int:
     drive = open_drive(args.drive)
     options.validate(drive)
     with drive, stream_progress() as progress:
-        result = run_sidbe(drive, options, out_dir, progress=progress)
+        try:
+            result = run_sidbe(drive, options, out_dir, progress=progress)
+        except IdentificationError as err:  # no model: say where the logs of the rounds are
+            add_note(err, f"no model.json written; the logs are kept in {out_dir}")
+            raise
+    verdict = Verdict.of(result.passed)
     if args.json:
         print_json(result.to_json())
-        return 0
+        return verdict
+    print(verdict_line(result))
     rounds = ", ".join(
         f"#{it.index} ±{it.amplitude:g}: "
         + ("no model" if it.fit_percent is None else f"{it.fit_percent:.2f} %")
         for it in result.iterations
     )
     facts = {
-        "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz()),
+        "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz(),
+                                pace=options.pace or drive.url.get_str("pace", "") or default_pace(drive)),
         "rounds (amplitude: fit)": rounds,
         "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
-        "output": str(result.out_dir),
     }
     if result.hold is not None:
         h = result.hold
@@ -125,4 +139,18 @@ def run(args: argparse.Namespace) -> int:
             f"{h['travel_share']:.0%} of the room {h['room']:.4g} used"
         )
     print_result(result.result, "SIDBE: identified model", facts)
-    return 0
+    print(f"output: {result.out_dir}")
+    return verdict
+
+
+def verdict_line(result) -> str:
+    from servobench.verdict import Verdict
+
+    """The first line: the verification fit against the threshold, and what to do on a fail."""
+    fit, threshold = result.result.fit_percent, result.fit_threshold
+    if result.passed:
+        return Verdict.PASS.line(f"SIDBE verification fit {fit:.2f} % >= threshold {threshold:g} %")
+    return Verdict.FAIL.line(
+        f"SIDBE verification fit {fit:.2f} % < threshold {threshold:g} %; do not use this model before "
+        f"the cause is found (servobench diagnose {result.log_path} names what the model lacks)"
+    )

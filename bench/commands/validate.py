@@ -5,6 +5,11 @@ the ``model.json`` of ``sidbe`` and ``commission``); LOG any log ``identify``
 reads. Prints ``fit_percent`` and ``gap_percent`` with the definitions of
 ``identify`` and ``diagnose``, and for closed-loop logs the relative force
 error of the EMPS reference (see :mod:`servobench.bench.validate`).
+
+The verdict leads: the first line is ``PASS: ...`` when ``fit_percent`` is at
+least ``--min-fit`` (default 90 %, the SIDBE verification threshold) and
+``gap_percent`` at most ``--max-gap`` (default 10 %), else ``FAIL: ...`` and
+exit status 3; under ``--json`` the object's first key is ``verdict``.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from __future__ import annotations
 import argparse
 
 from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+from servobench.bench.validate import DEFAULT_MAX_GAP_PERCENT, DEFAULT_MIN_FIT_PERCENT
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,13 +31,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="how LOG was recorded, overriding its 'loop' metadata (closed adds force_error_percent)",
     )
     p.add_argument("--out", metavar="DIR", default=None, help="write the measured-against-predicted plot here")
+    p.add_argument("--min-fit", type=float, default=DEFAULT_MIN_FIT_PERCENT, metavar="PCT",
+                   help=f"least fit_percent that passes (default {DEFAULT_MIN_FIT_PERCENT:g})")
+    p.add_argument("--max-gap", type=float, default=DEFAULT_MAX_GAP_PERCENT, metavar="PCT",
+                   help=f"largest gap_percent that passes (default {DEFAULT_MAX_GAP_PERCENT:g})")  # fmt: skip
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace):
     from servobench.bench.modelfile import read_model
     from servobench.bench.report.summary import print_json
-    from servobench.bench.validate import validate
+    from servobench.bench.validate import judge, validate
     from servobench.units import SignalUnits
+    from servobench.verdict import Verdict
 
     saved = read_model(args.model)
     log = read_log_of(args)
@@ -47,13 +58,16 @@ def run(args: argparse.Namespace) -> int:
         from servobench.bench.report.validation import write_validation_figure
 
         figure = write_validation_figure(result, args.out, units, title=log.source)
+    judged = judge(result, args.min_fit, args.max_gap)
+    verdict = Verdict.of(judged.passed)
     if args.json:
-        out = {**result.to_json(), "model": args.model, "log": args.log, "effects": list(saved.effects),
-               "units": units.as_metadata()}  # fmt: skip
+        out = {"verdict": verdict.word, **result.to_json(), "thresholds": judged.as_dict(), "model": args.model,
+               "log": args.log, "effects": list(saved.effects), "units": units.as_metadata()}  # fmt: skip
         if figure is not None:
             out["figure"] = str(figure)
         print_json(out)
-        return 0
+        return verdict
+    print(verdict.line(f"{args.model} on {args.log}: {judged.text()}"))
     print(f"model {args.model} ({saved.kind}{', effects: ' + ', '.join(saved.effects) if saved.effects else ''})")
     print(f"log   {args.log}: {result.samples:,} samples, {len(result.runs)} run(s), {result.comparison}")
     print(f"fit_percent         {result.fit_percent:8.3f} %")
@@ -64,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     if figure is not None:
         print(f"figure: {figure}")
-    return 0
+    return verdict
 
 
 def _unit_mismatch(model_units, log_units) -> str:

@@ -19,6 +19,7 @@ integration  the one adapter to the SIDBE procedure, the model and the diagnosis
 design       friction feed-forward and PI design (pure)
 closedloop   velocity-loop simulation of the design on the identified plant
 program      the values to program into the drive, in the log's and the drive's own units
+source       which model the values to program come from (SIDBE, or the diagnosed model)
 record       model.json, the .mat export, commission.json
 figures      the plots only commissioning draws (excitation, bump, compensation)
 report       the self-contained HTML page

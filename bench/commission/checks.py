@@ -9,8 +9,8 @@ commissioning with the reason.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.ui import Console
@@ -32,12 +32,19 @@ class DriveCheck:
         True when a fault was found and a reset cleared it.
     feedback : Feedback
         One feedback sample read at rest [drive units].
+    units : mapping
+        The drive layer's units of ``u``, ``v``, ``x`` (``Drive.units``; "" where unknown).
     """
 
     info: DriveInfo
     fault_found: int
     fault_reset: bool
     feedback: Feedback
+    units: Mapping[str, str] = field(default_factory=dict)
+
+    def unit(self, signal: str) -> str:
+        """`` <unit>`` of ``signal`` for a terminal line, or ``" (drive units)"`` when unknown."""
+        return f" {self.units[signal]}" if self.units.get(signal) else " (drive units)"
 
     def as_dict(self) -> dict[str, object]:
         i = self.info
@@ -106,10 +113,12 @@ def check_drive(
             reset = True
             console.ok(f"fault 0x{code:04X} reset")
     if dry_run and code:
-        return DriveCheck(info, code, False, Feedback(math.nan, math.nan, math.nan, code))
+        return DriveCheck(info, code, False, Feedback(math.nan, math.nan, math.nan, code), dict(drive.units))
     feedback = _read_at_rest(drive)
-    console.ok(f"feedback: velocity {feedback.velocity:.4g}, position {feedback.position:.4g}")
-    return DriveCheck(info, code, reset, feedback)
+    check = DriveCheck(info, code, reset, feedback, dict(drive.units))
+    console.ok(f"feedback: velocity {feedback.velocity:.4g}{check.unit('v')}, "
+               f"position {feedback.position:.4g}{check.unit('x')}")  # fmt: skip
+    return check
 
 
 def _reset_once(drive: Drive, code: int) -> None:

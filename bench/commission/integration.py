@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from servobench.bench.model import IdentificationResult
+from servobench.bench.model import IdentificationResult, ServoModel
 from servobench.drivers.base import Drive
 from servobench.errors import UsageError
 
@@ -70,6 +70,8 @@ class DiagnoseOutcome:
         The diagnosis' JSON, for the record.
     note : str
         Human-readable summary.
+    model : ServoModel or None
+        The diagnosed model's base parameters (refitted together with the effects).
     """
 
     effects: tuple[str, ...] = ()
@@ -78,6 +80,7 @@ class DiagnoseOutcome:
     plots: tuple[Path, ...] = ()
     details: Mapping[str, Any] = field(default_factory=dict)
     note: str = ""
+    model: ServoModel | None = None
 
 
 def sidbe_options(
@@ -196,4 +199,16 @@ def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> Diagn
         details={k: data[k] for k in ("verdict", "noise_floor_percent", "unexplained_signature", "effects",
                                       "gap_before", "gap_after", "comparison", "findings") if k in data},  # fmt: skip
         note=note,
+        model=_diagnosed_model(d.base),
     )
+
+
+def _diagnosed_model(base: Mapping[str, float]) -> ServoModel | None:
+    """The diagnosed base as a :class:`ServoModel`, or None when its numbers make none."""
+    from servobench.errors import IdentificationError
+
+    try:
+        return ServoModel(float(base["M"]), float(base["B"]), float(base["coulomb_pos"]),
+                          float(base["coulomb_neg"]))  # fmt: skip
+    except (KeyError, ValueError, IdentificationError):
+        return None

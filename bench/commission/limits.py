@@ -12,7 +12,7 @@ envelope stops and disables the axis.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TextIO
 from urllib.parse import urlencode, urlsplit
@@ -62,10 +62,12 @@ class ConfirmedLimits:
     def as_dict(self) -> dict[str, float]:
         return {k: getattr(self, k) for k in LIMIT_KEYS}
 
-    def describe(self) -> str:
+    def describe(self, units: Mapping[str, str] | None = None) -> str:
+        """``|u| <= 5 N m, |v| <= 20 rad/s, x in [-inf, inf] rad`` (units when given)."""
+        unit = {k: f" {v}" for k, v in (units or {}).items() if v}
         return (
-            f"|u| <= {self.max_u:g}, |v| <= {self.max_v:g}, "
-            f"x in [{self.xmin:g}, {self.xmax:g}]"
+            f"|u| <= {self.max_u:g}{unit.get('u', '')}, |v| <= {self.max_v:g}{unit.get('v', '')}, "
+            f"x in [{self.xmin:g}, {self.xmax:g}]{unit.get('x', '')}"
         )
 
 

@@ -22,7 +22,12 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from servobench.bench.commission.design import FrictionFeedForward, PIDesign
+from servobench.bench.commission.design import (
+    FrictionFeedForward,
+    PIDesign,
+    design_pi,
+    friction_feed_forward,
+)
 from servobench.bench.model import ServoModel
 from servobench.errors import LogFormatError
 from servobench.units import SignalUnits
@@ -78,6 +83,18 @@ class DriveScale:
             sources[signal] = str(metadata.get(f"{key}_source", "")).strip()
         return cls(scale, sources, reported)
 
+    def as_json(self) -> dict[str, object]:
+        """``drive_scale`` of a model file: ``{"u": .., "v": .., "x": .., "sources": {..}}``."""
+        return {**{s: float(self.scale[s]) for s in "uvx"}, "sources": dict(self.sources)}
+
+    @classmethod
+    def from_json(cls, doc: Mapping[str, object], where: str = "model") -> DriveScale:
+        """The factors a model file's ``drive_scale`` object states (:meth:`as_json`)."""
+        sources = doc.get("sources", {})
+        meta = {SCALE_KEYS[s]: str(doc[s]) for s in "uvx" if s in doc and s in (sources or {})}
+        meta.update({f"{SCALE_KEYS[s]}_source": str(v) for s, v in (sources or {}).items() if s in SCALE_KEYS})
+        return cls.from_metadata(meta, f"{where}: drive_scale")
+
     def units(self, log_units: SignalUnits) -> SignalUnits:
         """The drive's own units: generic names where it reports factors, else the log's units."""
         if not self.reported:
@@ -92,6 +109,12 @@ class DriveScale:
                 why = f" ({self.sources[signal]})" if self.sources[signal] else ""
                 out.append(f"1 {DRIVE_UNIT[signal]} = {self.scale[signal]:.6g} {log_units.of(signal)}{why}")
         return out
+
+
+def drive_scale_json(metadata: Mapping[str, str], where: str = "the log") -> dict[str, object]:
+    """``drive_scale`` of a model file from a log's header (``{}`` when it states no factors)."""
+    scale = DriveScale.from_metadata(metadata, where)
+    return scale.as_json() if scale.reported else {}
 
 
 @dataclass(frozen=True)
@@ -125,7 +148,7 @@ class ProgramValue:
         return dict(self.__dict__)
 
 
-def _integral_unit(units: SignalUnits) -> str:
+def integral_unit(units: SignalUnits) -> str:
     """Unit of ``Ki`` (command per velocity per second): ``N m/rad`` when ``v`` is ``x`` per second."""
     u, v, x = units.of("u"), units.of("v"), units.of("x")
     if units.x and v == f"{x}/s":
@@ -158,14 +181,35 @@ def program_values(
         row("feed-forward ramp-in band", ff.sign_band, 0, 1, p["v"], q["v"],
             "the Coulomb term ramps in linearly below this reference speed; 0: a step"),
         row("velocity PI: proportional gain Kp", pi.kp, 1, -1, p["B"], q["B"], gains),
-        row("velocity PI: integral gain Ki = Kp/Ti", pi.ki, 1, -1, _integral_unit(units),
-            _integral_unit(own), gains),
+        row("velocity PI: integral gain Ki = Kp/Ti", pi.ki, 1, -1, integral_unit(units),
+            integral_unit(own), gains),
         row("velocity PI: integral time Ti", pi.ti_s, 0, 0, "s", "s"),
         row("velocity loop sample time", pi.sample_time_s, 0, 0, "s", "s",
             f"designed for {pi.delay_cycles:g} cycle(s) of delay"),
     ]  # fmt: skip
     rows.append(_filter_row(model, pi))
     return tuple(rows)
+
+
+def design_values(
+    model: ServoModel,
+    units: SignalUnits,
+    fs_hz: float,
+    scale: DriveScale = DriveScale(),
+    *,
+    phase_margin_deg: float = 60.0,
+    delay_cycles: float = 1.0,
+    pi_zero_ratio: float = 4.0,
+    max_bandwidth_hz: float | None = None,
+    sign_band: float = 0.0,
+) -> tuple[FrictionFeedForward, PIDesign, tuple[ProgramValue, ...]]:
+    """The feed-forward, the velocity PI and the values to program of a saved model, without
+    a commissioning: the same design code (:func:`design_pi`, :func:`friction_feed_forward`)
+    at the loop rate ``fs_hz`` [Hz], the ramp-in band ``sign_band`` [velocity units/s]."""
+    pi = design_pi(model.M, model.B, fs_hz, phase_margin_deg=phase_margin_deg, delay_cycles=delay_cycles,
+                   pi_zero_ratio=pi_zero_ratio, max_bandwidth_hz=max_bandwidth_hz)  # fmt: skip
+    ff = friction_feed_forward(model.B, model.coulomb_pos, model.coulomb_neg, sign_band)
+    return ff, pi, program_values(model, ff, pi, units, scale)
 
 
 def _filter_row(model: ServoModel, pi: PIDesign) -> ProgramValue:

@@ -60,11 +60,14 @@ class Progress:
     facts: dict[str, Any] = field(default_factory=dict)
     status: str = "running"
     reason: str = ""
+    #: The record's verdict once it ran to the end ("pass", "pass with remarks", "fail"); "" before.
+    verdict: str = ""
     files: list[str] = field(default_factory=list)
     durations_s: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {
+            "verdict": self.verdict,
             "status": self.status,
             "reason": self.reason,
             "drive": self.drive_url,
@@ -116,8 +119,13 @@ def model_record(
     facts: Mapping[str, Any],
     program: tuple[ProgramValue, ...] = (),
     identity: Mapping[str, str] | None = None,
+    source: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The content of ``model.json``: the ``identify --json`` object, then the commissioning."""
+    """The content of ``model.json``: the ``identify --json`` object, then the commissioning.
+
+    ``source`` (``program_source``): the model the feed-forward, the PI and ``program``
+    were designed from (:mod:`servobench.bench.commission.source`).
+    """
     ident = result.to_json()
     record: dict[str, Any] = {key: ident[key] for key in IDENTIFY_KEYS}
     record.update({k: v for k, v in ident.items() if k not in record})
@@ -126,6 +134,8 @@ def model_record(
         record["feed_forward"] = design.feed_forward.as_dict()
         record["velocity_pi"] = design.pi.as_dict()
         record["simulation_check"] = design.check.as_dict()
+    if source is not None:
+        record["program_source"] = dict(source)
     if program:
         record["program"] = [p.as_dict() for p in program]
     if identity is not None:

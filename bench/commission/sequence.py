@@ -13,6 +13,14 @@ Every connection is a context manager, so on any exit -- refusal, error,
 Ctrl-C -- the axis is stopped and disabled; logs are written as samples
 arrive and kept, and ``commission.json`` records how far it got.
 ``--dry-run`` stops after step 2 and says what the rest would do.
+
+A commissioning that runs to the end has one verdict, the banner of
+``report.html`` (:func:`servobench.bench.report.commission_record.verdict`):
+the terminal's last line is that banner, ``commission.json`` carries its word
+as ``verdict`` (first key; ``status`` "complete" for a pass, "failed" for a
+fail) and the command's exit status follows it. When the diagnosis names an
+effect that closes the velocity gap, the values to program come from the
+diagnosed model (:mod:`.source`), and the record says so.
 """
 
 from __future__ import annotations
@@ -39,7 +47,7 @@ from servobench.bench.commission.limits import (
     merge_limits,
     url_with_limits,
 )
-from servobench.bench.commission.program import DriveScale, program_values
+from servobench.bench.commission.program import DriveScale, integral_unit, program_values
 from servobench.bench.commission.record import (
     MAT_FILE,
     MODEL_FILE,
@@ -51,6 +59,7 @@ from servobench.bench.commission.record import (
     write_json,
     write_mat,
 )
+from servobench.bench.commission.source import DIAGNOSE, ProgramSource, choose_source
 from servobench.bench.commission.ui import Console
 from servobench.bench.logidentity import configured_axis
 from servobench.bench.logio import read_log
@@ -106,6 +115,8 @@ class CommissionResult:
     out_dir: Path
     identification: IdentificationResult | None = None
     design: Design | None = None
+    #: The record's verdict: ``"pass"``, ``"pass with remarks"`` or ``"fail"`` ("" before the end).
+    verdict: str = ""
 
 
 DriveFactory = Callable[[str], Drive]
@@ -149,6 +160,7 @@ class Commissioning:
 
     # ------------------------------------------------------------------ driver
     def run(self) -> CommissionResult:
+        created = not self.out.exists()
         self._prepare_out_dir()
         try:
             result = self._steps()
@@ -158,21 +170,38 @@ class Commissioning:
             raise
         except CommissionRefused as err:
             self.progress.status, self.progress.reason = "refused", str(err)
+            if self.o.dry_run and self._leave_nothing(created):  # read only: nothing behind
+                add_note(err, f"nothing was written to {self.out}")
+                self.progress.status = "gone"
             raise
         except BaseException as err:
             self.progress.status, self.progress.reason = "error", str(err) or type(err).__name__
             add_note(err, self._kept())
             raise
         finally:
-            self._keep_files()
-            write_json(self.out / STATUS_FILE, self.progress.as_dict())
+            if self.progress.status != "gone":
+                self._keep_files()
+                write_json(self.out / STATUS_FILE, self.progress.as_dict())
         return result
+
+    def _leave_nothing(self, created: bool) -> bool:
+        """Remove what a refused dry run made: the status file of an earlier dry run or refusal it
+        replaces, and the folder when this run created it. False when the folder holds other files."""
+        others = [p for p in self.out.iterdir() if p.name != STATUS_FILE] if self.out.is_dir() else []
+        if others:
+            return False
+        (self.out / STATUS_FILE).unlink(missing_ok=True)
+        if created:
+            self.out.rmdir()
+        return True
 
     def _kept(self) -> str:
         return f"the record so far is kept in {self.out} ({STATUS_FILE} says how far it got)"
 
     def _prepare_out_dir(self) -> None:
-        if (self.out / STATUS_FILE).exists():
+        """Create the record folder; refuse one holding a record (a dry run's or a refusal's
+        ``commission.json`` alone is no record: it is replaced)."""
+        if (self.out / STATUS_FILE).exists() and not _no_record(self.out):
             raise UsageError(f"{self.out} already holds a commissioning record; choose another --out")
         self.out.mkdir(parents=True, exist_ok=True)
 
@@ -209,13 +238,26 @@ class Commissioning:
                 "max_amplitude) or, if the machine allows, confirm a larger max_v or travel"
             ) from err
         diag = self._diagnose_step(sidbe)
+        source = self._source(sidbe, diag)
         self.console.step(5, "compensation, PI and the record")
-        design = self._design(sidbe.result.model, limits, sidbe.fs_hz)
+        if source.origin == DIAGNOSE:
+            self.console.say(f"the values to program come from {source.description}")
+        design = self._design(source.model, limits, sidbe.fs_hz, sidbe.result.units)
         self._done("design")
-        self._write_record(check, limits, limited_url, bump, sidbe, diag, design)
-        self.progress.status = "complete"
-        self.console.ok(f"commissioning record in {self.out}")
-        return CommissionResult("complete", self.out, sidbe.result, design)
+        banner = self._write_record(check, limits, limited_url, bump, sidbe, diag, design, source)
+        word = document.VERDICT_WORDS[banner.status]
+        status = "failed" if banner.status == document.FAIL else "complete"
+        self.progress.verdict, self.progress.status = word, status
+        self.console.say(f"commissioning record in {self.out}")
+        self.console.verdict(banner.status, banner.sentence)
+        return CommissionResult(status, self.out, sidbe.result, design, word)
+
+    def _source(self, sidbe: integration.SidbeOutcome, diag: integration.DiagnoseOutcome) -> ProgramSource:
+        """The model the values to program come from (:mod:`.source`)."""
+        ver = sidbe.details.get("verification", {})
+        threshold = float(ver.get("threshold", math.nan))
+        return choose_source(sidbe.result.model, sidbe.result.fit_percent, threshold, diag.effects,
+                             diag.model, diag.gap_before, diag.gap_after, f"{DIAGNOSE_DIR}/{MODEL_FILE}")  # fmt: skip
 
     def _check_step(self) -> DriveCheck:
         """Step 1 on a read-only connection with the URL as given."""
@@ -233,7 +275,7 @@ class Commissioning:
         self._check_start_position(limits, check.feedback.position)
         first_pulse = self.o.config.bump.fractions[0] * limits.max_u
         integration.sidbe_options(self.o.config.sidbe, limits.max_u, first_pulse, _finite(limits))  # bad options refuse now
-        self.console.ok(f"limits {limits.describe()} ({limits.how}); enforced by the Drive layer")
+        self.console.ok(f"limits {limits.describe(check.units)} ({limits.how}); enforced by the Drive layer")
         self._done("limits", limits=limits.as_dict())
         return limits, url_with_limits(self.o.drive_url, limits)
 
@@ -247,8 +289,9 @@ class Commissioning:
             c.step(3, "bump test")
             with c.progress("bump test") as tick:
                 bump = run_bump_test(drive, limits, self.bump, self.out / BUMP_LOG, pace=pace, progress=tick)
+            u = drive.units.get("u") or "(drive units)"
             c.ok(
-                f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g}), "
+                f"moves both ways (at {bump.breakaway_pos:.3g} / -{bump.breakaway_neg:.3g} {u}), "
                 "positive command gives positive velocity, feedback consistent"
             )
             self._done("bump", bump=bump.as_dict())
@@ -265,10 +308,16 @@ class Commissioning:
                   "may raise it up to max_u)")  # fmt: skip
             with c.progress("SIDBE") as tick:
                 sidbe = integration.run_sidbe(drive, options, self.out, tick, known)
-        model = sidbe.result.model
-        c.ok(
-            f"M = {model.M:.5g}, B = {model.B:.5g} (pole {model.pole:.4g} 1/s, DC gain {model.dc_gain:.4g}), "
-            f"Coulomb +{model.coulomb_pos:.4g} / -{model.coulomb_neg:.4g}, fit {sidbe.result.fit_percent:.1f} %"
+        model, unit = sidbe.result.model, sidbe.result.units.parameters()
+        ver = sidbe.details.get("verification", {})
+        threshold = float(ver.get("threshold", math.nan))
+        passed = bool(ver.get("passed", sidbe.result.fit_percent >= threshold))
+        say = c.ok if passed else c.warn
+        say(
+            f"M = {model.M:.5g} {unit['M']}, B = {model.B:.5g} {unit['B']} (pole {model.pole:.4g} {unit['pole']}, "
+            f"DC gain {model.dc_gain:.4g} {unit['dc_gain']}), Coulomb +{model.coulomb_pos:.4g} / "
+            f"-{model.coulomb_neg:.4g} {unit['coulomb_pos']}, fit {sidbe.result.fit_percent:.1f} % "
+            + ("" if passed else f"(below the threshold {threshold:g} %)")
         )
         self._done("sidbe", sidbe=dict(sidbe.details))
         return bump, sidbe
@@ -339,7 +388,7 @@ class Commissioning:
         )
         c.say(f"would write {MODEL_FILE}, log.csv, {BUMP_LOG}, {REPORT_FILE}, {MAT_FILE} in {self.out}")
 
-    def _design(self, model: ServoModel, limits: ConfirmedLimits, fs_hz: float) -> Design:
+    def _design(self, model: ServoModel, limits: ConfirmedLimits, fs_hz: float, units) -> Design:
         cfg = self.o.config
         d = cfg.design
         pi = design_pi(model.M, model.B, d.fs_hz or fs_hz, phase_margin_deg=d.phase_margin_deg,
@@ -351,20 +400,23 @@ class Commissioning:
                                    cfg.compensation.sign_band * amplitude)  # fmt: skip
         check = check_compensation(model.M, model.B, model.coulomb_pos, model.coulomb_neg, pi, ff,
                                    limits.max_u, limits.max_v, cfg.compensation)  # fmt: skip
-        c = self.console
-        c.ok(f"friction feed-forward: +{ff.coulomb_pos:.4g} / -{ff.coulomb_neg:.4g}, viscous {ff.viscous:.4g}")
+        c, unit, v = self.console, units.parameters(), units.of("v")
+        c.ok(f"friction feed-forward: +{ff.coulomb_pos:.4g} / -{ff.coulomb_neg:.4g} {unit['coulomb_pos']}, "
+             f"viscous {ff.viscous:.4g} {unit['B']}")  # fmt: skip
         c.ok(
-            f"velocity PI: Kp {pi.kp:.4g}, Ki {pi.ki:.4g} (crossover {pi.crossover_hz:.3g} Hz, "
-            f"phase margin {pi.phase_margin_deg:.1f} deg, gain margin {pi.gain_margin_db:.1f} dB)"
+            f"velocity PI: Kp {pi.kp:.4g} {unit['B']}, Ki {pi.ki:.4g} {integral_unit(units)} (crossover "
+            f"{pi.crossover_hz:.3g} Hz, phase margin {pi.phase_margin_deg:.1f} deg, gain margin "
+            f"{pi.gain_margin_db:.1f} dB)"
         )
         say = c.ok if check.rms_ratio < 1 else c.warn
         say(
-            f"simulated tracking error (rms) {check.without_ff.rms_error:.3g} without, "
-            f"{check.with_ff.rms_error:.3g} with compensation"
+            f"simulated tracking error (rms) {check.without_ff.rms_error:.3g} {v} without, "
+            f"{check.with_ff.rms_error:.3g} {v} with compensation"
         )
         return Design(ff, pi, check)
 
-    def _write_record(self, check, limits, url, bump, sidbe, diag, design) -> None:
+    def _write_record(self, check, limits, url, bump, sidbe, diag, design, source) -> document.Verdict:
+        """model.json, commission.mat and report.html; the page's verdict."""
         facts = {
             "drive": check.as_dict(),
             "drive_url": url,
@@ -377,14 +429,33 @@ class Commissioning:
         }
         log = read_log(sidbe.log_path)
         scale = DriveScale.from_metadata(log.metadata, str(sidbe.log_path))
-        model = sidbe.result.model
-        program = program_values(model, design.feed_forward, design.pi, sidbe.result.units, scale)
+        program = program_values(source.model, design.feed_forward, design.pi, sidbe.result.units, scale)
         who = identity_record(self.o.config.identity, check.info)
-        write_json(self.out / MODEL_FILE, model_record(sidbe.result, design, facts, program, who))
-        write_mat(self.out / MAT_FILE, log, sidbe.result, design)
         inputs = document.RecordInputs(self.o.config, check, limits, url, bump, sidbe, diag, design, log,
-                                       program, scale, self.progress.started, _version())  # fmt: skip
+                                       program, scale, self.progress.started, _version(), source)  # fmt: skip
+        banner = document.verdict(document.steps(inputs))
+        record = model_record(sidbe.result, design, facts, program, who, source.as_dict())
+        record["fs"] = sidbe.fs_hz
+        if scale.reported:
+            record["drive_scale"] = scale.as_json()
+        write_json(self.out / MODEL_FILE, {"verdict": document.VERDICT_WORDS[banner.status], **record})
+        write_mat(self.out / MAT_FILE, log, sidbe.result, design)
         write_report(self.out / REPORT_FILE, document.page(inputs))
+        return banner
+
+
+def _no_record(out: Path) -> bool:
+    """True when ``out`` holds only the ``commission.json`` of a dry run or of a refusal before anything
+    was recorded."""
+    import json
+
+    if any(p.name != STATUS_FILE for p in out.iterdir()):
+        return False
+    try:
+        status = json.loads((out / STATUS_FILE).read_text(encoding="utf-8")).get("status")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return status in ("dry-run", "refused")
 
 
 def _finite(limits: ConfirmedLimits) -> bool:

@@ -27,7 +27,7 @@ class Console:
         if rich_console is None:
             from rich.console import Console as RichConsole
 
-            rich_console = RichConsole(highlight=False)
+            rich_console = RichConsole(highlight=False, soft_wrap=True)  # whole lines: the terminal wraps
         self.rich = rich_console
         self.lines: list[str] = []
 
@@ -48,6 +48,12 @@ class Console:
     def warn(self, text: str) -> None:
         self.lines.append(f"warning: {text}")
         self.rich.print(f"  [yellow]warning[/yellow] {_escape(text)}")
+
+    def verdict(self, status: str, sentence: str) -> None:
+        """The verdict, the last line: ``status`` is ``"pass"``, ``"remark"`` or ``"fail"``."""
+        self.lines.append(sentence)
+        colour = {"pass": "green", "remark": "yellow"}.get(status, "red")
+        self.rich.print(f"\n[bold {colour}]{_escape(sentence)}[/bold {colour}]")
 
     @contextlib.contextmanager
     def progress(self, description: str) -> Iterator[ProgressCallback]:

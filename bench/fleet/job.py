@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from servobench.bench.fleet.sources import LogSource
-from servobench.bench.fleet.table import EFFECT_SEPARATOR, FleetRow
+from servobench.bench.fleet.table import DIAGNOSED, EFFECT_SEPARATOR, FleetRow
 from servobench.errors import ServobenchError, one_line
 
 #: Longest error text kept in a row [characters].
@@ -76,9 +76,12 @@ def _with_diagnosis(row: FleetRow, log: object) -> FleetRow:
     except Exception as err:  # noqa: BLE001
         return _replace(row, error=f"diagnose: {_reason(err)}")
     names = EFFECT_SEPARATOR.join(e.name for e in d.effects)
+    base = d.base  # refitted together with the effects
     return _replace(
-        row, effects=names, gap_before=float(d.gap_before), gap_after=float(d.gap_after)
-    )
+        row, effects=names, gap_before=float(d.gap_before), gap_after=float(d.gap_after),
+        model=" + ".join(["base", *(e.name for e in d.effects)]),
+        **{f"diagnosed_{k}": float(base[k]) for k in DIAGNOSED},
+    )  # fmt: skip
 
 
 def _replace(row: FleetRow, **changes: object) -> FleetRow:

@@ -14,6 +14,7 @@ Dask workers and hands them to :func:`write_page`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
@@ -51,9 +52,22 @@ def _label(parameter: str, trend: AxisTrend) -> str:
     return f"{_LABELS[parameter]} [{unit}]" if unit else _LABELS[parameter]
 
 
-def _days(times: Sequence[datetime], origin: datetime) -> list[float]:
-    """``times`` as days since ``origin`` [d]."""
-    return [(t - origin).total_seconds() / 86400.0 for t in times]
+#: Units of the time axis, ``(name, seconds)``, and the longest span each is used for [s].
+TIME_UNITS = (("s", 1.0, 120.0), ("min", 60.0, 2 * 3600.0), ("h", 3600.0, 2 * 86400.0),
+              ("days", 86400.0, math.inf))  # fmt: skip
+
+
+def time_unit(span_s: float) -> tuple[str, float]:
+    """The natural unit of a time span: ``("s", 1)`` up to 2 min, ``("min", 60)`` up to 2 h,
+    ``("h", 3600)`` up to 2 days, else ``("days", 86400)``."""
+    return next((name, seconds) for name, seconds, longest in TIME_UNITS if span_s <= longest)
+
+
+def _elapsed(times: Sequence[datetime], origin: datetime) -> tuple[list[float], str]:
+    """``times`` since ``origin`` in the natural unit of their span, and that unit's name."""
+    span = max((t - origin).total_seconds() for t in times) if times else 0.0
+    name, seconds = time_unit(span)
+    return [(t - origin).total_seconds() / seconds for t in times], name
 
 
 def _fixed_layout(fig: Figure, top: float) -> None:
@@ -67,10 +81,10 @@ def axis_figure(trend: AxisTrend, threshold_percent: float) -> bytes:
     fig = new_figure(height_in=4.8)
     _fixed_layout(fig, top=0.88)
     axes = fig.subplots(2, 3, sharex=True)
-    days = _days(trend.times, trend.times[0])
+    elapsed, unit = _elapsed(trend.times, trend.times[0])
     for ax, p in zip(axes.ravel(), PARAMETERS, strict=True):
         values = trend.values(p)
-        ax.plot(days, values, "o-", color="#a00" if trend.flagged else "#036")
+        ax.plot(elapsed, values, "o-", color="#a00" if trend.flagged else "#036")
         ax.axhline(values[0], ls="--", lw=0.8, color="#555")
         band = abs(values[0]) * threshold_percent / 100.0
         if p in WATCHED:
@@ -83,7 +97,7 @@ def axis_figure(trend: AxisTrend, threshold_percent: float) -> bytes:
         ax.set_title(_label(p, trend), fontsize=9)
         ax.tick_params(labelsize=7)
     for ax in axes[1]:
-        ax.set_xlabel(f"days since {trend.records[0].time[:10]}", fontsize=8)
+        ax.set_xlabel(f"{unit} since {_when(trend.times[0], unit)}", fontsize=8)
     fig.suptitle(f"{trend.axis}: parameters against time (dashed: first record)", fontsize=10)
     return png_bytes(fig, dpi=DPI)
 
@@ -94,17 +108,25 @@ def overview_figure(trends: Sequence[AxisTrend], threshold_percent: float) -> by
     _fixed_layout(fig, top=0.82)
     axes = fig.subplots(1, len(WATCHED), sharey=True)
     origin = min(t.times[0] for t in trends)
+    _, unit = _elapsed([time for t in trends for time in t.times], origin)
+    seconds = next(s for name, s, _ in TIME_UNITS if name == unit)
     for ax, p in zip(axes, WATCHED, strict=True):
         for t in trends:
             color, width = ("#a00", 1.5) if t.flagged else ("#9ab", 0.8)
-            ax.plot(_days(t.times, origin), t.drift_series(p), ".-", color=color, lw=width)
+            elapsed = [(time - origin).total_seconds() / seconds for time in t.times]
+            ax.plot(elapsed, t.drift_series(p), ".-", color=color, lw=width)
         for sign in (1, -1):
             ax.axhline(sign * threshold_percent, ls="--", lw=0.8, color="#555")
         ax.set_title(f"{_LABELS[p]} drift [%]", fontsize=9)
         ax.tick_params(labelsize=7)
-        ax.set_xlabel(f"days since {origin.date().isoformat()}", fontsize=8)
+        ax.set_xlabel(f"{unit} since {_when(origin, unit)}", fontsize=8)
     fig.suptitle("Drift against each axis's first record (red: flagged)", fontsize=10)
     return png_bytes(fig, dpi=DPI)
+
+
+def _when(origin: datetime, unit: str) -> str:
+    """The origin of a time axis: its date for days, its date and time for shorter spans."""
+    return origin.date().isoformat() if unit == "days" else origin.isoformat(sep=" ", timespec="seconds")
 
 
 def _drift_cell(trend: AxisTrend, parameter: str) -> str:
@@ -126,10 +148,10 @@ def _summary(ordered: Sequence[AxisTrend]) -> Grid:
 
 def _records(trend: AxisTrend) -> Grid:
     """The records of an axis, oldest first, each parameter with its unit in the header."""
-    header = ["time", *(_label(p, trend) for p in PARAMETERS), "fit [%]", "effects", "log"]
+    header = ["time", *(_label(p, trend) for p in PARAMETERS), "fit [%]", "model", "log"]
     rows = [
-        [r.time, *(float(getattr(r, p)) for p in PARAMETERS), float(r.fit_percent),
-         r.effects or "–", r.log]
+        [r.time, *(r.compared(p) for p in PARAMETERS), float(r.fit_percent),
+         r.model or "identified (no --diagnose)", r.log]
         for r in trend.records
     ]  # fmt: skip
     return Grid("Records", header, rows)
@@ -142,11 +164,12 @@ def _axis_section(trend: AxisTrend, threshold_percent: float, png: bytes | None)
         [(_label(p, trend), _drift_cell(trend, p)) for p in PARAMETERS],
     )
     figure = Figure(
-        f"{trend.axis}: every parameter against days since its first record (dashed: the "
+        f"{trend.axis}: every parameter against the time since its first record (dashed: the "
         f"first record; grey band: ±{threshold_percent:g} % on the watched parameters).",
         png if png is not None else axis_figure(trend, threshold_percent),
     )
-    blocks = [f"{len(trend.records)} records; {verdict}.", drift, figure, _records(trend)]
+    blocks = [f"{len(trend.records)} records; {verdict}.", *(f"{s}." for s in trend.structure),
+              drift, figure, _records(trend)]  # fmt: skip
     return Section(f"Axis {trend.axis}", blocks, level=3)
 
 

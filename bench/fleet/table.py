@@ -3,13 +3,20 @@
 Columns, in this order (the contract of ``servobench fleet``)::
 
     log, axis, time, M, B, pole, dc_gain, coulomb_pos, coulomb_neg,
-    fit_percent, method, effects, gap_before, gap_after, error
+    fit_percent, method, effects, gap_before, gap_after, error,
+    model, diagnosed_M, diagnosed_B, diagnosed_coulomb_pos, diagnosed_coulomb_neg
 
 ``time`` is ISO 8601 with its UTC offset; ``effects`` names the effects
 ``--diagnose`` added, separated by ``;``; ``gap_before``/``gap_after`` are
 the diagnosis' velocity gaps [%]. A number that was not found (a failed
 log, no ``--diagnose``) is empty in the CSV and null in Parquet. ``error``
-is empty for a log that went through, else its one-line reason.
+is empty for a log that went through, else its one-line reason. ``M`` ...
+``coulomb_neg`` are ``identify``'s base model; with ``--diagnose``,
+``model`` names the diagnosed model's structure (``base``, ``base +
+stribeck``) and ``diagnosed_*`` its base parameters, refitted together with
+the effects. The trend compares like with like: the diagnosed parameters
+where the diagnosis ran (:meth:`FleetRow.compared`), and says when the
+structure changed between two records of an axis.
 
 The units of each parameter depend on the log (``unit_*`` metadata) and
 cannot live in a column of numbers: the Parquet file carries them per
@@ -31,10 +38,14 @@ from typing import Any
 COLUMNS = (
     "log", "axis", "time", "M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg",
     "fit_percent", "method", "effects", "gap_before", "gap_after", "error",
+    "model", "diagnosed_M", "diagnosed_B", "diagnosed_coulomb_pos", "diagnosed_coulomb_neg",
 )  # fmt: skip
 #: The numeric columns.
 NUMBERS = ("M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent",
-           "gap_before", "gap_after")  # fmt: skip
+           "gap_before", "gap_after", "diagnosed_M", "diagnosed_B", "diagnosed_coulomb_pos",
+           "diagnosed_coulomb_neg")  # fmt: skip
+#: Base parameters the diagnosis refits (its ``diagnosed_*`` columns).
+DIAGNOSED = ("M", "B", "coulomb_pos", "coulomb_neg")
 #: Separator of effect names in the ``effects`` column.
 EFFECT_SEPARATOR = ";"
 CSV_FILE = "fleet.csv"
@@ -67,6 +78,10 @@ class FleetRow:
         Velocity gap [%] of the base and of the diagnosed model (``--diagnose`` only).
     error : str
         "" when the log went through, else the one-line reason.
+    model : str
+        Structure of the diagnosed model, ``base`` or ``base + <effects>`` ("" without ``--diagnose``).
+    diagnosed_M, diagnosed_B, diagnosed_coulomb_pos, diagnosed_coulomb_neg : float
+        Base parameters of the diagnosed model, refitted with its effects (``--diagnose`` only).
     units : mapping
         Unit of every parameter (``servobench.units.SignalUnits.parameters``); not a column.
     """
@@ -87,11 +102,33 @@ class FleetRow:
     gap_after: float = NAN
     error: str = ""
     units: Mapping[str, str] = field(default_factory=dict, compare=False)
+    # added columns, keyword-only: rows built by position keep their meaning
+    model: str = field(default="", kw_only=True)
+    diagnosed_M: float = field(default=NAN, kw_only=True)
+    diagnosed_B: float = field(default=NAN, kw_only=True)
+    diagnosed_coulomb_pos: float = field(default=NAN, kw_only=True)
+    diagnosed_coulomb_neg: float = field(default=NAN, kw_only=True)
 
     @property
     def ok(self) -> bool:
         """True when the log went through (no error)."""
         return not self.error
+
+    @property
+    def diagnosed(self) -> bool:
+        """True when the diagnosis ran and refitted the base (its ``diagnosed_*`` are numbers)."""
+        return bool(self.model) and math.isfinite(self.diagnosed_M)
+
+    def compared(self, parameter: str) -> float:
+        """``parameter`` of the model the trend compares: the diagnosed one where the diagnosis
+        ran, else identify's; ``pole`` (-B/M) and ``dc_gain`` (1/B) follow their M and B."""
+        if not self.diagnosed:
+            return float(getattr(self, parameter))
+        if parameter == "pole":
+            return -self.diagnosed_B / self.diagnosed_M
+        if parameter == "dc_gain":
+            return 1.0 / self.diagnosed_B if self.diagnosed_B else NAN
+        return float(getattr(self, f"diagnosed_{parameter}"))
 
     @property
     def effect_names(self) -> tuple[str, ...]:
@@ -102,7 +139,7 @@ class FleetRow:
         return {c: _none_if_nan(getattr(self, c)) for c in COLUMNS}
 
 
-assert tuple(f.name for f in fields(FleetRow))[: len(COLUMNS)] == COLUMNS
+assert tuple(f.name for f in fields(FleetRow) if f.name != "units") == COLUMNS
 
 
 def _none_if_nan(value: Any) -> Any:

@@ -15,6 +15,13 @@ axis stands now -- and the axis is flagged when
 - its latest record names an effect (``--diagnose``) that the first did not, or
 - its units changed between records (the numbers are then not comparable).
 
+Like is compared with like: each record's parameters are those of the model
+``--diagnose`` refitted (:meth:`FleetRow.compared`: the base parameters of
+the diagnosed model, so that an effect that appears -- a Stribeck peak --
+does not read as a drift of B and of the Coulomb levels), and a change of
+the model's structure between two records (``base`` -> ``base + stribeck``)
+is said in :attr:`AxisTrend.structure` and among the reasons.
+
 A first value of 0 gives no percentage (``None``); a watched parameter that
 grows from 0 flags the axis. Each flag comes with one sentence in
 :attr:`AxisTrend.reasons`.
@@ -59,6 +66,8 @@ class AxisTrend:
         One sentence per cause of the flag.
     units : mapping
         Unit of each parameter (from the first record).
+    structure : tuple of str
+        One sentence per change of the diagnosed model's structure between two records.
     """
 
     axis: str
@@ -68,10 +77,11 @@ class AxisTrend:
     flagged: bool
     reasons: tuple[str, ...]
     units: Mapping[str, str] = field(default_factory=dict)
+    structure: tuple[str, ...] = ()
 
     def values(self, parameter: str) -> list[float]:
         """``parameter`` of every record, oldest first."""
-        return [float(getattr(r, parameter)) for r in self.records]
+        return [r.compared(parameter) for r in self.records]
 
     def drift_series(self, parameter: str) -> list[float]:
         """Drift [%] of ``parameter`` of every record against the first (NaN where undefined)."""
@@ -91,6 +101,8 @@ class AxisTrend:
             "units": dict(self.units),
             "first": self.records[0].time,
             "last": self.records[-1].time,
+            "models": [r.model for r in self.records],
+            "structure": list(self.structure),
         }
 
 
@@ -127,19 +139,25 @@ def _trend(axis: str, ordered: list[tuple[datetime, FleetRow]], threshold: float
     times = tuple(t for t, _ in ordered)
     records = tuple(r for _, r in ordered)
     first, last = records[0], records[-1]
-    drift = {p: _drift(getattr(first, p), getattr(last, p)) for p in PARAMETERS}
+    drift = {p: _drift(first.compared(p), last.compared(p)) for p in PARAMETERS}
     units = dict(first.units)
     reasons = _drift_reasons(first, last, drift, threshold, units)
     new = [e for e in last.effect_names if e not in first.effect_names]
     if new:
         reasons.append(f"effect {', '.join(new)} appeared on {last.time}, absent on {first.time}")
+    structure = tuple(
+        f"model structure changed on {b.time}: {a.model} -> {b.model}; the drift compares the base "
+        "parameters of the diagnosed models"
+        for a, b in zip(records, records[1:], strict=False)
+        if a.model and b.model and a.model != b.model
+    )
     changed = next((r for r in records if r.units and dict(r.units) != units), None)
     if changed is not None and units:
         reasons.append(
             f"units changed on {changed.time} ({_unit_text(units)} -> {_unit_text(changed.units)}): "
             "the records are not comparable"
         )
-    return AxisTrend(axis, records, times, drift, bool(reasons), tuple(reasons), units)
+    return AxisTrend(axis, records, times, drift, bool(reasons), tuple(reasons), units, structure)
 
 
 def _drift_reasons(
@@ -151,7 +169,7 @@ def _drift_reasons(
 ) -> list[str]:
     reasons = []
     for p in WATCHED:
-        a, b = float(getattr(first, p)), float(getattr(last, p))
+        a, b = first.compared(p), last.compared(p)
         unit = f" {units[p]}" if units.get(p) else ""
         d = drift[p]
         if d is None:

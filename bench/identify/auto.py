@@ -24,6 +24,7 @@ from __future__ import annotations
 from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
+from servobench.bench.identify.motion import require_motion
 from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
 from servobench.bench.identify.verify import verify
 from servobench.bench.logio import ExperimentLog
@@ -78,7 +79,12 @@ def identify(
 def identify_data(
     data: Dataset, method: str = "auto", *, resonance: bool = False
 ) -> IdentificationResult:
-    """:func:`identify` on a prepared :class:`~servobench.bench.identify.dataset.Dataset`."""
+    """:func:`identify` on a prepared :class:`~servobench.bench.identify.dataset.Dataset`.
+
+    A log where the axis never moved above the sensor noise is refused
+    (:func:`~servobench.bench.identify.motion.require_motion`) before any estimator runs.
+    """
+    require_motion([s.v for s in data.segments], data.source or "the log")
     frf = None
     validation: dict[str, float] = {}
     if method == "sidbe":

@@ -28,6 +28,7 @@ from servobench.bench.commission.integration import DiagnoseOutcome, SidbeOutcom
 from servobench.bench.commission.limits import ConfirmedLimits
 from servobench.bench.commission.program import DriveScale, ProgramValue
 from servobench.bench.commission.record import Design
+from servobench.bench.commission.source import DIAGNOSE, ProgramSource
 from servobench.bench.logio import ExperimentLog, read_log
 from servobench.bench.report import commission_figures as figures
 from servobench.bench.report import plots
@@ -48,6 +49,8 @@ from servobench.units import SignalUnits
 
 #: Smallest acceptable gain margin of the PI design [dB] (as the design requires).
 MIN_GAIN_MARGIN_DB = 6.0
+#: The word of each banner status, as the terminal, ``commission.json`` and the exit status use it.
+VERDICT_WORDS = {PASS: "pass", REMARK: "pass with remarks", FAIL: "fail"}
 #: Captions of the diagnosis' figures, by file name.
 DIAGNOSE_CAPTIONS = {
     "overlay.png": "Measured velocity against the base model and the model with the effects the "
@@ -77,6 +80,8 @@ class RecordInputs:
     scale: DriveScale
     started: str
     version: str
+    #: The model the values to program come from; the SIDBE model when None.
+    source: ProgramSource | None = None
 
     @property
     def units(self) -> SignalUnits:
@@ -107,7 +112,17 @@ def _sidbe_step(r: RecordInputs) -> Step:
     threshold = float(ver.get("threshold", math.nan))
     passed = bool(ver.get("passed", res.fit_percent >= threshold))
     detail = f"verification fit {res.fit_percent:.1f} % (threshold {threshold:g} %), method {res.method}"
-    return Step("Identification (SIDBE)", PASS if passed else FAIL, detail)
+    src = r.source
+    if src is None or src.origin != DIAGNOSE:
+        return Step("Identification (SIDBE)", PASS if passed else FAIL, detail)
+    if passed:
+        return Step("Identification (SIDBE)", REMARK, f"{detail}; the values to program come from "
+                    f"{src.description} (fit {src.fit_percent:.1f} %)")  # fmt: skip
+    if src.passed:
+        return Step("Identification (SIDBE)", REMARK, f"base {detail}, below it; {src.description}, "
+                    f"fits {src.fit_percent:.1f} %: the values to program come from it")  # fmt: skip
+    return Step("Identification (SIDBE)", FAIL, f"base {detail}; {src.description}, still only "
+                f"{src.fit_percent:.1f} %")  # fmt: skip
 
 
 def _diagnose_step(r: RecordInputs) -> Step:
@@ -206,6 +221,13 @@ def program_section(r: RecordInputs) -> Section:
     else:
         intro = ("The drive reports no scale factors: it takes the values in the units of its log "
                  f"(u in {r.units.of('u')}, v in {r.units.of('v')}), so both columns agree.")  # fmt: skip
+    src = r.source
+    if src is not None and src.origin == DIAGNOSE:
+        res = r.sidbe.result.model
+        intro = (f"These values come from the diagnosed model: {src.description}. The SIDBE base fit, "
+                 f"biased by what it lacks (Coulomb +{res.coulomb_pos:.4g} / -{res.coulomb_neg:.4g} against "
+                 f"+{src.model.coulomb_pos:.4g} / -{src.model.coulomb_neg:.4g} {r.units.of('u')} refitted), "
+                 "stays in the summary as evidence. " + intro)  # fmt: skip
     blocks: list = [intro, Grid("", header, rows, css="program")]
     return Section("Values to program into the drive", blocks)
 

@@ -35,8 +35,19 @@ def plus_minus(value: float, std: float | None) -> str:
     return f"{value:.6g} ± {std:.2g}"
 
 
-def rate_text(fs_hz: float, achieved_hz: float, link_max_hz: float = math.inf) -> str:
-    """``"100 Hz set, 99.98 Hz achieved (the link carries 147 Hz)"`` for a summary row."""
+def rate_text(fs_hz: float, achieved_hz: float, link_max_hz: float = math.inf, pace: str = "real") -> str:
+    """``"100 Hz set, 99.98 Hz achieved (the link carries 147 Hz)"`` for a summary row.
+
+    Under ``pace="fast"`` (a lock-step simulated drive that advances one cycle per
+    exchange) the axis's time is its own clock at ``fs_hz``; how fast the host
+    streamed is said as a multiple of real time, never as a rate the axis ran at.
+    """
+    link = f"the link carries {link_max_hz:.0f} Hz" if math.isfinite(link_max_hz) else ""
+    if pace == "fast":
+        text = f"{fs_hz:g} Hz on the drive's clock (lock-step, pace=fast"
+        if math.isfinite(achieved_hz) and fs_hz > 0:
+            text += f": streamed {achieved_hz / fs_hz:.3g}x faster than real time"
+        return text + (f"; {link})" if link else ")")
     text = f"{fs_hz:g} Hz set"
     if math.isfinite(achieved_hz):
         text += f", {achieved_hz:.5g} Hz achieved"
