@@ -54,9 +54,10 @@ from dataclasses import dataclass, field
 from servobench.errors import DriveConfigError
 
 #: Transports of ``serve-sim --transport``.
-TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial")
+TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial", "ethercat")
 _ALL = frozenset(TRANSPORTS)
 _CAN = frozenset({"canopen"})
+_ECAT = frozenset({"ethercat"})
 _MODBUS = frozenset({"modbus-tcp", "modbus-rtu"})
 _SERIAL = frozenset({"serial"})
 #: Largest delay or bus-off time accepted [ms].
@@ -110,7 +111,7 @@ KINDS: dict[str, Kind] = {
         Kind("fault", _ALL, "code", 0x1000, True, "drive fault before sampling cycle N"),
         Kind("freeze", _ALL, "", None, True, "position/velocity stop updating after cycle N"),
         Kind("drop", _CAN | _SERIAL, summary="answer of cycle N lost (drive clocked)"),
-        Kind("delay", _ALL, "ms", None, summary="answer of cycle N sent MS ms late"),
+        Kind("delay", _ALL - _ECAT, "ms", None, summary="answer of cycle N sent MS ms late"),
         Kind("dup", _CAN | _SERIAL, summary="answer of cycle N sent twice"),
         Kind("busoff", _CAN, "ms", 200, summary="drive bus-off for MS ms from SYNC N"),
         Kind("emcy", _CAN, "code", 0xFF00, summary="EMCY C with the TPDOs, drive stays enabled"),
@@ -133,7 +134,7 @@ ALIASES: dict[str, dict[str, tuple[str, int | None]]] = {
     "busy": {"modbus-tcp": ("exception", 6), "modbus-rtu": ("exception", 6)},
 }
 #: ``KEY=VALUE`` set-up faults: key -> transports.
-SETTINGS: dict[str, frozenset[str]] = {"reject_mode": _CAN, "ignore_mode": _CAN}
+SETTINGS: dict[str, frozenset[str]] = {"reject_mode": _CAN | _ECAT, "ignore_mode": _CAN | _ECAT}
 
 
 def kinds_for(transport: str) -> list[str]:

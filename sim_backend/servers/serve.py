@@ -38,6 +38,7 @@ TRANSPORTS: dict[str, str] = {
     "modbus-tcp": "servobench.sim_backend.servers.serve_modbus",
     "modbus-rtu": "servobench.sim_backend.servers.serve_modbus",
     "serial": "servobench.sim_backend.servers.serve_serial",
+    "ethercat": "servobench.sim_backend.servers.ethercat.serve_ethercat",
 }
 
 #: ``serve(device, stop, announce, options, injector=None)``.

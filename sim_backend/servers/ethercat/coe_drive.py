@@ -1,0 +1,281 @@
+"""The CiA 402 application behind the served ESC: AL states, mailbox, process data.
+
+:class:`CoeSlave` is the :class:`~.esc.Application` of the slave. It keeps the
+CANopen served drive's object logic
+(:class:`~servobench.sim_backend.servers.can_drive.ServedCiA402Drive`: the
+CiA 402 power state machine stepped with :mod:`servobench.drivers.cia402`'s
+tables, CST and CSP with torque offset, the factor group) and adds what
+EtherCAT changes:
+
+* AL transitions (:mod:`.al`): INIT -> PRE-OP checks the mailbox
+  SyncManagers against the SII (0x0016); PRE-OP -> SAFE-OP compiles the
+  assigned PDOs (0x1C12/0x1C13) and checks SM2/SM3 against them (0x001D,
+  0x001E) and the SYNC0 cycle, when active, against 0x1C32 (0x0030); the
+  PDO assignment and mapping and 0x1C32 are written in PRE-OP only (abort
+  0x08000022 later); leaving OP (or SAFE-OP) while the axis is enabled
+  quick-stops it, as leaving NMT OPERATIONAL does on CANopen;
+* SAFE-OP -> OP completes when the first outputs arrived (SM2), as the
+  slave stack of real drives waits for valid outputs;
+* the process data cycle: each completed SM2 buffer in OP writes the
+  RxPDO objects, clocks the device once (the position loop first in CSP)
+  and leaves the TxPDO of the sample taken there in SM3 (:class:`PdoCycle`);
+* the SM watchdog: when it expires the slave goes to SAFE-OP with the
+  error flag and 0x001B, and the axis faults (0x8130, the device
+  watchdog's code) with a CoE emergency;
+* EMCYs become CoE emergency mailbox messages.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+
+import canopen
+from canopen.sdo import SdoAbortedError
+
+from servobench.drivers.cia402 import CW_QUICK_STOP, CiA402State
+from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from servobench.sim_backend.faults.injector import FaultInjector
+from servobench.sim_backend.servers import can_pdo
+from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
+from servobench.sim_backend.servers.can_sync import SyncEngine
+from servobench.sim_backend.servers.ethercat import al
+from servobench.sim_backend.servers.ethercat import objects as O
+from servobench.sim_backend.servers.ethercat.coe_sdo import SdoServer
+from servobench.sim_backend.servers.ethercat.esc import Application, Esc
+from servobench.sim_backend.servers.ethercat.mailbox import (
+    MBXERR_UNSUPPORTED_PROTOCOL,
+    TYPE_COE,
+    decode_mailbox,
+    emergency,
+    mailbox_error,
+)
+from servobench.sim_backend.servers.ethercat.sii import build_image
+
+A = al.AlState
+ABORT_DEVICE_STATE = 0x08000022
+#: Objects written in PRE-OP only: the PDO assignment and mapping, the SM parameters.
+PRE_OP_ONLY = (O.RXPDO_ASSIGN, O.TXPDO_ASSIGN, O.SM_OUTPUT_PARAMETER, O.SM_INPUT_PARAMETER)
+_NMT = {A.INIT: "INITIALISING", A.PRE_OP: "PRE-OPERATIONAL", A.SAFE_OP: "OPERATIONAL",
+        A.OP: "OPERATIONAL", A.BOOT: "INITIALISING"}  # fmt: skip
+
+
+class _CoeNetwork(canopen.Network):
+    """The canopen network the drive object logic talks to: EMCYs go to the mailbox."""
+
+    def __init__(self, on_emcy) -> None:
+        super().__init__()
+        self._on_emcy = on_emcy
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        if 0x80 < can_id < 0x100 and len(data) >= 3:
+            code, register = struct.unpack_from("<HB", bytes(data))
+            self._on_emcy(code, register)
+
+
+class PdoCycle(SyncEngine):
+    """The process data side of the drive: one call of :meth:`cycle` per SM2 buffer."""
+
+    def __init__(self, drive: ServedCiA402Drive) -> None:
+        super().__init__(drive)
+        self.rx: list[can_pdo.MappedObject] = []
+        self.tx: list[can_pdo.MappedObject] = []
+
+    def rebuild(self) -> None:
+        """CANopen's PDO channels do not exist here (see :meth:`compile`)."""
+
+    def compile(self) -> tuple[int, int]:
+        """Read the PDO assignment; the output and input sizes [bytes]."""
+        self.rx = self._entries(O.RXPDO_ASSIGN)
+        self.tx = self._entries(O.TXPDO_ASSIGN)
+        return sum(e.bits for e in self.rx) // 8, sum(e.bits for e in self.tx) // 8
+
+    def _entries(self, assign: int) -> list[can_pdo.MappedObject]:
+        node, out = self.drive.node, []
+        for n in range(1, node.get_data(assign, 0)[0] + 1):
+            (pdo,) = struct.unpack("<H", node.get_data(assign, n))
+            for sub in range(1, node.get_data(pdo, 0)[0] + 1):
+                (entry,) = struct.unpack("<I", node.get_data(pdo, sub))
+                out.append(can_pdo.MappedObject.from_entry(entry))
+        return out
+
+    def pack(self) -> bytes:
+        """The TxPDO image of the present (frozen) sample."""
+        data = b""
+        for e in self.tx:
+            raw = self.drive.node.get_data(e.index, e.subindex) if e.index else b""
+            data += raw[: e.bits // 8].ljust(e.bits // 8, b"\x00")
+        return data
+
+    def cycle(self, outputs: bytes) -> bytes:
+        """Apply ``outputs`` (the RxPDO image), clock the device once, return the TxPDO image."""
+        drive = self.drive
+        with drive.lock:
+            pos = 0
+            for e in self.rx:
+                n = e.bits // 8
+                if e.index:
+                    drive.node.set_data(e.index, e.subindex, outputs[pos : pos + n])
+                pos += n
+            drive.injector.next_cycle()  # drive faults (fault, freeze) due at this cycle
+            drive.sync_device()
+            self._clock()
+            try:
+                return self.pack()
+            finally:
+                self.frozen = None
+
+
+class CoeSlave(Application):
+    """The served slave: the ESC, the SDO server and the CiA 402 drive."""
+
+    def __init__(
+        self,
+        device: SimulatedDevice,
+        injector: FaultInjector,
+        keys: dict[str, str] | None = None,
+        serial: int = 1,
+    ) -> None:
+        self.device = device
+        od = O.ethercat_od(device.cycle_s)
+        self.description = O.description(od, serial)
+        self.node = canopen.LocalNode(1, od)
+        self.drive = ServedCiA402Drive(device, self.node, injector, keys)
+        self.pdo = self.drive.sync = PdoCycle(self.drive)
+        self.lock = threading.RLock()
+        self.esc = Esc(build_image(self.description), self)
+        self.sdo = SdoServer(self.node, O.MAILBOX_BYTES)
+        self.node.add_write_callback(self._on_write)
+        self.drive.attach(_CoeNetwork(self._emergency))
+        # power-on: transition 1 (CANopen's boot() also sends NMT messages CoE has not)
+        self.drive.sync_device()
+        if self.drive.state is not CiA402State.FAULT:
+            self.drive.state = CiA402State.SWITCH_ON_DISABLED
+        self.drive.nmt = _NMT[A.INIT]
+        self._outputs_seen = False
+        self._pending_op = False
+        self.sizes = (0, 0)
+
+    # --------------------------------------------------------------- AL
+    def al_transition(self, current: al.AlState, target: al.AlState) -> int:
+        if target > current and target is not A.BOOT:
+            code = self._check_up(current, target)
+            if code:
+                return code
+        if target < current or target is A.INIT:
+            self._leave(current, target)
+        if current is A.INIT and target is not A.INIT:
+            self.drive.device.begin_session()  # a master starts over: a new host session
+        self.drive.nmt = _NMT[target]
+        if target is A.OP and not self._outputs_seen and self.sizes[0]:
+            self._pending_op = True  # done when the first outputs arrive
+            self.drive.nmt = _NMT[A.SAFE_OP]
+            return al.PENDING
+        return al.NO_ERROR
+
+    def _check_up(self, current: al.AlState, target: al.AlState) -> int:
+        if current is A.INIT:
+            for n in (0, 1):
+                spec = self.description.sync_managers[n]
+                start, length, control, enabled = self.esc.sm(n)
+                if not enabled or (start, length, control & 0x0F) != (
+                    spec.start,
+                    spec.length,
+                    spec.control & 0x0F,
+                ):
+                    return al.INVALID_MAILBOX_CONFIG
+        if current <= A.PRE_OP and target >= A.SAFE_OP:
+            try:
+                self.sizes = self.pdo.compile()
+            except (SdoAbortedError, struct.error):
+                return al.INVALID_OUTPUT_CONFIG
+            for n, size, code in ((2, self.sizes[0], al.INVALID_OUTPUT_CONFIG),
+                                  (3, self.sizes[1], al.INVALID_INPUT_CONFIG)):  # fmt: skip
+                _start, length, _control, enabled = self.esc.sm(n)
+                if size and (not enabled or length != size):
+                    return code
+            sync0 = self.esc.sync0()
+            if sync0 is not None and not sync0[1] >= O.MIN_CYCLE_NS:
+                return al.INVALID_DC_SYNC_CONFIG
+            if sync0 is not None:
+                self.device.set_cycle(sync0[1] * 1e-9)
+            self._outputs_seen = False
+        return al.NO_ERROR
+
+    def _leave(self, current: al.AlState, target: al.AlState) -> None:
+        if self.drive.state is CiA402State.OPERATION_ENABLED and target < A.OP:
+            self.node.set_data(0x6040, 0, CW_QUICK_STOP.to_bytes(2, "little"))  # as leaving NMT OP
+        if target is A.INIT:
+            self.esc.reset_mailboxes()
+        self._pending_op = False
+
+    # ------------------------------------------------------------ mailbox
+    def mailbox_written(self, data: bytes) -> None:
+        try:
+            message = decode_mailbox(data)
+        except ValueError:
+            return
+        if message.kind != TYPE_COE:
+            self.esc.post_mailbox(mailbox_error(MBXERR_UNSUPPORTED_PROTOCOL, message.counter))
+            return
+        reply = self.sdo.handle(message)
+        if reply is not None:
+            self.esc.post_mailbox(reply)
+
+    def _emergency(self, code: int, register: int) -> None:
+        if self.esc.al_state >= A.PRE_OP:
+            self.esc.post_mailbox(emergency(code, register))
+
+    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        state = self.esc.al_state
+        if state > A.PRE_OP and (index in PRE_OP_ONLY or can_pdo.is_mapping_parameter(index)):
+            raise SdoAbortedError(ABORT_DEVICE_STATE)
+        if index in (O.RXPDO_ASSIGN, O.TXPDO_ASSIGN) and subindex > 0:
+            (pdo,) = struct.unpack("<H", data)
+            base = O.RXPDO_MAP if index == O.RXPDO_ASSIGN else O.TXPDO_MAP
+            if pdo and not base <= pdo < base + O.PDOS_PER_DIRECTION:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+        if index == O.SM_OUTPUT_PARAMETER and subindex == 2:
+            (cycle_ns,) = struct.unpack("<I", data)
+            if cycle_ns and cycle_ns < O.MIN_CYCLE_NS:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+            if cycle_ns:
+                self.device.set_cycle(cycle_ns * 1e-9)
+
+    # ------------------------------------------------------- process data
+    def outputs_written(self, data: bytes) -> None:
+        state = self.esc.al_state
+        if state is A.SAFE_OP and self._pending_op:
+            self._pending_op = False
+            self._outputs_seen = True
+            self.drive.nmt = _NMT[A.OP]
+            self.esc.set_al(A.OP)
+            state = A.OP
+        if state is A.SAFE_OP:
+            self._outputs_seen = True
+            self.refresh_inputs()
+            return
+        if state is not A.OP:
+            return
+        try:
+            inputs = self.pdo.cycle(data)
+        except SdoAbortedError:
+            inputs = self.pdo.pack()
+        self.esc.set_inputs(3, inputs)
+
+    def refresh_inputs(self) -> None:
+        """Keep the inputs current while no outputs arrive (SAFE-OP)."""
+        if self.esc.al_state in (A.SAFE_OP, A.OP) and self.pdo.tx:
+            with self.drive.lock:
+                self.esc.set_inputs(3, self.pdo.pack())
+
+    def watchdog_expired(self) -> None:
+        if self.esc.al_state is not A.OP:
+            return
+        with self.drive.lock:
+            if self.device.state in (PowerState.ENABLED, PowerState.QUICK_STOP):
+                wd = self.esc.watchdog_s() or 0.0
+                self.device.fault(WATCHDOG_FAULT, f"SM watchdog: no outputs for {wd:.3f} s")
+            self.drive.sync_device()
+        self.drive.nmt = _NMT[A.SAFE_OP]
+        self.esc.set_al(A.SAFE_OP, al.SM_WATCHDOG)
