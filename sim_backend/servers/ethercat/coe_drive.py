@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import struct
 import threading
+from collections.abc import Callable
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -71,6 +72,73 @@ class _CoeNetwork(canopen.Network):
         if 0x80 < can_id < 0x100 and len(data) >= 3:
             code, register = struct.unpack_from("<HB", bytes(data))
             self._on_emcy(code, register)
+
+
+class CoeCiA402Drive(ServedCiA402Drive):
+    """The CANopen served drive's object logic with CoE's PDO rules.
+
+    The PDO assignment, mapping and SM parameters are written in PRE-OP only
+    (abort 0x08000022 later); a mapping is written with sub-index 0 at 0 and
+    checked entry by entry (mappable, direction, size), without CANopen's
+    COB-ID procedure and 8-byte limit; 0x1C32:02 sets the device's cycle.
+    """
+
+    #: The slave's AL state (set by :class:`CoeSlave`).
+    al_state: Callable[[], al.AlState] = staticmethod(lambda: A.INIT)
+
+    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        state = self.al_state()
+        mapping = can_pdo.is_mapping_parameter(index)
+        if state > A.PRE_OP and (index in PRE_OP_ONLY or mapping):
+            raise SdoAbortedError(ABORT_DEVICE_STATE)
+        if index in (O.RXPDO_ASSIGN, O.TXPDO_ASSIGN):
+            self._check_assignment(index, subindex, od.decode_raw(data))
+        elif mapping:
+            self._check_mapping(index, subindex, od.decode_raw(data))
+            return
+        elif index == O.SM_OUTPUT_PARAMETER and subindex == 2:
+            cycle_ns = od.decode_raw(data)
+            if cycle_ns and cycle_ns < O.MIN_CYCLE_NS:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+            if cycle_ns:
+                self.device.set_cycle(cycle_ns * 1e-9)
+            return
+        super()._on_write(index, subindex, od, data)
+
+    def _check_assignment(self, index: int, subindex: int, value: int) -> None:
+        base = O.RXPDO_MAP if index == O.RXPDO_ASSIGN else O.TXPDO_MAP
+        if subindex == 0:
+            if value > O.PDOS_PER_DIRECTION:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+            return
+        if self.node.get_data(index, 0)[0] != 0:
+            raise SdoAbortedError(can_pdo.ABORT_INCOMPATIBLE)  # sub 0 must be 0 meanwhile
+        if value and not base <= value < base + O.PDOS_PER_DIRECTION:
+            raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+
+    def _check_mapping(self, index: int, subindex: int, value: int) -> None:
+        receive = O.RXPDO_MAP <= index < O.RXPDO_MAP + O.PDOS_PER_DIRECTION
+        if subindex == 0:
+            if value > 8:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
+            for s in range(1, value + 1):
+                (entry,) = struct.unpack("<I", self.node.get_data(index, s))
+                self._check_entry(can_pdo.MappedObject.from_entry(entry), receive)
+            return
+        if self.node.get_data(index, 0)[0] != 0:
+            raise SdoAbortedError(can_pdo.ABORT_INCOMPATIBLE)
+        if value:
+            self._check_entry(can_pdo.MappedObject.from_entry(value), receive)
+
+    def _check_entry(self, entry: can_pdo.MappedObject, receive: bool) -> None:
+        if not self.has(entry.index, entry.subindex):
+            raise SdoAbortedError(can_pdo.ABORT_NO_OBJECT)
+        obj = self.od[entry.index]
+        var = obj if not hasattr(obj, "subindices") else obj[entry.subindex]
+        if not var.pdo_mappable or not (var.writable if receive else var.readable):
+            raise SdoAbortedError(can_pdo.ABORT_NOT_MAPPABLE)
+        if entry.bits != len(var) or entry.bits % 8:
+            raise SdoAbortedError(can_pdo.ABORT_INCOMPATIBLE)
 
 
 class PdoCycle(SyncEngine):
@@ -140,12 +208,12 @@ class CoeSlave(Application):
         od = O.ethercat_od(device.cycle_s)
         self.description = O.description(od, serial)
         self.node = canopen.LocalNode(1, od)
-        self.drive = ServedCiA402Drive(device, self.node, injector, keys)
+        self.drive = CoeCiA402Drive(device, self.node, injector, keys)
+        self.drive.al_state = lambda: self.esc.al_state
         self.pdo = self.drive.sync = PdoCycle(self.drive)
         self.lock = threading.RLock()
         self.esc = Esc(build_image(self.description), self)
         self.sdo = SdoServer(self.node, O.MAILBOX_BYTES)
-        self.node.add_write_callback(self._on_write)
         self.drive.attach(_CoeNetwork(self._emergency))
         # power-on: transition 1 (CANopen's boot() also sends NMT messages CoE has not)
         self.drive.sync_device()
@@ -225,22 +293,6 @@ class CoeSlave(Application):
     def _emergency(self, code: int, register: int) -> None:
         if self.esc.al_state >= A.PRE_OP:
             self.esc.post_mailbox(emergency(code, register))
-
-    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
-        state = self.esc.al_state
-        if state > A.PRE_OP and (index in PRE_OP_ONLY or can_pdo.is_mapping_parameter(index)):
-            raise SdoAbortedError(ABORT_DEVICE_STATE)
-        if index in (O.RXPDO_ASSIGN, O.TXPDO_ASSIGN) and subindex > 0:
-            (pdo,) = struct.unpack("<H", data)
-            base = O.RXPDO_MAP if index == O.RXPDO_ASSIGN else O.TXPDO_MAP
-            if pdo and not base <= pdo < base + O.PDOS_PER_DIRECTION:
-                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
-        if index == O.SM_OUTPUT_PARAMETER and subindex == 2:
-            (cycle_ns,) = struct.unpack("<I", data)
-            if cycle_ns and cycle_ns < O.MIN_CYCLE_NS:
-                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
-            if cycle_ns:
-                self.device.set_cycle(cycle_ns * 1e-9)
 
     # ------------------------------------------------------- process data
     def outputs_written(self, data: bytes) -> None:

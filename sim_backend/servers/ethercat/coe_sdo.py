@@ -16,8 +16,9 @@ logic, :mod:`servobench.sim_backend.servers.can_drive`). Command bytes::
 A normal upload puts as much data as the mailbox holds into the initiate
 response and the rest into segments, as EtherCAT masters expect (SOEM reads
 ``length - 10`` bytes there). Complete access (bit 4) reads or writes all
-subindices of a record or array from subindex 0 (as 16 bits: 8 of value, 8
-of padding) or 1, each in its own size.
+subindices the object defines (not only the sub 0 value many) from
+subindex 0 (as 16 bits: 8 of value, 8 of padding) or 1, each in its own
+size; a complete write stores sub 0 = 0, the entries, then the new sub 0.
 """
 
 from __future__ import annotations
@@ -75,8 +76,7 @@ class SdoServer:
         obj = self.node.object_dictionary[index]
         if isinstance(obj, ODVariable):
             raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)  # no complete access to a variable
-        count = self.node.get_data(index, 0)[0]
-        return [s for s in range(1, count + 1) if s in obj]
+        return sorted(s for s in obj.subindices if s > 0)  # every defined one, as SSC slaves
 
     def read(self, index: int, sub: int, complete: bool) -> bytes:
         """The bytes of ``index:sub`` (or all of it with ``complete``)."""
