@@ -218,7 +218,7 @@ def bringup() -> dict:
 
 
 def test_scan_and_sii_identity(bringup: dict) -> None:
-    assert bringup["url"] == "ethercat://ecslave?slave=1"
+    assert bringup["url"] == "ethercat://ecmaster?slave=1"  # the peer of the served end
     assert bringup["found"] == 1
     assert bringup["identity"] == list(IDENTITY)
     assert bringup["name"] == "servobench CiA 402 drive"

@@ -14,14 +14,19 @@ Between frames, and at least every :data:`POLL_S`, the loop checks the SM
 watchdog. ``options["sim_keys"]`` holds the served drive's own ``sim://``
 keys (its factor group and position loop gains, as on CANopen).
 
-The announced URL: ``ethercat://IFACE?slave=1``.
+The announced URL names the interface a master on this host reaches the
+slave through: the peer of a veth pair (the other end of the virtual cable,
+as iproute2 shows it), else ``IFACE`` itself (a physical port
+cabled to the master's machine): ``ethercat://PEER?slave=1``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import re
 import select
 import socket
+import subprocess
 import threading
 from collections.abc import Callable, Mapping
 from urllib.parse import parse_qsl
@@ -80,6 +85,32 @@ def open_raw_socket(iface: str) -> socket.socket:
     return sock
 
 
+def master_side(iface: str) -> str:
+    """The interface at the other end of ``iface`` when it is a veth in this namespace, else ``iface``.
+
+    From iproute2's ``ip -o link show dev IFACE`` (``N: IFACE@PEER: <...>``; a peer
+    in another namespace shows as ``@ifN`` and is not named).
+    """
+    try:
+        done = subprocess.run(["ip", "-o", "link", "show", "dev", iface],
+                              capture_output=True, text=True, timeout=5)  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired):
+        return iface
+    match = re.match(r"\d+:\s+([^@:\s]+)@([^:\s]+):", done.stdout)
+    if done.returncode != 0 or match is None or re.fullmatch(r"if\d+", match.group(2)):
+        return iface
+    return match.group(2) if "link/ether" in done.stdout and "veth" in _kind(iface) else iface
+
+
+def _kind(iface: str) -> str:
+    try:
+        done = subprocess.run(["ip", "-o", "-d", "link", "show", "dev", iface],
+                              capture_output=True, text=True, timeout=5)  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return done.stdout
+
+
 def answer(slave: CoeSlave, raw: bytes) -> bytes | None:
     """The frame the slave sends back for ``raw``; ``None`` when it is not for it."""
     try:
@@ -109,7 +140,7 @@ def serve(
     keys = dict(parse_qsl(options.get("sim_keys") or "", keep_blank_values=True))
     slave = CoeSlave(device, injector, keys)
     with contextlib.closing(open_raw_socket(iface)) as sock:
-        announce(f"ethercat://{iface}?slave=1")
+        announce(f"ethercat://{master_side(iface)}?slave=1")
         while not stop.is_set():
             ready, _, _ = select.select([sock], [], [], POLL_S)
             if ready:
