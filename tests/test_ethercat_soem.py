@@ -37,7 +37,7 @@ RUN_S = 3.0
 CYCLE_S = 0.001
 #: How long the master waits for a frame to come back [µs]: "the slave answered" on a
 #: loaded machine (a Python slave on a shared core is sometimes late by milliseconds).
-RECEIVE_US = 50_000
+RECEIVE_US = 500_000
 #: Vendor id, product code and revision in the served drive's EDS (0x1018) and so its SII.
 IDENTITY = (0x00000000, 0x00000402, 0x00010000)
 # CiA 301 abort codes SOEM must see.

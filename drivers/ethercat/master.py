@@ -12,8 +12,10 @@ pysoem's exceptions into servobench's typed errors at this boundary:
 * PRE-OP -> SAFE-OP -> OP with DC SYNC0 (``config_dc``, ``dc_sync``) where the
   slave has distributed clocks; back to PRE-OP for a new cycle period;
 * the cycle: outputs out, inputs and the DC system time back in one frame
-  (LRW + FRMW), the working counter checked: wrong or missing frames are
-  counted, and :data:`max_wkc_errors` of them in a row raise
+  (LRW + FRMW), the working counter checked: a frame lost, late or with a
+  wrong working counter is counted and sent again (a lock-step slave that
+  did see it has then run one cycle more, which its time stamp shows), and
+  ``max_wkc_errors`` of them in a row raise
   :class:`~servobench.errors.DriveConnectionError` (the slave's SM watchdog
   stops the axis on its side);
 * the SM watchdog (0x0400/0x0420 through pysoem's ``set_watchdog``): armed,
@@ -89,7 +91,6 @@ class EthercatMaster:
         self.wkc_errors = 0  #: cycles with a wrong working counter or no frame, since open
         self.emergency: tuple[int, int] | None = None
         self.outputs = b""
-        self._in_a_row = 0
         self._lock = threading.Lock()
         self._last_cycle = 0.0
         self._keepalive: threading.Thread | None = None
@@ -275,26 +276,30 @@ class EthercatMaster:
 
     # --------------------------------------------------------------- cycle
     def cycle(self, outputs: bytes, count_errors: bool = True) -> tuple[bytes, int]:
-        """One frame: ``(inputs, DC system time [ns])``; raises when the link is lost."""
+        """One valid frame: ``(inputs, DC system time [ns])``; raises when the link is lost.
+
+        A frame that does not come back within ``frame_timeout`` or with a wrong
+        working counter is counted and sent again (its inputs are not the slave's),
+        up to ``max_wkc_errors`` times in a row.
+        """
         with self._lock:
             self.outputs = outputs
             self.slave.output = outputs
-            self.master.send_processdata()
-            wkc = self.master.receive_processdata(round(self.options.frame_timeout_s * 1e6))
-            self._last_cycle = time.monotonic()
-            ok = wkc == self.master.expected_wkc
-            if not ok and count_errors:
+            timeout_us = round(self.options.frame_timeout_s * 1e6)
+            for _ in range(self.options.max_wkc_errors):
+                self.master.send_processdata()
+                wkc = self.master.receive_processdata(timeout_us)
+                self._last_cycle = time.monotonic()
+                if wkc == self.master.expected_wkc:
+                    return bytes(self.slave.input), int(self.master.dc_time)
+                if not count_errors:
+                    return bytes(self.slave.input), int(self.master.dc_time)
                 self.wkc_errors += 1
-                self._in_a_row += 1
-                if self._in_a_row >= self.options.max_wkc_errors:
-                    raise DriveConnectionError(
-                        f"{self.name}: {self._in_a_row} cycles in a row without a valid frame "
-                        f"(working counter {wkc}, expected {self.master.expected_wkc}): link lost; "
-                        "the slave's SM watchdog stops the axis"
-                    )
-            elif ok:
-                self._in_a_row = 0
-            return bytes(self.slave.input), int(self.master.dc_time)
+            raise DriveConnectionError(
+                f"{self.name}: {self.options.max_wkc_errors} frames in a row lost or with a wrong working counter "
+                f"(last {wkc}, expected {self.master.expected_wkc}): link lost; "
+                "the slave's SM watchdog stops the axis"
+            )
 
     def start_keepalive(self) -> None:
         self._stop.clear()

@@ -7,9 +7,9 @@ its name cannot be a URL host); ``slave`` the position on the bus, 1 the
 first slave (as SOEM counts), default 1; ``dc`` ``auto`` (SYNC0 where the slave
 has distributed clocks, default), ``on`` (required) or ``off``;
 ``frame_timeout`` [s] how long a process data frame may take to come back
-(default 0.05: "the slave answered" on a loaded host); ``max_wkc_errors``
-consecutive cycles with a wrong working counter (or no frame) before the
-link counts as lost (default 10); ``pos_scale``, ``vel_scale``,
+(default 0.1: "the slave answered" on a loaded host); ``max_wkc_errors``
+frames in a row lost or with a wrong working counter (each is sent again)
+before the link counts as lost (default 10); ``pos_scale``, ``vel_scale``,
 ``torque_constant`` override the factor group as on CANopen
 (:mod:`servobench.drivers.cia402_units`).
 """
@@ -26,7 +26,7 @@ QUERY_KEYS = frozenset(
     {"iface", "slave", "dc", "frame_timeout", "max_wkc_errors", "pos_scale", "vel_scale",
      "torque_constant"}
 )  # fmt: skip
-FRAME_TIMEOUT_S = 0.05
+FRAME_TIMEOUT_S = 0.1
 MAX_WKC_ERRORS = 10
 DC_CHOICES = ("auto", "on", "off")
 

@@ -111,7 +111,7 @@ KINDS: dict[str, Kind] = {
         Kind("fault", _ALL, "code", 0x1000, True, "drive fault before sampling cycle N"),
         Kind("freeze", _ALL, "", None, True, "position/velocity stop updating after cycle N"),
         Kind("drop", _CAN | _SERIAL, summary="answer of cycle N lost (drive clocked)"),
-        Kind("delay", _ALL - _ECAT, "ms", None, summary="answer of cycle N sent MS ms late"),
+        Kind("delay", _ALL, "ms", None, summary="answer of cycle N sent MS ms late"),
         Kind("dup", _CAN | _SERIAL, summary="answer of cycle N sent twice"),
         Kind("busoff", _CAN, "ms", 200, summary="drive bus-off for MS ms from SYNC N"),
         Kind("emcy", _CAN, "code", 0xFF00, summary="EMCY C with the TPDOs, drive stays enabled"),

@@ -148,6 +148,8 @@ class PdoCycle(SyncEngine):
         super().__init__(drive)
         self.rx: list[can_pdo.MappedObject] = []
         self.tx: list[can_pdo.MappedObject] = []
+        #: How late the answer of the last cycle goes out (``--fault delay@N:MS``) [s].
+        self.delay_s = 0.0
 
     def rebuild(self) -> None:
         """CANopen's PDO channels do not exist here (see :meth:`compile`)."""
@@ -185,7 +187,8 @@ class PdoCycle(SyncEngine):
                 if e.index:
                     drive.node.set_data(e.index, e.subindex, outputs[pos : pos + n])
                 pos += n
-            drive.injector.next_cycle()  # drive faults (fault, freeze) due at this cycle
+            wire = drive.injector.next_cycle()  # drive faults (fault, freeze) due at this cycle
+            self.delay_s = sum(spec.arg for spec in wire if spec.kind == "delay") / 1000.0
             drive.sync_device()
             self._clock()
             try:

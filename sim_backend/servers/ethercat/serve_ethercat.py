@@ -10,6 +10,9 @@ make a veth pair inside a network namespace of their own,
 :mod:`servobench.bench.testing.ethercat_link`). A raw socket needs
 CAP_NET_RAW (root, or a user namespace of one's own: ``unshare -Urn``).
 
+Faults (``--fault``): ``fault@N`` and ``freeze@N`` act on the drive at
+process data cycle N, ``delay@N:MS`` returns that cycle's frame MS ms late.
+
 Between frames, and at least every :data:`POLL_S`, the loop checks the SM
 watchdog. ``options["sim_keys"]`` holds the served drive's own ``sim://``
 keys (its factor group and position loop gains, as on CANopen).
@@ -28,6 +31,7 @@ import select
 import socket
 import subprocess
 import threading
+import time
 from collections.abc import Callable, Mapping
 from urllib.parse import parse_qsl
 
@@ -149,6 +153,9 @@ def serve(
                     continue
                 reply = answer(slave, raw)
                 if reply is not None:
+                    if slave.pdo.delay_s:  # --fault delay@N:MS: this cycle's frame comes back late
+                        time.sleep(slave.pdo.delay_s)
+                        slave.pdo.delay_s = 0.0
                     sock.send(reply)
             with slave.lock:
                 slave.esc.poll()
