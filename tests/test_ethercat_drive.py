@@ -149,7 +149,18 @@ def link_killed_host(iface: str, url: str) -> dict:
         time.sleep(0.2)
         second = drive.read()
         out["rest"] = [first.velocity, second.velocity, first.position, second.position]
+        drive.enable()  # a new host session: the drive clock started again at open
+        out["t"] = [drive.exchange(0.0)[0].t_s for _ in range(20)]
     return out
+
+
+def link_no_complete_access(iface: str, url: str) -> dict:
+    from servobench.drivers.registry import open_drive
+
+    with open_drive(url) as drive:
+        drive.enable()
+        rows = [drive.exchange(0.8)[0] for _ in range(200)]
+        return {"meta": drive.log_metadata(), "v": rows[-1].velocity, "t": rows[-1].t_s}
 
 
 def link_late_frames(iface: str, url: str) -> dict:
@@ -232,6 +243,15 @@ def test_killed_host_the_sm_watchdog_stops_the_axis() -> None:
     v1, v2, x1, x2 = out["rest"]
     assert v1 == 0.0 and v2 == 0.0 and x1 == x2 and x1 > 0.0  # it moved, then stopped
     assert out["after_reset"] == "SWITCH ON DISABLED"
+    assert 0.0 <= out["t"][0] < 1.0 and np.all(np.diff(out["t"]) > 0)  # a fresh drive clock
+
+
+def test_mapping_falls_back_when_complete_access_is_refused() -> None:
+    _link_tests()
+    out = run_on_link(__file__, "link_no_complete_access", PLANT, ["--fault", "complete_access=0"])
+    assert out["meta"]["complete_access"] == "refused: mapped entry by entry"
+    assert out["meta"]["drive_clock"].startswith("0x1013")  # the time stamp got mapped all the same
+    assert out["v"] > 0.1  # 0.8 N m against 0.5 N m of friction: it runs
 
 
 def test_late_frames_are_counted_and_bounded() -> None:

@@ -47,6 +47,10 @@ NO_OBJECT, NO_SUBINDEX, READ_ONLY, DEVICE_STATE = 0x06020000, 0x06090011, 0x0601
 def _open(iface: str):
     import pysoem
 
+    # SOEM's register and scan timeouts (2 ms, 20 ms) fit an ESC answering in microseconds;
+    # a Python slave on a loaded two-core machine is given 20 ms and 200 ms
+    pysoem.settings.timeouts.ret = 20_000
+    pysoem.settings.timeouts.safe = 200_000
     master = pysoem.Master()
     master.open(iface)
     return pysoem, master

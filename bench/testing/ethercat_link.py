@@ -26,6 +26,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -86,6 +87,18 @@ def run_on_link(
     )
 
 
+def _wait_for_carrier(iface: str, timeout_s: float = 5.0) -> None:
+    """Until the kernel reports the link up (a frame sent before is dropped)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        shown = subprocess.run(["ip", "-o", "link", "show", "dev", iface],
+                               capture_output=True, text=True).stdout  # fmt: skip
+        if "LOWER_UP" in shown and "state UP" in shown:
+            return
+        time.sleep(0.01)
+    raise RuntimeError(f"{iface} did not come up within {timeout_s} s")
+
+
 def _child(path: str, function: str, sim_url: str, serve_args: list[str]) -> None:
     from servobench.bench.testing.served import ServedSim
 
@@ -95,6 +108,8 @@ def _child(path: str, function: str, sim_url: str, serve_args: list[str]) -> Non
         ["ip", "link", "set", SLAVE_IFACE, "up"],
     ):
         subprocess.run(cmd, check=True)
+    _wait_for_carrier(MASTER_IFACE)
+    _wait_for_carrier(SLAVE_IFACE)
     spec = importlib.util.spec_from_file_location("ethercat_link_target", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

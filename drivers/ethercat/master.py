@@ -61,6 +61,11 @@ ABSENT = (0x06020000, 0x06090011)
 STATE_TIMEOUT_S = 3.0
 #: Largest idle time before the keep-alive sends a frame [s].
 KEEPALIVE_S = 0.02
+#: SOEM's timeouts [µs]: "the slave answered" on a loaded host (SOEM's defaults, 2 ms for a
+#: register access and 20 ms for the scan, suit a slave controller answering in microseconds).
+SOEM_TIMEOUTS_US = {"ret": 20_000, "safe": 200_000, "eeprom": 200_000}
+#: Scans before "no slave" (a slave may miss one while its host is busy).
+SCANS = 3
 RX_ASSIGN, TX_ASSIGN, RX_MAP, TX_MAP = 0x1C12, 0x1C13, 0x1600, 0x1A00
 
 
@@ -73,6 +78,9 @@ def import_pysoem():
             "ethercat:// needs pysoem (the SOEM EtherCAT master): "
             "pip install 'servobench[ethercat]' (or: pip install pysoem)"
         ) from None
+    for name, value in SOEM_TIMEOUTS_US.items():
+        if getattr(pysoem.settings.timeouts, name) < value:
+            setattr(pysoem.settings.timeouts, name, value)
     return pysoem
 
 
@@ -114,7 +122,10 @@ class EthercatMaster:
                 f"cannot open EtherCAT interface {o.iface!r}: {err} (raw sockets need CAP_NET_RAW)"
             ) from None
         self.master = master
-        found = master.config_init()
+        for _ in range(SCANS):
+            found = master.config_init()
+            if found >= o.slave:
+                break
         if found < o.slave:
             self.close_socket()
             raise DriveConnectionError(

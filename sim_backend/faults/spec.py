@@ -41,7 +41,9 @@ Kinds (see :data:`KINDS` for the transports each applies to):
 Old spellings still work: ``silence@N`` (``drop`` on CANopen and serial,
 ``timeout`` on Modbus), ``busy@N`` (``exception@N:6``), and CANopen's
 ``reject_mode=M`` (SDO abort when 0x6060 is set to ``M``) and
-``ignore_mode=M`` (0x6060 = ``M`` accepted, 0x6061 does not follow).
+``ignore_mode=M`` (0x6060 = ``M`` accepted, 0x6061 does not follow), which
+apply to EtherCAT's CoE too; EtherCAT's ``complete_access=0`` (the slave
+neither announces nor accepts SDO complete access: abort 0x06010000).
 
 Pure: text in, frozen dataclasses out.
 """
@@ -134,7 +136,11 @@ ALIASES: dict[str, dict[str, tuple[str, int | None]]] = {
     "busy": {"modbus-tcp": ("exception", 6), "modbus-rtu": ("exception", 6)},
 }
 #: ``KEY=VALUE`` set-up faults: key -> transports.
-SETTINGS: dict[str, frozenset[str]] = {"reject_mode": _CAN | _ECAT, "ignore_mode": _CAN | _ECAT}
+SETTINGS: dict[str, frozenset[str]] = {
+    "reject_mode": _CAN | _ECAT,
+    "ignore_mode": _CAN | _ECAT,
+    "complete_access": _ECAT,
+}
 
 
 def kinds_for(transport: str) -> list[str]:

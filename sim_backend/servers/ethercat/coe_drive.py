@@ -209,14 +209,15 @@ class CoeSlave(Application):
     ) -> None:
         self.device = device
         od = O.ethercat_od(device.cycle_s)
-        self.description = O.description(od, serial)
+        complete_access = 0 not in injector.plan.setting("complete_access")
+        self.description = O.description(od, serial, complete_access)
         self.node = canopen.LocalNode(1, od)
         self.drive = CoeCiA402Drive(device, self.node, injector, keys)
         self.drive.al_state = lambda: self.esc.al_state
         self.pdo = self.drive.sync = PdoCycle(self.drive)
         self.lock = threading.RLock()
         self.esc = Esc(build_image(self.description), self)
-        self.sdo = SdoServer(self.node, O.MAILBOX_BYTES)
+        self.sdo = SdoServer(self.node, O.MAILBOX_BYTES, complete_access)
         self.drive.attach(_CoeNetwork(self._emergency))
         # power-on: transition 1 (CANopen's boot() also sends NMT messages CoE has not)
         self.drive.sync_device()

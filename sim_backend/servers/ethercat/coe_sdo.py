@@ -62,9 +62,12 @@ _SEGMENT_OVERHEAD = 9
 class SdoServer:
     """SDO over CoE for ``node``, with mailboxes of ``mailbox_bytes`` (the send SM's length)."""
 
-    def __init__(self, node: canopen.LocalNode, mailbox_bytes: int) -> None:
+    def __init__(
+        self, node: canopen.LocalNode, mailbox_bytes: int, complete_access: bool = True
+    ) -> None:
         self.node = node
         self.mailbox_bytes = mailbox_bytes
+        self.complete_access = complete_access  #: False: complete access aborts 0x06010000
         self._upload: tuple[int, int, bytes, int] | None = None  # index, sub, rest, toggle
         self._download: tuple[int, int, bool, int, bytearray, int] | None = None
         self.counter = 0
@@ -80,6 +83,8 @@ class SdoServer:
 
     def read(self, index: int, sub: int, complete: bool) -> bytes:
         """The bytes of ``index:sub`` (or all of it with ``complete``)."""
+        if complete and not self.complete_access:
+            raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)
         if not complete:
             return self.node.get_data(index, sub, check_readable=True)
         subs = self._subindices(index)
@@ -88,6 +93,8 @@ class SdoServer:
 
     def write(self, index: int, sub: int, complete: bool, data: bytes) -> None:
         """Write ``data`` to ``index:sub`` (or its subindices from ``sub`` with ``complete``)."""
+        if complete and not self.complete_access:
+            raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)
         if not complete:
             self.node.set_data(index, sub, data, check_writable=True)
             return

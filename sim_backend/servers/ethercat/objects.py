@@ -49,6 +49,8 @@ MIN_CYCLE_NS = 250_000
 MAILBOX_OUT, MAILBOX_IN = 0x1000, 0x1080
 MAILBOX_BYTES = 128
 OUTPUTS_AT, INPUTS_AT = 0x1100, 0x1180
+#: CoE details the SII announces (complete access added unless refused).
+COE_DETAILS = sii.COE_SDO | sii.COE_SDO_INFO | sii.COE_PDO_ASSIGN | sii.COE_PDO_CONFIG
 SM_CONTROL = {1: 0x26, 2: 0x22, 3: 0x64, 4: 0x20}  # mailbox w/r, outputs (watchdog), inputs
 
 
@@ -145,8 +147,10 @@ def process_data_bytes(od: canopen.ObjectDictionary, assign: int) -> int:
     return sum(e.bits for p in _pdo_specs(od, assign, 0) for e in p.entries) // 8
 
 
-def description(od: canopen.ObjectDictionary, serial: int = 1) -> sii.SlaveDescription:
-    """The SII description of the slave that serves ``od``."""
+def description(
+    od: canopen.ObjectDictionary, serial: int = 1, complete_access: bool = True
+) -> sii.SlaveDescription:
+    """The SII description of the slave that serves ``od`` (CoE details: complete access or not)."""
     name = str(od[0x1008].default) if 0x1008 in od else "servobench CiA 402 drive"
     out_bytes = process_data_bytes(od, RXPDO_ASSIGN)
     in_bytes = process_data_bytes(od, TXPDO_ASSIGN)
@@ -168,9 +172,5 @@ def description(od: canopen.ObjectDictionary, serial: int = 1) -> sii.SlaveDescr
         fmmus=(sii.FMMU_OUTPUTS, sii.FMMU_INPUTS, 0x03),
         txpdos=_pdo_specs(od, TXPDO_ASSIGN, 3),
         rxpdos=_pdo_specs(od, RXPDO_ASSIGN, 2),
-        coe_details=sii.COE_SDO
-        | sii.COE_SDO_INFO
-        | sii.COE_PDO_ASSIGN
-        | sii.COE_PDO_CONFIG
-        | sii.COE_COMPLETE_ACCESS,
+        coe_details=COE_DETAILS | (sii.COE_COMPLETE_ACCESS if complete_access else 0),
     )
