@@ -279,3 +279,21 @@ def test_cli_without_pysoem_is_one_line(tmp_path) -> None:
     assert out.returncode != 0
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("servobench: error:") and "pysoem" in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        ([], "needs --iface IFACE"),
+        (["--iface", "nosuch0"], "nosuch0"),  # no such device, or no CAP_NET_RAW
+        (["--iface", "lo", "--fault", "drop@3"], "drop applies to canopen, serial only"),
+    ],
+)
+def test_serve_sim_ethercat_refuses_in_one_line(args, says) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "servobench", "serve-sim", "--transport", "ethercat", *args],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode != 0 and out.stdout == ""
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("servobench: error:") and says in lines[0]

@@ -299,7 +299,8 @@ class EthercatMaster:
             timeout_us = round(self.options.frame_timeout_s * 1e6)
             for _ in range(self.options.max_wkc_errors):
                 self.master.send_processdata()
-                wkc = self.master.receive_processdata(timeout_us)
+                # the GIL released while SOEM waits: the host's other threads (the log writer) run
+                wkc = self.master.receive_processdata(timeout_us, release_gil=True)
                 self._last_cycle = time.monotonic()
                 if wkc == self.master.expected_wkc:
                     return bytes(self.slave.input), int(self.master.dc_time)
