@@ -163,6 +163,24 @@ def link_no_complete_access(iface: str, url: str) -> dict:
         return {"meta": drive.log_metadata(), "v": rows[-1].velocity, "t": rows[-1].t_s}
 
 
+def link_injected(iface: str, url: str) -> dict:
+    """Stream until the served drive's injected fault (or freeze) shows."""
+    from servobench.drivers.registry import open_drive
+    from servobench.errors import DriveFaultError
+
+    out: dict = {"rows": []}
+    with open_drive(url) as drive:
+        drive.enable()
+        try:
+            for _ in range(2000):
+                fb = drive.exchange(0.8)[0]
+                out["rows"].append([fb.t_s, fb.velocity, fb.position])
+        except DriveFaultError as err:
+            out["fault"], out["code"] = str(err), err.code
+        out["info_code"] = drive.info().fault_code
+    return out
+
+
 def link_late_frames(iface: str, url: str) -> dict:
     from servobench.drivers.registry import open_drive
     from servobench.errors import DriveConnectionError
@@ -252,6 +270,23 @@ def test_mapping_falls_back_when_complete_access_is_refused() -> None:
     assert out["meta"]["complete_access"] == "refused: mapped entry by entry"
     assert out["meta"]["drive_clock"].startswith("0x1013")  # the time stamp got mapped all the same
     assert out["v"] > 0.1  # 0.8 N m against 0.5 N m of friction: it runs
+
+
+def test_injected_drive_fault_reaches_the_host_with_its_code() -> None:
+    _link_tests()
+    out = run_on_link(__file__, "link_injected", PLANT, ["--fault", "fault@1500:0x2310"])
+    assert out["code"] == 0x2310 and "0x2310" in out["fault"]
+    assert out["info_code"] == 0x2310
+    assert 0 < len(out["rows"]) < 1500  # the slave's cycles count its keep-alive frames too
+
+
+def test_injected_freeze_keeps_the_clock_running() -> None:
+    _link_tests()
+    out = run_on_link(__file__, "link_injected", PLANT, ["--fault", "freeze@600"])
+    rows = np.array(out["rows"])
+    assert "fault" not in out and len(rows) == 2000
+    assert np.all(np.diff(rows[:, 0]) > 0)  # the drive clock runs on
+    assert np.all(rows[-100:, 1:] == rows[-1, 1:]) and rows[-1, 1] > 0.1  # frozen while moving
 
 
 def test_late_frames_are_counted_and_bounded() -> None:

@@ -55,9 +55,13 @@ from dataclasses import dataclass, field
 
 from servobench.errors import DriveConfigError
 
-#: Transports of ``serve-sim --transport``.
-TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial", "ethercat")
-_ALL = frozenset(TRANSPORTS)
+#: Transports of ``serve-sim --transport`` served on this host's own links (the fault
+#: matrix, :mod:`servobench.bench.testing.fault_scenarios`, runs each of them).
+TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial")
+#: Transports that need a link of their own (EtherCAT: a network interface, in tests a veth
+#: pair in a namespace); their faults are tested there (tests/test_ethercat_drive.py).
+LINK_TRANSPORTS = ("ethercat",)
+_ALL = frozenset(TRANSPORTS + LINK_TRANSPORTS)
 _CAN = frozenset({"canopen"})
 _ECAT = frozenset({"ethercat"})
 _MODBUS = frozenset({"modbus-tcp", "modbus-rtu"})
@@ -306,7 +310,7 @@ def grammar_help() -> str:
     """A few lines for ``serve-sim --help``."""
     lines = [
         "fault items (--fault, repeatable; ';' separates items; N counts the drive's cycles",
-        "from 1: SYNCs, clocking Modbus reads, serial feedback queries):",
+        "from 1: SYNCs, clocking Modbus reads, serial feedback queries, EtherCAT process data):",
     ]
     for name, k in KINDS.items():
         arg = {"": "", "ms": ":MS", "code": ":CODE"}[k.arg]
@@ -315,4 +319,5 @@ def grammar_help() -> str:
         where = "all" if k.transports == _ALL else ",".join(sorted(k.transports))
         lines.append(f"  {name + '@N' + arg:<19} {k.summary} ({where})")
     lines.append("  silence@N, busy@N, reject_mode=M, ignore_mode=M: older spellings")
+    lines.append("  complete_access=0: EtherCAT slave without SDO complete access")
     return "\n".join(lines)
