@@ -181,6 +181,39 @@ def link_injected(iface: str, url: str) -> dict:
     return out
 
 
+def link_cable_pulled(iface: str, url: str) -> dict:
+    """The link goes down mid-run: the host says so, the slave's SM watchdog stops the axis."""
+    from servobench.drivers.registry import open_drive
+    from servobench.errors import DriveError
+
+    out: dict = {}
+    drive = open_drive(url + "&watchdog=0.2&frame_timeout=0.02&max_wkc_errors=5")
+    drive.open()
+    try:
+        drive.enable()
+        for _ in range(300):
+            drive.exchange(1.0)
+        subprocess.run(["ip", "link", "set", iface, "down"], check=True)
+        t0 = time.monotonic()
+        try:
+            for _ in range(1000):
+                drive.exchange(1.0)
+        except DriveError as err:
+            out["error"], out["after_s"] = str(err), time.monotonic() - t0
+    finally:
+        try:
+            drive.close()
+        except DriveError as err:
+            out["close"] = str(err)
+    time.sleep(0.5)
+    subprocess.run(["ip", "link", "set", iface, "up"], check=True)
+    time.sleep(0.2)
+    with open_drive(url) as fresh:
+        info = fresh.info()
+        out["state"], out["fault"] = info.state, info.fault_code
+    return out
+
+
 def link_late_frames(iface: str, url: str) -> dict:
     from servobench.drivers.registry import open_drive
     from servobench.errors import DriveConnectionError
@@ -287,6 +320,13 @@ def test_injected_freeze_keeps_the_clock_running() -> None:
     assert "fault" not in out and len(rows) == 2000
     assert np.all(np.diff(rows[:, 0]) > 0)  # the drive clock runs on
     assert np.all(rows[-100:, 1:] == rows[-1, 1:]) and rows[-1, 1] > 0.1  # frozen while moving
+
+
+def test_a_pulled_cable_stops_the_axis_within_the_watchdog() -> None:
+    _link_tests()
+    out = run_on_link(__file__, "link_cable_pulled", PLANT)
+    assert "link lost" in out["error"] and out["after_s"] < 1.0  # 5 frames of 20 ms, sent again
+    assert out["state"] == "FAULT" and out["fault"] == 0x8130  # the slave stopped it alone
 
 
 def test_late_frames_are_counted_and_bounded() -> None:
