@@ -3,11 +3,16 @@
 Layers, each its own module, from the wire up:
 
 * :mod:`.frame` -- EtherCAT frames and datagrams as bytes (pure codec);
+* :mod:`.registers` -- the ESC register map as data (address, size, writable, reset value);
 * :mod:`.al` -- the AL state machine (INIT, PRE-OP, SAFE-OP, OP) as data;
 * :mod:`.sii` -- the SII (EEPROM) image of the slave;
-* :mod:`.esc` -- the slave controller: register space, datagram execution with
-  working counters, SyncManagers, FMMUs, EEPROM interface, watchdog, DC;
-* :mod:`.mailbox` -- the mailbox header and the CoE SDO server;
+* :mod:`.esc` -- the slave controller: datagram execution with working
+  counters, SyncManagers and mailboxes, FMMUs, EEPROM interface, SM
+  watchdog, DC registers;
+* :mod:`.mailbox` -- the mailbox and CoE headers (pure codec);
+* :mod:`.coe_sdo` -- the CoE SDO server (expedited, normal, segmented, complete access);
+* :mod:`.objects` -- the object dictionary (the CANopen served drive's, plus CoE's
+  0x1C00/0x1C12/0x1C13/0x1C32/0x1C33) and the SII description made from it;
 * :mod:`.coe_drive` -- the CiA 402 application behind the ESC;
 * :mod:`.serve_ethercat` -- the AF_PACKET socket loop and ``serve()``.
 """
