@@ -24,6 +24,8 @@ import pytest
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
+pytestmark = pytest.mark.slow  # sidbe open and closed loop over a private link, 90 s
+
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 NOISY = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.01&seed=2"

@@ -29,7 +29,10 @@ from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 pytest.importorskip("pysoem")
 _WHY = link_unavailable()
-pytestmark = pytest.mark.skipif(_WHY is not None, reason=f"no private EtherCAT link: {_WHY}")
+pytestmark = [
+    pytest.mark.skipif(_WHY is not None, reason=f"no private EtherCAT link: {_WHY}"),
+    pytest.mark.slow,  # 3 s of 1 kHz cycles and the watchdog, in child processes: 15 s
+]
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.2&fc_neg=0.15"
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.2, coulomb_neg=0.15)
