@@ -44,6 +44,7 @@ import time
 from collections.abc import Mapping
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.canopen_link import CounterUnwrap
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
     CW_QUICK_STOP,
@@ -87,8 +88,8 @@ class EthercatDrive(Drive):
         self.clock_source = ""
         self._cycle_s = DEFAULT_CYCLE_S
         self._values: dict[int, int] = {}
-        self._x_unwrap = _Unwrap(32)
-        self._t_unwrap = _Unwrap(32)
+        self._x_unwrap = CounterUnwrap(32)
+        self._t_unwrap = CounterUnwrap(32)
         self._dc0: int | None = None
         self._expected: CiA402State | None = None
         self._hold_reason = "not checked"
@@ -385,21 +386,3 @@ class EthercatDrive(Drive):
                    "wkc_errors": bus.wkc_errors, **self.log_metadata()},
         )  # fmt: skip
 
-
-class _Unwrap:
-    """A ``bits``-bit counter made continuous across its roll-over."""
-
-    def __init__(self, bits: int) -> None:
-        self.span = 2**bits
-        self.last: int | None = None
-        self.offset = 0
-
-    def __call__(self, raw: int) -> int:
-        if self.last is not None:
-            step = raw - self.last
-            if step > self.span // 2:
-                self.offset -= self.span
-            elif step < -self.span // 2:
-                self.offset += self.span
-        self.last = raw
-        return raw + self.offset
