@@ -7,8 +7,8 @@ Layers, each its own module, from the wire up:
 * :mod:`.al` -- the AL state machine (INIT, PRE-OP, SAFE-OP, OP) as data;
 * :mod:`.sii` -- the SII (EEPROM) image of the slave;
 * :mod:`.esc` -- the slave controller: datagram execution with working
-  counters, SyncManagers and mailboxes, FMMUs, EEPROM interface, SM
-  watchdog, DC registers;
+  counters, SyncManagers and mailboxes, FMMUs, SM watchdog, DC registers;
+* :mod:`.eeprom` -- its EEPROM interface over the SII image;
 * :mod:`.mailbox` -- the mailbox and CoE headers (pure codec);
 * :mod:`.coe_sdo` -- the CoE SDO server (expedited, normal, segmented, complete access);
 * :mod:`.objects` -- the object dictionary (the CANopen served drive's, plus CoE's

@@ -38,6 +38,7 @@ from collections.abc import Callable
 
 from servobench.sim_backend.servers.ethercat import al
 from servobench.sim_backend.servers.ethercat import registers as R
+from servobench.sim_backend.servers.ethercat.eeprom import execute_eeprom_command
 from servobench.sim_backend.servers.ethercat.frame import Command, Datagram
 
 _READ_WKC, _WRITE_WKC = 1, 1
@@ -347,25 +348,7 @@ class Esc:
 
     # ----------------------------------------------------------- EEPROM
     def _eeprom_command(self) -> None:
-        control = self.word(R.EEPROM_CONTROL)
-        command = control >> 8 & 0x07
-        (address,) = struct.unpack_from("<I", self.mem, R.EEPROM_ADDRESS)
-        status = R.EEPROM_READ_8_BYTES
-        at = 2 * address
-        if command == 0x01:  # read 8 bytes
-            if at >= len(self.sii):
-                status |= 0x2000  # acknowledge / command error
-            else:
-                chunk = bytes(self.sii[at : at + 8])
-                self.mem[R.EEPROM_DATA : R.EEPROM_DATA + 8] = chunk + b"\xff" * (8 - len(chunk))
-        elif command == 0x02:  # write one word
-            if not control & 0x0001 or at + 2 > len(self.sii):
-                status |= 0x4000 if not control & 0x0001 else 0x2000
-            else:
-                self.sii[at : at + 2] = self.mem[R.EEPROM_DATA : R.EEPROM_DATA + 2]
-        elif command == 0x04:  # reload
-            self.mem[R.STATION_ALIAS : R.STATION_ALIAS + 2] = self.sii[8:10]
-        self.mem[R.EEPROM_CONTROL : R.EEPROM_CONTROL + 2] = status.to_bytes(2, "little")
+        execute_eeprom_command(self.mem, self.sii)
 
     # -------------------------------------------------------- datagrams
     def execute(self, dg: Datagram) -> Datagram:
