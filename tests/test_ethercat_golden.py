@@ -43,8 +43,8 @@ def dg(cmd: int, adp: int, ado: int, data: bytes, wkc: int = 0, more: bool = Fal
             + length.to_bytes(2, "little") + b"\x00\x00" + data + wkc.to_bytes(2, "little"))  # fmt: skip
 
 
-APRD, APWR, FPRD, FPWR, FPRW, BRD, BWR, LRD, LWR, LRW, ARMW, FRMW = (
-    1, 2, 4, 5, 6, 7, 8, 10, 11, 12, 13, 14,
+APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRMW = (
+    1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14,
 )  # fmt: skip
 STATION = 0x1001
 
@@ -103,10 +103,29 @@ def test_read_only_register_ignores_the_write_but_counts_it(slave: CoeSlave) -> 
     assert reply == returned(dg(FPRD, STATION, 0x0000, b"\x11", 1))
 
 
-def test_fprw_counts_three(slave: CoeSlave) -> None:
+def test_bwr_aprw_brw_write_and_count(slave: CoeSlave) -> None:
+    # BWR the watchdog divider (0x0400) to 0x09C2: one slave wrote it, ADP incremented
+    request = frame(dg(BWR, 0x0000, 0x0400, b"\xc2\x09"))
+    assert exchange(slave, request) == returned(dg(BWR, 0x0001, 0x0400, b"\xc2\x09", 1))
+    # APRW the station address at position 0: the old value (0) read back, the new written (+1 +2)
+    request = frame(dg(APRW, 0x0000, 0x0010, b"\x05\x10"))
+    assert exchange(slave, request) == returned(dg(APRW, 0x0001, 0x0010, b"\x00\x00", 3))
+    reply = exchange(slave, frame(dg(FPRD, 0x1005, 0x0010, b"\x00\x00")))
+    assert reply == returned(dg(FPRD, 0x1005, 0x0010, b"\x05\x10", 1))
+    # BRW of the PD watchdog time (1000 = 0x03E8 after reset): the old value ORed into the
+    # frame's 0x01F4, which is written
+    request = frame(dg(BRW, 0x0000, 0x0420, b"\xf4\x01"))
+    assert exchange(slave, request) == returned(dg(BRW, 0x0001, 0x0420, b"\xfc\x03", 3))
+    reply = exchange(slave, frame(dg(FPRD, 0x1005, 0x0420, b"\x00\x00")))
+    assert reply == returned(dg(FPRD, 0x1005, 0x0420, b"\xf4\x01", 1))
+
+
+def test_fprw_counts_three_and_returns_the_old_value(slave: CoeSlave) -> None:
     addressed(slave)
-    request = frame(dg(FPRW, STATION, 0x0420, b"\xe8\x03"))  # SM watchdog time 1000
+    request = frame(dg(FPRW, STATION, 0x0420, b"\x64\x00"))  # PD watchdog 1000 -> 100
     assert exchange(slave, request) == returned(dg(FPRW, STATION, 0x0420, b"\xe8\x03", 3))
+    reply = exchange(slave, frame(dg(FPRD, STATION, 0x0420, b"\x00\x00")))
+    assert reply == returned(dg(FPRD, STATION, 0x0420, b"\x64\x00", 1))
 
 
 def test_al_control_skipping_states_sets_the_error_and_code_0x0011(slave: CoeSlave) -> None:

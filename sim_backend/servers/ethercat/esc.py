@@ -7,8 +7,8 @@ an ESC does and answers with the working counter an ESC gives:
 command                   addressed when               working counter (this slave)
 ========================  ===========================  ==================================
 APRD/APWR/APRW            ADP = 0 (ADP incremented)    read +1, write +1; RW: +1 / +2
-FPRD/FPWR/FPRW            ADP = station address        same
-BRD/BWR/BRW               always (ADP incremented)     same; BRD ORs its data into the frame
+FPRD/FPWR/FPRW            ADP = station address        same; RW returns the data before
+BRD/BWR/BRW               always (ADP incremented)     same; BRD/BRW OR their data in
 LRD/LWR/LRW               an active FMMU overlaps      read +1, write +1; LRW: +1 / +2
 ARMW (ADP = 0), FRMW      reads there, writes elsewhere +1
 ========================  ===========================  ==================================
@@ -376,14 +376,14 @@ class Esc:
             return dg.answered(data, wkc, adp)
         if not addressed:
             return dg.answered(data, wkc, adp)
-        if cmd.writes and self.write(dg.ado, dg.data):
-            wkc += _RW_WRITE_WKC if cmd.reads else _WRITE_WKC
-        if cmd.reads:
+        if cmd.reads:  # read before write, as the frame passes (xPRW return the old data)
             got = self.read(dg.ado, len(dg.data))
             if got is not None:
-                if cmd is Command.BRD:
+                if cmd in (Command.BRD, Command.BRW):
                     got = bytes(a | b for a, b in zip(dg.data, got, strict=True))
                 data, wkc = got, wkc + _READ_WKC
+        if cmd.writes and self.write(dg.ado, dg.data):
+            wkc += _RW_WRITE_WKC if cmd.reads else _WRITE_WKC
         return dg.answered(data, wkc, adp)
 
     def fmmus(self) -> list[tuple[int, int, int, int]]:
