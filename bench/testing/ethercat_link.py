@@ -2,8 +2,9 @@
 
 :func:`run_on_link` runs ``function(master_iface, url)`` from a Python file in a
 child process that lives in a new user and network namespace (``unshare
--Urn``: no root needed where unprivileged user namespaces are allowed; as
-root the same command gives a plain new network namespace). Inside it the
+-Urn``: no root needed where unprivileged user namespaces are allowed), or,
+as root where user namespaces are refused, a new network namespace
+(``unshare -n``). Inside it the
 child creates the veth pair :data:`MASTER_IFACE` <-> :data:`SLAVE_IFACE`,
 starts ``servobench serve-sim --transport ethercat --iface SLAVE_IFACE`` on one
 end (:class:`~servobench.bench.testing.served.ServedSim`) and calls the
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -43,26 +45,49 @@ _PROBE = (
 )
 
 
+#: The ways to a namespace of one's own, tried in order: a user + network namespace (no root
+#: needed where unprivileged user namespaces are allowed), then as root a network namespace.
+NAMESPACES = (["unshare", "-Urn"], ["unshare", "-n"])
+_chosen: list[str] | None = None
+
+
+def _probe(prefix: list[str]) -> str | None:
+    script = f"ip link add {MASTER_IFACE} type veth peer name {SLAVE_IFACE} && "
+    script += f'{sys.executable} -c "{_PROBE}"'
+    try:
+        done = subprocess.run([*prefix, "sh", "-c", script], capture_output=True, text=True,
+                              timeout=30)  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return f"'{' '.join(prefix)}' failed: {err}"
+    if done.returncode != 0:
+        return f"'{' '.join(prefix)}' + veth + raw socket failed: {done.stderr.strip()[-200:]}"
+    return None
+
+
 def _unshare() -> list[str]:
-    return ["unshare", "-Urn"]
+    if _chosen is None:
+        why = link_unavailable()
+        if why is not None:
+            raise RuntimeError(f"no private EtherCAT link: {why}")
+    return _chosen
 
 
 def link_unavailable() -> str | None:
     """Why no namespaced veth link can be made here, or ``None`` when it can."""
+    global _chosen
     for tool in ("unshare", "ip"):
         if shutil.which(tool) is None:
             return f"no {tool!r} command (util-linux / iproute2)"
-    script = f"ip link add {MASTER_IFACE} type veth peer name {SLAVE_IFACE} && "
-    script += f'{sys.executable} -c "{_PROBE}"'
-    try:
-        done = subprocess.run(
-            [*_unshare(), "sh", "-c", script], capture_output=True, text=True, timeout=30
-        )
-    except (OSError, subprocess.TimeoutExpired) as err:
-        return f"'unshare -Urn' failed: {err}"
-    if done.returncode != 0:
-        return f"'unshare -Urn' + veth + raw socket failed: {done.stderr.strip()[-200:]}"
-    return None
+    reasons = []
+    for prefix in NAMESPACES:
+        if prefix[1] == "-n" and os.geteuid() != 0:
+            continue  # a plain network namespace needs root
+        why = _probe(prefix)
+        if why is None:
+            _chosen = prefix
+            return None
+        reasons.append(why)
+    return "; ".join(reasons)
 
 
 def run_on_link(
