@@ -239,3 +239,4 @@ class AsciiLink:
             raise DriveConnectionError(f"{self.port}: resynchronising failed: {err}") from err
         self._rx.clear()
         self._out_of_step = False
+

@@ -70,9 +70,7 @@ EXCEPTION_NAMES = {
 }
 
 
-def exception_error(
-    code: int, what: str, fault_code: int = 0, unit: int | None = None
-) -> DriveError:
+def exception_error(code: int, what: str, fault_code: int = 0, unit: int | None = None) -> DriveError:
     """The typed error for a Modbus exception response ``code`` to request ``what``.
 
     1-3 (the request does not fit the drive: wrong function, address or value)

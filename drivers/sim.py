@@ -54,9 +54,7 @@ class SimDrive(Drive):
         self.realtime = pace == "real"
         self.supports_block = not self.realtime
         given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
-        plant_url = replace(
-            self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS}
-        )
+        plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
         self.device = SimulatedDevice(plant_from_url(plant_url))
         p = self.device.params
         self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None
@@ -71,9 +69,7 @@ class SimDrive(Drive):
     def _gain(self, key: str) -> float:
         value = self.url.get_float(key)
         if value is None or not value >= 0:
-            raise DriveConfigError(
-                f"sim position loop gain {key}={self.url.query[key]!r} must be >= 0"
-            )
+            raise DriveConfigError(f"sim position loop gain {key}={self.url.query[key]!r} must be >= 0")
         return value
 
     def log_metadata(self) -> dict[str, str]:
@@ -151,9 +147,7 @@ class SimDrive(Drive):
         s = self.device.sample()
         self._check_fault(s.fault_code)
         error = self._x_ref - s.position
-        total = self._loop.torque(
-            error, s.velocity, offset, self.limits.max_command, self.device.cycle_s
-        )
+        total = self._loop.torque(error, s.velocity, offset, self.limits.max_command, self.device.cycle_s)
         if not (math.isfinite(s.position) and math.isfinite(s.velocity)):
             total = 0.0
         self.device.exchange(total)

@@ -145,9 +145,7 @@ class RegisterBridge:
 
     def _overlapping(self, kind: str, address: int, count: int) -> list[Register]:
         return [
-            r
-            for r in self.regs
-            if r.kind == kind and r.address < address + count and address < r.end
+            r for r in self.regs if r.kind == kind and r.address < address + count and address < r.end
         ]
 
     def check(self, kind: str, address: int, count: int, write: bool = False) -> None:

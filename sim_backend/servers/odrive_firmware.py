@@ -161,9 +161,7 @@ class OdriveFirmware:
         return props
 
     def _current_state(self) -> int:
-        return (
-            AXIS_STATE_CLOSED_LOOP if self.device.state is PowerState.ENABLED else AXIS_STATE_IDLE
-        )
+        return AXIS_STATE_CLOSED_LOOP if self.device.state is PowerState.ENABLED else AXIS_STATE_IDLE
 
     def _request(self, state: float | int | bool) -> None:
         if state == AXIS_STATE_CLOSED_LOOP:
