@@ -19,7 +19,9 @@ answers SDOs; this module adds what it lacks:
 * PDOs and the SYNC (:mod:`servobench.sim_backend.servers.can_sync`);
 * units: the plant is in SI, the objects speak the drive's factor group
   (:mod:`servobench.sim_backend.servers.can_factor`); 0x1013 is the device
-  clock in µs; 0x6077 reports the torque applied over the cycle before the
+  clock (UNSIGNED32 µs, wrapping; in ``clock=real`` the drive's free-running
+  clock at the instant the SYNC's sample was taken, in lockstep the cycle
+  count times the cycle); 0x6077 reports the torque applied over the cycle before the
   SYNC, as a drive samples its actual value;
 * NMT: PDOs and SYNC only in OPERATIONAL; leaving OPERATIONAL while the
   axis is enabled quick-stops it; a heartbeat goes out at once on a change;
@@ -35,8 +37,9 @@ answers SDOs; this module adds what it lacks:
   restarts at 0 and the command is dropped, as on every served transport.
 
 Simplifications: synchronous RPDOs act on receipt (the device latches the
-torque for the next SYNC anyway, but a controlword changes the state at
-once); event-driven TPDOs (types 254/255) are not produced; SDO is also
+torque for the next SYNC anyway -- a real-time device takes it at the next
+SYNC, :mod:`~servobench.sim_backend.servers.can_sync` -- but a controlword
+changes the state at once); event-driven TPDOs (types 254/255) are not produced; SDO is also
 answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only; the
 quick stop (0x605A) keeps QUICK STOP ACTIVE; profile torque ignores torque
 slopes (the torque steps).
@@ -62,7 +65,7 @@ from servobench.drivers.cia402 import (
     next_state,
     supports_mode,
 )
-from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.device import PowerState, SimulatedDevice, clock_counts
 from servobench.sim_backend.faults.can import CanFaultHook
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import FaultPlan
@@ -299,7 +302,7 @@ class ServedCiA402Drive:
                 return wrap_i32(self.factors.position_raw(sample.position))
             if index == 0x606C:
                 return clamp(self.factors.velocity_raw(sample.velocity), _I32)
-            return round(sample.t_s * 1e6) & 0xFFFFFFFF
+            return clock_counts(sample.t_s, 1e-6) & 0xFFFFFFFF  # UNSIGNED32 µs (CiA 301), wrapping
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         value = od.decode_raw(data)
@@ -340,6 +343,9 @@ class ServedCiA402Drive:
             return  # in CSP the offset acts at the next SYNC
         other = 0x60B2 if index == 0x6071 else 0x6071
         rest = self._int(other, "h") if self.has(other) else 0
+        if self.sync.receiving_sync_rpdo:  # real time: takes force at the next SYNC (can_sync)
+            self.sync.pending_command = (value + rest) * self.lsb
+            return
         self.device.set_command((value + rest) * self.lsb)
 
     def _set_interpolation_period(self, subindex: int, value: int) -> None:

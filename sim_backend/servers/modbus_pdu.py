@@ -30,7 +30,13 @@ disable / quick stop / reset by the map's ``[control]`` values, to
 ``watchdog`` and ``cycle`` set them; a read that covers ``velocity`` clocks
 the drive one cycle (sample at ``t_k``, then the latched command acts),
 other feedback reads see the present state. FC23 writes before it reads, so
-one FC23 is one lock-step cycle.
+one FC23 is one lock-step cycle. A ``clock="real"`` device is not clocked:
+the read samples the axis as it stands in wall-clock time
+(:mod:`servobench.sim_backend.device`), and ``timestamp`` carries the
+drive's clock at that instant in whole ticks of the register's ``scale``;
+each request is handled at the instant it arrived
+(:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`), so an FC23's
+command takes force exactly when its feedback is sampled.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ from servobench.drivers.regmap import (
     encode_string,
 )
 from servobench.errors import DriveConfigError, DriveError, UsageError
-from servobench.sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from servobench.sim_backend.device import DeviceSample, PowerState, SimulatedDevice, clock_counts
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.modbus import ModbusFaultHook
 from servobench.sim_backend.faults.spec import FaultPlan
@@ -213,7 +219,7 @@ class RegisterBridge:
         if reg.name == "fault":
             return encode_raw(reg, s.fault_code)
         if reg.name == "timestamp":  # the drive clock wraps like a hardware counter
-            raw = int(round(s.t_s / reg.scale))
+            raw = clock_counts(s.t_s, reg.scale)  # ticks of the register's resolution
             return encode_raw(
                 reg, raw % (1 << (16 * reg.count)) if reg.format.startswith("u") else raw
             )
@@ -274,7 +280,8 @@ class PduHandler:
         try:
             if handler is None:
                 raise ModbusException(ILLEGAL_FUNCTION)
-            out = handler(pdu)
+            with self.bridge.device.instant():  # one request, one instant (FC23: write, then read)
+                out = handler(pdu)
         except ModbusException as exc:
             return bytes([fc | 0x80, exc.code])
         self.bridge.device.feed()
