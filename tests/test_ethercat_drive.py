@@ -22,13 +22,15 @@ import numpy as np
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
-from servobench.sim_backend.physics.plant import PlantParams, simulate
+from servobench.sim_backend.physics.plant import Plant, PlantParams, simulate
 
 pytestmark = pytest.mark.slow  # a default sidbe (32 s at 1 kHz) and a closed-loop one: 2 min
 
 PLANT = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 NOISY = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.01&seed=2"
+#: serve-sim for the tests that compare exactly with the offline plant (the others run real).
+LOCKSTEP = ["--clock", "lockstep"]
 STREAMING_HOST = """
 import sys
 from servobench.drivers.registry import open_drive
@@ -116,6 +118,34 @@ def link_cycles(iface: str, url: str) -> dict:
 def link_sidbe_open(iface: str, url: str) -> dict:
     """A default ``sidbe`` (1 kHz, paced in real time by the host, 32 s) on the URL as printed."""
     return _sidbe(url, ["--no-plots"])
+
+
+def link_sidbe_short(iface: str, url: str) -> dict:
+    """``sidbe`` at its defaults but for 2 s periods, 3 of them (12 s of streaming)."""
+    return _sidbe(url, ["--no-plots", "--period", "2", "--periods", "3"])
+
+
+def link_realtime(iface: str, url: str) -> dict:
+    """2 s of a ±0.8 N m square wave, paced at 1 kHz by the host, on a real-time slave."""
+    from servobench.drivers.registry import open_drive
+
+    out: dict = {}
+    with open_drive(url + "&watchdog=0.5") as drive:
+        drive.set_cycle(0.001)
+        out["meta"], out["clock"] = drive.log_metadata(), drive.drive_clock
+        drive.enable()
+        u = np.where((np.arange(2000) // 250) % 2 == 0, 0.8, -0.8)
+        rows, start = [], time.monotonic()
+        for k, uk in enumerate(u):
+            time.sleep(max(0.0, start + k * 1e-3 - time.monotonic()))
+            rows.append(drive.exchange(uk))
+        out["elapsed_s"] = time.monotonic() - start
+        out["t"] = [r[0].t_s for r in rows]
+        out["v"] = [r[0].velocity for r in rows]
+        out["x"] = [r[0].position for r in rows]
+        out["u"] = [r[1] for r in rows]
+        out["recoveries"] = dict(drive.link_recoveries())
+    return out
 
 
 def link_sidbe_closed(iface: str, url: str) -> dict:
@@ -244,12 +274,12 @@ def link_late_frames(iface: str, url: str) -> dict:
 # --------------------------------------------------------------------- tests
 def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     _link_tests()
-    out = run_on_link(__file__, "link_cycles", PLANT)
+    out = run_on_link(__file__, "link_cycles", PLANT, LOCKSTEP)  # exact against the offline plant
     assert out["info"]["units"] == {"u": "N m", "v": "rad/s", "x": "rad"}
     assert out["info"]["product"].startswith("servobench CiA 402 drive")
     assert out["info"]["state"] == "SWITCH ON DISABLED" and out["info"]["al"] == "0x08"
     meta = out["meta"]
-    assert meta["drive_clock"].startswith("0x1013") and out["clock"]
+    assert meta["drive_clock"].startswith("0x10F8") and out["clock"]
     assert meta["distributed_clocks"] == "SYNC0 every 1000 µs"
     assert meta["complete_access"] == "yes"
     assert meta["scale_u_source"].startswith("0x6076")
@@ -257,7 +287,7 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     v_ref, x_ref = simulate(u, 1000.0, PARAMS)
     np.testing.assert_allclose(out["v"], v_ref, atol=1e-6)
     np.testing.assert_allclose(out["x"], x_ref, atol=1e-6)
-    np.testing.assert_allclose(np.diff(out["t"]), 1e-3, atol=1e-9)  # the drive's own clock
+    np.testing.assert_allclose(np.diff(out["t"]), 1e-3, atol=1e-9)  # lock-step DC time: cycles
     np.testing.assert_allclose(out["applied"][1:], u[:-1], atol=1e-9)  # 0x6077: the cycle before
     assert out["hold_supported"]
     assert np.max(np.abs(np.array(out["held_x"]) - out["x_ref"])) < 2e-3
@@ -266,23 +296,72 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     assert out["wd_after_close"] == 0
 
 
-def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
+@pytest.mark.parametrize(
+    ("serve_args", "clock"),
+    [
+        ([], "0x10F8 DC system time of each sample"),
+        (["--no-timestamp"], "DC system time of each frame"),  # no time stamp: the frame's DC time
+    ],
+    ids=["timestamp", "no-timestamp"],
+)
+def test_real_time_slave_samples_at_the_dc_instants_the_log_gets(serve_args, clock) -> None:
+    """The axis moves in wall-clock time; each sample is where the plant is at its DC instant."""
     _link_tests()
-    out = run_on_link(__file__, "link_sidbe_open", PLANT)
+    out = run_on_link(__file__, "link_realtime", PLANT, ["--clock", "real", *serve_args])
+    assert out["meta"]["drive_clock"].startswith(clock) and out["clock"]
+    t, v, x, u = (np.array(out[k], dtype=float) for k in ("t", "v", "x", "u"))
+    dt = np.diff(t)
+    assert t[0] == 0.0 and np.all(dt > 0)
+    assert t[-1] == pytest.approx(out["elapsed_s"], abs=0.05)  # wall-clock time, not cycles
+    assert np.std(dt) > 1e-6  # the host's own irregular spacing, as the DC clock saw it
+    assert np.max(np.abs(v)) > 0.3  # it moves both ways past the friction
+    # one step of the offline plant from each sample, the command held until the next instant
+    plant = Plant(PARAMS)
+    v_next = np.empty(len(t) - 1)
+    for k in range(len(t) - 1):
+        plant.reset(v[k], x[k])
+        plant.hold(u[k], dt[k])
+        v_next[k] = plant.state.v
+    err = np.abs(v_next - v[1:])
+    # a frame sent again (wkc error) has latched its command unseen: allow those steps
+    bad = int(np.sum(err > 1e-4))
+    assert bad <= 2 * out["recoveries"]["wkc_errors"] + 2, (bad, np.sort(err)[-5:])
+
+
+def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
+    """A default sidbe (32 s) on a real-time slave with its DC time stamp 0x10F8."""
+    _link_tests()
+    out = run_on_link(__file__, "link_sidbe_open", PLANT, ["--clock", "real"])
     assert out["rc"] == 0, out["stderr"]
     model = json.loads(out["stdout"])
     note = f"model {model.get('pole')}, {model.get('dc_gain')}; stderr: {out['stderr'][-500:]}"
     assert model["pole"] == pytest.approx(-10.0, rel=0.01), note
-    assert model["pole"] == pytest.approx(-10.0, rel=0.01)
-    assert model["dc_gain"] == pytest.approx(1.0, rel=0.01)
+    assert model["dc_gain"] == pytest.approx(1.0, rel=0.01), note
+    assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.01), note
+    assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.01), note
     assert model["fs"] == 1000.0 and model["loop"] == "open"
     assert "# drive = ethercat://" in out["meta"] and "# pace = real" in out["meta"]
-    assert "# drive_clock = 0x1013" in out["meta"]
+    assert "# drive_clock = 0x10F8 DC system time of each sample" in out["meta"]
+
+
+def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() -> None:
+    """No 0x10F8 nor 0x1013: the DC system time of each frame is the drive clock (12 s run)."""
+    _link_tests()
+    out = run_on_link(__file__, "link_sidbe_short", PLANT, ["--clock", "real", "--no-timestamp"])
+    assert out["rc"] == 0, out["stderr"]
+    model = json.loads(out["stdout"])
+    note = f"model {model.get('pole')}, {model.get('dc_gain')}; stderr: {out['stderr'][-500:]}"
+    assert model["pole"] == pytest.approx(-10.0, rel=0.01), note
+    assert model["dc_gain"] == pytest.approx(1.0, rel=0.01), note
+    assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.01), note
+    assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.01), note
+    assert "# drive_clock = DC system time of each frame" in out["meta"]
 
 
 def test_closed_loop_sidbe_on_a_limited_travel_axis() -> None:
     _link_tests()
-    out = run_on_link(__file__, "link_sidbe_closed", NOISY)
+    # pace=fast: an algorithm test, lock-step
+    out = run_on_link(__file__, "link_sidbe_closed", NOISY, LOCKSTEP)
     assert out["rc"] == 0, out["stderr"]
     model = json.loads(out["stdout"])
     assert model["loop"] == "closed" and model["hold"]["where"] == "drive"
@@ -307,7 +386,7 @@ def test_mapping_falls_back_when_complete_access_is_refused() -> None:
     _link_tests()
     out = run_on_link(__file__, "link_no_complete_access", PLANT, ["--fault", "complete_access=0"])
     assert out["meta"]["complete_access"] == "refused: mapped entry by entry"
-    assert out["meta"]["drive_clock"].startswith("0x1013")  # the time stamp got mapped all the same
+    assert out["meta"]["drive_clock"].startswith("0x10F8")  # the time stamp got mapped all the same
     assert out["v"] > 0.1  # 0.8 N m against 0.5 N m of friction: it runs
 
 

@@ -273,7 +273,8 @@ def test_default_assignment_runs_in_op(bringup: dict) -> None:
 
 
 def test_cyclic_torque_in_velocity_out_against_the_plant() -> None:
-    out = run_on_link(__file__, "link_cyclic", SIM)
+    # lock-step: exact, cycle by cycle
+    out = run_on_link(__file__, "link_cyclic", SIM, ["--clock", "lockstep"])
     assert out["op"] == 0x08 and out["has_dc"]
     # statusword: ready to switch on, switched on, operation enabled (CiA 402 table 30)
     assert [sw & 0x6F for sw in out["statuswords"]] == [0x21, 0x23, 0x27]

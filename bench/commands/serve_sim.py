@@ -61,7 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--no-timestamp",
         action="store_true",
         help="serve a drive that gives no time stamp: CANopen without 0x1013 (EDS cia402-nostamp), "
-        "Modbus without the timestamp register (map servobench-sim-nostamp)",
+        "Modbus without the timestamp register (map servobench-sim-nostamp), "
+        "EtherCAT without 0x1013 and the timestamp object 0x10F8",
     )
     p.add_argument(
         "--rt-priority",

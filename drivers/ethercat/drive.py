@@ -16,10 +16,14 @@ and comes back to OP with SYNC0 at the new period.
 Each :meth:`exchange` is one frame: the controlword and target torque (or,
 in the hold, the torque offset and target position) out; statusword,
 position, velocity, torque actual and the time stamp in. The drive clock
-(``Feedback.t_s``) is the slave's time stamp 0x1013 [µs] where it maps one,
-else the DC system time of the frame (read in the same frame, FRMW), else the
-host's clock; ``drive_clock`` says which. Position and time stamp are
-unwrapped across their 32-bit roll-over.
+(``Feedback.t_s``, from 0 at the first sample of the session) is the DC
+system time at which the slave sampled its inputs, the timestamp object
+0x10F8 [ns], where it maps one; else its time stamp 0x1013 [µs]; else the
+DC system time of the frame (the reference clock's 0x0910 read in the same
+frame by an FRMW: the instant the frame passed the slave, which is when a
+slave synchronous to the SM2 event samples); else the host's clock.
+``drive_clock`` is True in all but the last case; the log's ``drive_clock``
+says which. Position and 0x1013 are unwrapped across their 32-bit roll-over.
 
 The CiA 402 state machine is walked through the process data with
 :func:`servobench.drivers.cia402.plan`, each step under a deadline. Drive-side
@@ -57,6 +61,7 @@ from servobench.drivers.cia402 import (
     supports_mode,
 )
 from servobench.drivers.cia402_units import FactorObjects, Scaling, derive_scaling
+from servobench.drivers.ethercat.layout import TIMESTAMPS
 from servobench.drivers.ethercat.master import EthercatMaster
 from servobench.drivers.ethercat.options import QUERY_KEYS, EthercatOptions
 from servobench.errors import (
@@ -127,19 +132,23 @@ class EthercatDrive(Drive):
         rx = [
             i for i in (0x6040, 0x6071, 0x607A, 0x60B2) if bus.sdo_optional(i, 0, "h") is not None
         ]
-        tx = [i for i in (0x6041, 0x6064, 0x606C, 0x6077, 0x1013)
+        tx = [i for i in (0x6041, 0x6064, 0x606C, 0x6077)
               if bus.sdo_optional(i, 0, "H") is not None]  # fmt: skip
+        stamp = next((i for i in TIMESTAMPS if bus.sdo_optional(i, 0, "H") is not None), None)
+        tx += [stamp] if stamp is not None else []
         self._write_cycle(bus, self._cycle_s)
         bus.map_pdos(rx, tx)  # SOEM's config_map ends with the request for SAFE-OP
         self._hold_reason = self._hold_check(bus, modes)
         self.supports_drive_hold = self._hold_reason is None
         bus.go_op(self._cycle_s)
         self.clock_source = (
-            "0x1013 time stamp of each sample [µs]" if bus.tx.has(0x1013)
+            "0x10F8 DC system time of each sample [ns]" if bus.tx.has(0x10F8)
+            else "0x1013 time stamp of each sample [µs]" if bus.tx.has(0x1013)
             else "DC system time of each frame (SYNC0 on)" if bus.has_dc
             else "host clock (no time stamp, no DC)"
         )  # fmt: skip
-        self.drive_clock = bus.tx.has(0x1013) or bus.has_dc
+        self.drive_clock = bus.tx.has(0x10F8) or bus.tx.has(0x1013) or bus.has_dc
+        self._dc0 = None  # the drive clock starts at 0 with the session
         bus.keep_alive = True
         bus.start_keepalive()
         state = self._state()
@@ -302,7 +311,10 @@ class EthercatDrive(Drive):
                 f"{self.bus.name} left {self._expected.value}: statusword 0x{values[0x6041]:04X}"
             )
         s = self.scaling
-        if 0x1013 in values:
+        if 0x10F8 in values:
+            self._dc0 = values[0x10F8] if self._dc0 is None else self._dc0
+            t_s = (values[0x10F8] - self._dc0) * 1e-9
+        elif 0x1013 in values:
             t_s = self._t_unwrap(values[0x1013]) * 1e-6
         elif self.bus.has_dc:
             self._dc0 = values["dc"] if self._dc0 is None else self._dc0
@@ -322,6 +334,8 @@ class EthercatDrive(Drive):
         bus = self.bus
         values = {0x6041: bus.sdo_read(0x6041, 0, "H"), 0x6064: bus.sdo_read(0x6064, 0, "i"),
                   0x606C: bus.sdo_read(0x606C, 0, "i"), "dc": 0}  # fmt: skip
+        if bus.tx.has(0x10F8):
+            values[0x10F8] = bus.sdo_read(0x10F8, 0, "Q")
         if bus.tx.has(0x1013):
             values[0x1013] = bus.sdo_read(0x1013, 0, "I")
         if bus.tx.has(0x6077):
@@ -385,4 +399,3 @@ class EthercatDrive(Drive):
                    "emergency": None if bus.emergency is None else f"0x{bus.emergency[0]:04X}",
                    "wkc_errors": bus.wkc_errors, **self.log_metadata()},
         )  # fmt: skip
-

@@ -6,7 +6,13 @@ RxPDO (SM2, outputs) and TxPDO (SM3, inputs) of one PDO each (0x1600 and
     RxPDO  0x6040 controlword (16)   0x6071 target torque (16)
            0x607A target position (32)   0x60B2 torque offset (16)     [the hold]
     TxPDO  0x6041 statusword (16)    0x6064 position (32)   0x606C velocity (32)
-           0x6077 torque actual (16)  0x1013 time stamp [µs] (32)      [where mappable]
+           0x6077 torque actual (16)
+           0x10F8 timestamp object [ns] (64), else 0x1013 time stamp [µs] (32)  [where mappable]
+
+The time stamp is the slave's clock at the instant the inputs were sampled:
+0x10F8 (ETG.1000.6, UNSIGNED64) its DC system time, 0x1013 (CiA 301,
+UNSIGNED32, wrapping) a microsecond counter. One of them is mapped, 0x10F8
+where the slave has it.
 
 A mapping entry is ``index << 16 | subindex << 8 | bits`` (ETG.1000.6 / CiA 301).
 """
@@ -20,7 +26,9 @@ from dataclasses import dataclass
 #: (index, bits, struct code); the first two of each direction are required.
 RX_OBJECTS = ((0x6040, 16, "H"), (0x6071, 16, "h"), (0x607A, 32, "i"), (0x60B2, 16, "h"))
 TX_OBJECTS = ((0x6041, 16, "H"), (0x6064, 32, "i"), (0x606C, 32, "i"), (0x6077, 16, "h"),
-              (0x1013, 32, "I"))  # fmt: skip
+              (0x10F8, 64, "Q"), (0x1013, 32, "I"))  # fmt: skip
+#: Time stamp objects, the preferred first.
+TIMESTAMPS = (0x10F8, 0x1013)
 REQUIRED_RX = (0x6040, 0x6071)
 REQUIRED_TX = (0x6041, 0x6064, 0x606C)
 

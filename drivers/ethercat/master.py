@@ -40,6 +40,7 @@ from servobench.drivers.ethercat.layout import (
     REQUIRED_RX,
     REQUIRED_TX,
     RX_OBJECTS,
+    TIMESTAMPS,
     TX_OBJECTS,
     PdoLayout,
 )
@@ -198,9 +199,9 @@ class EthercatMaster:
         try:
             self._write_pdo(TX_ASSIGN, TX_MAP, tx.entries())
         except DriveConfigError:
-            if not tx.has(0x1013):
+            if not any(tx.has(i) for i in TIMESTAMPS):
                 raise
-            tx = PdoLayout(tuple(o for o in tx.objects if o[0] != 0x1013))  # not mappable
+            tx = PdoLayout(tuple(o for o in tx.objects if o[0] not in TIMESTAMPS))  # not mappable
             self._write_pdo(TX_ASSIGN, TX_MAP, tx.entries())
         self.rx, self.tx = rx, tx
         self.master.config_map()

@@ -18,7 +18,18 @@ EtherCAT changes:
   slave stack of real drives waits for valid outputs;
 * the process data cycle: each completed SM2 buffer in OP writes the
   RxPDO objects, clocks the device once (the position loop first in CSP)
-  and leaves the TxPDO of the sample taken there in SM3 (:class:`PdoCycle`);
+  and leaves the TxPDO of the sample taken there in SM3 (:class:`PdoCycle`).
+  A ``clock="real"`` device is not clocked but looked at: the frame is
+  handled at the one instant it arrived
+  (:mod:`~servobench.sim_backend.servers.ethercat.serve_ethercat`), so the
+  outputs it carries take force, and the inputs are sampled, at that
+  instant, the axis having moved in wall-clock time meanwhile with the last
+  outputs received; a lock-step device makes one cycle of each frame;
+* the timestamp object 0x10F8 (where served) is the DC system time of the
+  sample: in ``real`` the ESC's system time at the frame's arrival (the
+  instant the inputs were sampled, the one an FRMW of the same frame
+  reads); in lock-step the drive clock (cycles times the cycle) on the DC
+  time base (plus the offset 0x0920 the master wrote);
 * the SM watchdog: when it expires the slave goes to SAFE-OP with the
   error flag and 0x001B, and the axis faults (0x8130, the device
   watchdog's code) with a CoE emergency;
@@ -35,7 +46,12 @@ import canopen
 from canopen.sdo import SdoAbortedError
 
 from servobench.drivers.cia402 import CW_QUICK_STOP, CiA402State
-from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
+from servobench.sim_backend.device import (
+    WATCHDOG_FAULT,
+    DeviceSample,
+    PowerState,
+    SimulatedDevice,
+)
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.servers import can_pdo
 from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
@@ -85,6 +101,14 @@ class CoeCiA402Drive(ServedCiA402Drive):
 
     #: The slave's AL state (set by :class:`CoeSlave`).
     al_state: Callable[[], al.AlState] = staticmethod(lambda: A.INIT)
+    #: The DC system time [ns] of a sample (set by :class:`CoeSlave`).
+    dc_time_of: Callable[[DeviceSample], int] = staticmethod(lambda sample: 0)
+
+    def _on_read(self, index: int, subindex: int, od) -> int | None:
+        if index == O.TIMESTAMP:
+            with self.lock:  # at a process data cycle the sample it took, else the present one
+                return self.dc_time_of(self.sync.frozen or self.injector.sample())
+        return super()._on_read(index, subindex, od)
 
     def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
         state = self.al_state()
@@ -206,14 +230,16 @@ class CoeSlave(Application):
         injector: FaultInjector,
         keys: dict[str, str] | None = None,
         serial: int = 1,
+        timestamp: bool = True,
     ) -> None:
         self.device = device
-        od = O.ethercat_od(device.cycle_s)
+        od = O.ethercat_od(device.cycle_s, timestamp)
         complete_access = 0 not in injector.plan.setting("complete_access")
         self.description = O.description(od, serial, complete_access)
         self.node = canopen.LocalNode(1, od)
         self.drive = CoeCiA402Drive(device, self.node, injector, keys)
         self.drive.al_state = lambda: self.esc.al_state
+        self.drive.dc_time_of = self._dc_time_of
         self.pdo = self.drive.sync = PdoCycle(self.drive)
         self.lock = threading.RLock()
         self.esc = Esc(build_image(self.description), self)
@@ -227,6 +253,12 @@ class CoeSlave(Application):
         self._outputs_seen = False
         self._pending_op = False
         self.sizes = (0, 0)
+
+    def _dc_time_of(self, sample: DeviceSample) -> int:
+        """0x10F8: the DC system time [ns] at which ``sample`` was taken (module docstring)."""
+        if self.device.realtime:
+            return self.esc.system_time_ns()  # the frame's arrival while a frame passes
+        return self.esc.system_time_of(round(sample.t_s * 1e9))
 
     # --------------------------------------------------------------- AL
     def al_transition(self, current: al.AlState, target: al.AlState) -> int:

@@ -32,9 +32,10 @@ bitwise FMMU mappings are treated as bytewise.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from servobench.sim_backend.servers.ethercat import al
 from servobench.sim_backend.servers.ethercat import registers as R
@@ -82,6 +83,7 @@ class Esc:
         self.app = app
         self._clock_ns = clock_ns
         self._t0_ns = clock_ns()
+        self._frame_ns: int | None = None  # the arrival instant of the frame being processed
         self.mem = R.reset_image()
         self._mask = R.write_mask()
         self._mailbox_full = [False] * R.SM_COUNT
@@ -114,12 +116,31 @@ class Esc:
             self.mem[R.AL_STATUS_CODE : R.AL_STATUS_CODE + 2] = code.to_bytes(2, "little")
 
     def local_time_ns(self) -> int:
-        return self._clock_ns() - self._t0_ns
+        """The DC unit's local time [ns]; while a frame passes, the instant it arrived."""
+        now = self._clock_ns() if self._frame_ns is None else self._frame_ns
+        return now - self._t0_ns
+
+    @contextlib.contextmanager
+    def frame_at(self, arrival_ns: int) -> Iterator[None]:
+        """Process one frame at its arrival instant ``arrival_ns`` (of the ESC's clock).
+
+        A frame passes an ESC in microseconds: every datagram in it (the
+        process data, the DC system time an FRMW reads) sees the one instant.
+        """
+        self._frame_ns = arrival_ns
+        try:
+            yield
+        finally:
+            self._frame_ns = None
 
     def system_time_ns(self) -> int:
         """DC system time: local time plus the offset the master wrote (0x0920) [ns]."""
+        return self.system_time_of(self.local_time_ns())
+
+    def system_time_of(self, local_ns: int) -> int:
+        """The DC system time [ns] of the local time ``local_ns`` (plus the offset 0x0920)."""
         (offset,) = struct.unpack_from("<q", self.mem, R.DC_SYSTEM_TIME_OFFSET)
-        return (self.local_time_ns() + offset) & 0xFFFFFFFFFFFFFFFF
+        return (local_ns + offset) & 0xFFFFFFFFFFFFFFFF
 
     def sync0(self) -> tuple[int, int] | None:
         """``(start time, cycle)`` [ns of system time] while SYNC0 is active, else ``None``."""

@@ -17,7 +17,14 @@ and CoE's are added (ETG.1000.6 5.6.7.4, ETG.6010):
   runs the drive in cyclic synchronous torque without remapping, as the
   default assignment of a real drive's ESI does;
 * 0x1C32 / 0x1C33 the SM output / input parameters (synchronisation type,
-  cycle time [ns], supported types).
+  cycle time [ns], supported types);
+* 0x10F8 the timestamp object (ETG.1000.6 / ETG.1020: UNSIGNED64, ns, read
+  only, mappable): the DC system time at which the inputs of the process
+  data cycle were sampled.
+
+Without a time stamp (``serve-sim --no-timestamp``, ``timestamp=False``)
+the dictionary is that of the shipped EDS ``cia402-nostamp`` (no 0x1013)
+and has no 0x10F8: the master has the DC system time of the frame only.
 """
 
 from __future__ import annotations
@@ -36,6 +43,10 @@ PDOS_PER_DIRECTION = 4
 RXPDO_ASSIGN, TXPDO_ASSIGN = 0x1C12, 0x1C13
 SM_COMM_TYPE = 0x1C00
 SM_OUTPUT_PARAMETER, SM_INPUT_PARAMETER = 0x1C32, 0x1C33
+#: The timestamp object: DC system time of the sample [ns] (UNSIGNED64).
+TIMESTAMP = 0x10F8
+#: The EDS of the drive without a time stamp (no 0x1013).
+NO_TIMESTAMP_EDS = "cia402-nostamp"
 #: Default mapping: (index, subindex, bits).
 DEFAULT_RXPDO = ((0x6040, 0, 16), (0x6071, 0, 16), (0x607A, 0, 32), (0x60B2, 0, 16))
 DEFAULT_TXPDO = ((0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16))
@@ -96,9 +107,9 @@ def _set_mapping(od: canopen.ObjectDictionary, index: int, entries) -> None:
         mapping[sub].default = obj << 16 | subindex << 8 | bits
 
 
-def ethercat_od(cycle_s: float) -> canopen.ObjectDictionary:
-    """The slave's object dictionary (see the module docstring)."""
-    od = load_eds(1)
+def ethercat_od(cycle_s: float, timestamp: bool = True) -> canopen.ObjectDictionary:
+    """The slave's object dictionary (see the module docstring); ``timestamp``: 0x1013 and 0x10F8."""
+    od = load_eds(1) if timestamp else load_eds(1, NO_TIMESTAMP_EDS)
     for index in list(od.indices):
         if index in CAN_ONLY or 0x1400 <= index < 0x1600 or 0x1800 <= index < 0x1A00:
             del od.indices[index]
@@ -119,6 +130,10 @@ def ethercat_od(cycle_s: float) -> canopen.ObjectDictionary:
     cycle_ns = round(cycle_s * 1e9)
     od.add_object(_sync_parameter(SM_OUTPUT_PARAMETER, cycle_ns))
     od.add_object(_sync_parameter(SM_INPUT_PARAMETER, cycle_ns))
+    if timestamp:
+        stamp = _var("Timestamp object", TIMESTAMP, 0, od_types.UNSIGNED64, 0, "ro")
+        stamp.pdo_mappable = True
+        od.add_object(stamp)
     return od
 
 

@@ -116,14 +116,21 @@ def _kind(iface: str) -> str:
 
 
 def answer(slave: CoeSlave, raw: bytes) -> bytes | None:
-    """The frame the slave sends back for ``raw``; ``None`` when it is not for it."""
+    """The frame the slave sends back for ``raw``; ``None`` when it is not for it.
+
+    The whole frame is handled at one instant, as it passes an ESC in
+    microseconds: the device's
+    (:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`) and, read
+    right after on the same monotonic clock, the DC unit's (:meth:`~.esc.Esc.frame_at`).
+    """
     try:
         frame = decode_frame(raw)
     except FrameError:
         return None
     if frame.src[0] & SOURCE_MAC_MARK:
         return None  # already processed by a slave: a returning frame
-    with slave.lock:
+    # the drive and its DC unit: one instant per frame (with-items enter left to right)
+    with slave.lock, slave.device.instant(), slave.esc.frame_at(time.monotonic_ns()):
         datagrams = tuple(slave.esc.execute(d) for d in frame.datagrams)
     return encode_frame(Frame(frame.dst, returned_source(frame.src), datagrams))
 
@@ -142,7 +149,7 @@ def serve(
     if injector is None:
         injector = FaultInjector(device, parse_plan(options.get("fault") or "", "ethercat"))
     keys = dict(parse_qsl(options.get("sim_keys") or "", keep_blank_values=True))
-    slave = CoeSlave(device, injector, keys)
+    slave = CoeSlave(device, injector, keys, timestamp=options.get("timestamp") != "none")
     with contextlib.closing(open_raw_socket(iface)) as sock:
         announce(f"ethercat://{master_side(iface)}?slave=1")
         while not stop.is_set():
