@@ -300,20 +300,23 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     ("serve_args", "clock"),
     [
         ([], "0x10F8 DC system time of each sample"),
-        (["--no-timestamp"], "DC system time of each frame"),  # no time stamp: the frame's DC time
+        (["--no-timestamp"], "DC system time of each sample (the SYNC0 event"),  # from the grid
     ],
     ids=["timestamp", "no-timestamp"],
 )
 def test_real_time_slave_samples_at_the_dc_instants_the_log_gets(serve_args, clock) -> None:
-    """The axis moves in wall-clock time; each sample is where the plant is at its DC instant."""
+    """The axis moves in wall-clock time, the slave samples at its SYNC0 events (DC-synchronous),
+    and each sample is where the plant is at that DC instant with the commands as logged."""
     _link_tests()
     out = run_on_link(__file__, "link_realtime", PLANT, ["--clock", "real", *serve_args])
     assert out["meta"]["drive_clock"].startswith(clock) and out["clock"]
+    assert out["meta"]["distributed_clocks"].endswith("DC-synchronous (0x1C32:01 = 2)")
     t, v, x, u = (np.array(out[k], dtype=float) for k in ("t", "v", "x", "u"))
     dt = np.diff(t)
     assert t[0] == 0.0 and np.all(dt > 0)
     assert t[-1] == pytest.approx(out["elapsed_s"], abs=0.05)  # wall-clock time, not cycles
-    assert np.std(dt) > 1e-6  # the host's own irregular spacing, as the DC clock saw it
+    # on the SYNC0 grid whatever the host's timing: whole cycles, some longer than one
+    np.testing.assert_allclose(dt / 1e-3, np.round(dt / 1e-3), atol=1e-6)
     assert np.max(np.abs(v)) > 0.3  # it moves both ways past the friction
     # one step of the offline plant from each sample, the command held until the next instant
     plant = Plant(PARAMS)
@@ -345,7 +348,7 @@ def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
 
 
 def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() -> None:
-    """No 0x10F8 nor 0x1013: the DC system time of each frame is the drive clock (12 s run)."""
+    """No 0x10F8 nor 0x1013: the SYNC0 event before each frame is the drive clock (12 s run)."""
     _link_tests()
     out = run_on_link(__file__, "link_sidbe_short", PLANT, ["--clock", "real", "--no-timestamp"])
     assert out["rc"] == 0, out["stderr"]
@@ -355,7 +358,7 @@ def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() 
     assert model["dc_gain"] == pytest.approx(1.0, rel=0.01), note
     assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.01), note
     assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.01), note
-    assert "# drive_clock = DC system time of each frame" in out["meta"]
+    assert "# drive_clock = DC system time of each sample (the SYNC0 event" in out["meta"]
 
 
 def test_closed_loop_sidbe_on_a_limited_travel_axis() -> None:

@@ -9,19 +9,24 @@ cyclic synchronous torque), the factor group read as on CANopen
 (:mod:`servobench.drivers.cia402_units`), max torque 0x6072 from ``max_u``
 where the slave has it, mode 0x6060 = 10 (CST), the PDO mapping
 (:mod:`.layout`), then SAFE-OP and OP with DC SYNC0 at the cycle period where
-the slave has distributed clocks. :meth:`set_cycle` (before enabling) takes
+the slave has distributed clocks, DC-synchronous (0x1C32:01 = 2) where the
+slave announces it in 0x1C32:04. :meth:`set_cycle` (before enabling) takes
 the slave back to PRE-OP, writes 0x1C32:02 [ns] and 0x60C2 where it has them,
 and comes back to OP with SYNC0 at the new period.
 
-Each :meth:`exchange` is one frame: the controlword and target torque (or,
+Each :meth:`exchange` is one frame (two with a DC-synchronous slave, whose
+outputs take force and inputs are sampled at its SYNC0 events: the outputs,
+then, once its DC clock passed the next event, the inputs sampled there,
+:meth:`_sample_at_sync0`): the controlword and target torque (or,
 in the hold, the torque offset and target position) out; statusword,
 position, velocity, torque actual and the time stamp in. The drive clock
 (``Feedback.t_s``, from 0 at the first sample of the session) is the DC
 system time at which the slave sampled its inputs, the timestamp object
-0x10F8 [ns], where it maps one; else its time stamp 0x1013 [µs]; else the
-DC system time of the frame (the reference clock's 0x0910 read in the same
-frame by an FRMW: the instant the frame passed the slave, which is when a
-slave synchronous to the SM2 event samples); else the host's clock.
+0x10F8 [ns], where it maps one; else its time stamp 0x1013 [µs]; else from
+the DC system time of the frame (the reference clock's 0x0910 read in the
+same frame by an FRMW): the SYNC0 event before it for a DC-synchronous
+slave, else the instant the frame passed the slave (when a slave
+synchronous to the SM2 event samples); else the host's clock.
 ``drive_clock`` is True in all but the last case; the log's ``drive_clock``
 says which. Position and 0x1013 are unwrapped across their 32-bit roll-over.
 
@@ -66,6 +71,7 @@ from servobench.drivers.ethercat.master import EthercatMaster
 from servobench.drivers.ethercat.options import QUERY_KEYS, EthercatOptions
 from servobench.errors import (
     DriveConfigError,
+    DriveConnectionError,
     DriveFaultError,
     StateTransitionError,
     UsageError,
@@ -74,6 +80,10 @@ from servobench.errors import (
 S = CiA402State
 #: Deadline of each CiA 402 state transition [s].
 STATE_TIMEOUT_S = 1.0
+#: A DC-synchronous exchange: margin after the SYNC0 event before the inputs are read [s],
+#: and how many cycles (beyond 1 s) it waits for the slave's DC clock to pass the event.
+SYNC0_MARGIN_S = 50e-6
+SYNC0_WAIT_CYCLES = 100
 DEFAULT_CYCLE_S = 1e-3
 _I16 = 32767
 
@@ -137,6 +147,7 @@ class EthercatDrive(Drive):
         stamp = next((i for i in TIMESTAMPS if bus.sdo_optional(i, 0, "H") is not None), None)
         tx += [stamp] if stamp is not None else []
         self._write_cycle(bus, self._cycle_s)
+        bus.choose_dc_synchronous()  # in PRE-OP: map_pdos ends with the request for SAFE-OP
         bus.map_pdos(rx, tx)  # SOEM's config_map ends with the request for SAFE-OP
         self._hold_reason = self._hold_check(bus, modes)
         self.supports_drive_hold = self._hold_reason is None
@@ -144,6 +155,8 @@ class EthercatDrive(Drive):
         self.clock_source = (
             "0x10F8 DC system time of each sample [ns]" if bus.tx.has(0x10F8)
             else "0x1013 time stamp of each sample [µs]" if bus.tx.has(0x1013)
+            else "DC system time of each sample (the SYNC0 event before each frame)"
+            if bus.dc_synchronous
             else "DC system time of each frame (SYNC0 on)" if bus.has_dc
             else "host clock (no time stamp, no DC)"
         )  # fmt: skip
@@ -300,7 +313,36 @@ class EthercatDrive(Drive):
     def _exchange(self, u: float) -> Feedback:
         raw = round(u / self.scaling.u.scale)
         self._values[0x60B2 if self._holding else 0x6071] = raw
-        return self._feedback(self._frame())
+        values = self._frame()
+        if self.bus.dc_synchronous:
+            values = self._sample_at_sync0(values["dc"])
+        return self._feedback(values)
+
+    def _sample_at_sync0(self, sent_dc_ns: int) -> dict[int, int]:
+        """A DC-synchronous slave: the inputs of the SYNC0 event at which the outputs sent take force.
+
+        The outputs of the frame that passed the slave at ``sent_dc_ns`` take
+        force at the next SYNC0 event, where the inputs are sampled; this
+        waits for the slave's DC clock to pass that event (it runs at the
+        host's rate) and reads them, so ``u_k`` is held from the instant of the
+        sample returned, as the exchange contract says. A frame that comes too
+        early (its DC time before the event) is sent again.
+        """
+        bus = self.bus
+        due, sent_at = bus.next_sync0(sent_dc_ns), time.monotonic_ns()
+        deadline = time.monotonic() + SYNC0_WAIT_CYCLES * bus.sync0[1] * 1e-9 + 1.0
+        while True:
+            wait_ns = due - sent_dc_ns - (time.monotonic_ns() - sent_at)
+            if wait_ns > 0:
+                time.sleep(wait_ns * 1e-9 + SYNC0_MARGIN_S)
+            values = self._frame()
+            if values["dc"] >= due:
+                return values
+            if time.monotonic() > deadline:
+                raise DriveConnectionError(
+                    f"{bus.name}: its DC clock did not reach the next SYNC0 event "
+                    f"({(due - values['dc']) * 1e-6:.3f} ms short)"
+                )
 
     def _feedback(self, values: Mapping[int, int]) -> Feedback:
         state = decode_statusword(values[0x6041])
@@ -316,9 +358,10 @@ class EthercatDrive(Drive):
             t_s = (values[0x10F8] - self._dc0) * 1e-9
         elif 0x1013 in values:
             t_s = self._t_unwrap(values[0x1013]) * 1e-6
-        elif self.bus.has_dc:
-            self._dc0 = values["dc"] if self._dc0 is None else self._dc0
-            t_s = (values["dc"] - self._dc0) * 1e-9
+        elif self.bus.has_dc:  # the frame's DC time; DC-synchronous: the SYNC0 event before it
+            dc = self.bus.last_sync0(values["dc"]) if self.bus.dc_synchronous else values["dc"]
+            self._dc0 = dc if self._dc0 is None else self._dc0
+            t_s = (dc - self._dc0) * 1e-9
         else:
             t_s = time.monotonic()
         applied = values[0x6077] * s.u.scale if 0x6077 in values else math.nan
@@ -374,8 +417,9 @@ class EthercatDrive(Drive):
             meta[f"scale_{key}_source"] = factor.source
         meta.update(
             drive_clock=self.clock_source,
-            distributed_clocks=f"SYNC0 every {self._cycle_s * 1e6:.0f} µs" if self.bus.has_dc
-            else "none",
+            distributed_clocks=(f"SYNC0 every {self._cycle_s * 1e6:.0f} µs"
+                                + (", DC-synchronous (0x1C32:01 = 2)" if self.bus.dc_synchronous
+                                   else "")) if self.bus.has_dc else "none",
             complete_access="yes" if self.bus.complete_access else "refused: mapped entry by entry",
             drive_hold="cyclic synchronous position: target 0x607A, offset 0x60B2, 0x6077 read back"
             if self._hold_reason is None else f"unavailable: {self._hold_reason}",

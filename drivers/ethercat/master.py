@@ -10,7 +10,10 @@ pysoem's exceptions into servobench's typed errors at this boundary:
   by complete access, and entry by entry when the slave refuses it (abort),
   then ``config_map`` and a check of the sizes the slave took;
 * PRE-OP -> SAFE-OP -> OP with DC SYNC0 (``config_dc``, ``dc_sync``) where the
-  slave has distributed clocks; back to PRE-OP for a new cycle period;
+  slave has distributed clocks, and 0x1C32:01 = 2 (DC-synchronous: the slave
+  takes the outputs and samples the inputs at each SYNC0 event) where
+  0x1C32:04 announces it; the SYNC0 grid (start 0x0990, cycle 0x09A0) is
+  read back; back to PRE-OP for a new cycle period;
 * the cycle: outputs out, inputs and the DC system time back in one frame
   (LRW + FRMW), the working counter checked: a frame lost, late or with a
   wrong working counter is counted and sent again (a lock-step slave that
@@ -68,6 +71,8 @@ SOEM_TIMEOUTS_US = {"ret": 20_000, "safe": 200_000, "eeprom": 200_000}
 #: Scans before "no slave" (a slave may miss one while its host is busy).
 SCANS = 3
 RX_ASSIGN, TX_ASSIGN, RX_MAP, TX_MAP = 0x1C12, 0x1C13, 0x1600, 0x1A00
+#: 0x1C32:01 synchronisation type DC SYNC0 (ETG.1020).
+SYNC_DC0 = 2
 
 
 def import_pysoem():
@@ -96,6 +101,10 @@ class EthercatMaster:
         self.rx: PdoLayout | None = None
         self.tx: PdoLayout | None = None
         self.has_dc = False
+        #: The slave runs its process data cycle at SYNC0 (0x1C32:01 = 2 taken).
+        self.dc_synchronous = False
+        #: ``(start, cycle)`` of SYNC0 [ns of DC system time] while it is on.
+        self.sync0 = (0, 1)
         self.complete_access = True
         self.wkc_errors = 0  #: cycles with a wrong working counter or no frame, since open
         self.emergency: tuple[int, int] | None = None
@@ -267,14 +276,43 @@ class EthercatMaster:
                 self.has_dc = bool(self.master.config_dc())
             if self.options.dc == "on" and not self.has_dc:
                 raise DriveConfigError(f"{self.name} has no distributed clocks (dc=on)")
+            self.dc_synchronous = self.dc_synchronous and self.has_dc
             if self.has_dc:
                 with self._lock:
                     self.slave.dc_sync(True, round(cycle_s * 1e9))
+                    # SOEM chose the start time (0x0990): the SYNC0 grid of the slave's DC clock
+                    self.sync0 = (struct.unpack("<Q", self.slave._fprd(0x0990, 8))[0],
+                                  struct.unpack("<I", self.slave._fprd(0x09A0, 4))[0])  # fmt: skip
         self.request(SAFE_OP)
         self.wait_state(SAFE_OP)
         self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
         self.request(OP)
         self.wait_state(OP, cycling=True)
+
+    def choose_dc_synchronous(self) -> None:
+        """In PRE-OP: 0x1C32:01 = 2 (DC SYNC0) where 0x1C32:04 announces it (and ``dc`` is not off).
+
+        :attr:`dc_synchronous` is then True once :meth:`go_op` found distributed clocks.
+        """
+        self.dc_synchronous = False
+        supported = self.sdo_optional(0x1C32, 4, "H") if self.options.dc != "off" else None
+        if supported is None or not supported & 1 << SYNC_DC0:
+            return
+        try:
+            self.sdo_write(0x1C32, 1, struct.pack("<H", SYNC_DC0))
+        except DriveConfigError:
+            return
+        self.dc_synchronous = True
+
+    def next_sync0(self, dc_ns: int) -> int:
+        """The first SYNC0 event [ns of DC system time] after ``dc_ns``."""
+        start, cycle = self.sync0
+        return start + max(0, (dc_ns - start) // cycle + 1) * cycle
+
+    def last_sync0(self, dc_ns: int) -> int:
+        """The last SYNC0 event [ns of DC system time] at or before ``dc_ns``."""
+        start, cycle = self.sync0
+        return start + max(0, (dc_ns - start) // cycle) * cycle
 
     def back_to_pre_op(self) -> None:
         self.request(PRE_OP)

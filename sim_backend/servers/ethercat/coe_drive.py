@@ -25,11 +25,22 @@ EtherCAT changes:
   outputs it carries take force, and the inputs are sampled, at that
   instant, the axis having moved in wall-clock time meanwhile with the last
   outputs received; a lock-step device makes one cycle of each frame;
+* DC-synchronous (``real`` only, SYNC0 active and 0x1C32:01 = 2, which the
+  master writes in PRE-OP where 0x1C32:04 announces it): the process data
+  cycle runs at each SYNC0 event of the slave's own DC clock instead of at
+  the frame, as a DC-synchronous drive does: the outputs last received take
+  force and the inputs are sampled at the event's instant (the serve loop
+  handles each event at that instant of the plant, however late it gets to
+  it, and before any frame that arrived after it), and the frames only
+  deliver outputs and read the inputs of the last event. The host's timing
+  then never reaches the sample instants, which fall on the SYNC0 grid.
+  Events the loop got to late together are merged into the last of them
+  (the same outputs in force, the inputs overwritten);
 * the timestamp object 0x10F8 (where served) is the DC system time of the
-  sample: in ``real`` the ESC's system time at the frame's arrival (the
-  instant the inputs were sampled, the one an FRMW of the same frame
-  reads); in lock-step the drive clock (cycles times the cycle) on the DC
-  time base (plus the offset 0x0920 the master wrote);
+  sample: in ``real`` the ESC's system time at the frame's arrival or at
+  the SYNC0 event (the instant the inputs were sampled); in lock-step the
+  drive clock (cycles times the cycle) on the DC time base (plus the offset
+  0x0920 the master wrote);
 * the SM watchdog: when it expires the slave goes to SAFE-OP with the
   error flag and 0x001B, and the axis faults (0x8130, the device
   watchdog's code) with a CoE emergency;
@@ -119,6 +130,12 @@ class CoeCiA402Drive(ServedCiA402Drive):
             self._check_assignment(index, subindex, od.decode_raw(data))
         elif mapping:
             self._check_mapping(index, subindex, od.decode_raw(data))
+            return
+        elif index == O.SM_OUTPUT_PARAMETER and subindex == 1:
+            kind = od.decode_raw(data)
+            (supported,) = struct.unpack("<H", self.node.get_data(O.SM_OUTPUT_PARAMETER, 4))
+            if kind not in (O.SYNC_FREE_RUN, O.SYNC_SM, O.SYNC_DC0) or not supported >> kind & 1:
+                raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
             return
         elif index == O.SM_OUTPUT_PARAMETER and subindex == 2:
             cycle_ns = od.decode_raw(data)
@@ -233,7 +250,7 @@ class CoeSlave(Application):
         timestamp: bool = True,
     ) -> None:
         self.device = device
-        od = O.ethercat_od(device.cycle_s, timestamp)
+        od = O.ethercat_od(device.cycle_s, timestamp, dc_synchronous=device.realtime)
         complete_access = 0 not in injector.plan.setting("complete_access")
         self.description = O.description(od, serial, complete_access)
         self.node = canopen.LocalNode(1, od)
@@ -253,6 +270,8 @@ class CoeSlave(Application):
         self._outputs_seen = False
         self._pending_op = False
         self.sizes = (0, 0)
+        self._outputs: bytes | None = None  # DC-synchronous: the outputs last received
+        self._next_sync0: int | None = None  # DC-synchronous: system time of the next event [ns]
 
     def _dc_time_of(self, sample: DeviceSample) -> int:
         """0x10F8: the DC system time [ns] at which ``sample`` was taken (module docstring)."""
@@ -312,6 +331,7 @@ class CoeSlave(Application):
         if target is A.INIT:
             self.esc.reset_mailboxes()
         self._pending_op = False
+        self._outputs = self._next_sync0 = None
 
     # ------------------------------------------------------------ mailbox
     def mailbox_written(self, data: bytes) -> None:
@@ -345,11 +365,46 @@ class CoeSlave(Application):
             return
         if state is not A.OP:
             return
+        if self.dc_synchronous:
+            self._outputs = data  # they take force at the next SYNC0 event
+            return
+        self._cycle(data)
+
+    def _cycle(self, data: bytes) -> None:
         try:
             inputs = self.pdo.cycle(data)
         except SdoAbortedError:
             inputs = self.pdo.pack()
         self.esc.set_inputs(3, inputs)
+
+    @property
+    def dc_synchronous(self) -> bool:
+        """The process data cycle runs at SYNC0 (module docstring)."""
+        if not self.device.realtime or self.esc.sync0() is None:
+            return False
+        (kind,) = struct.unpack("<H", self.node.get_data(O.SM_OUTPUT_PARAMETER, 1))
+        return kind == O.SYNC_DC0
+
+    def sync0_due(self, clock_ns: int) -> None:
+        """Run the SYNC0 events due up to ``clock_ns`` (the ESC's clock), each at its own instant."""
+        sync0 = self.esc.sync0()
+        if sync0 is None or not self.dc_synchronous:
+            self._next_sync0 = None
+            return
+        start, cycle = sync0
+        if self._next_sync0 is None:
+            self._next_sync0 = start
+        now = self.esc.system_time_at(clock_ns)
+        if now < self._next_sync0:
+            return
+        event = self._next_sync0 + (now - self._next_sync0) // cycle * cycle  # the latest due
+        self._next_sync0 = event + cycle
+        at_ns = self.esc.clock_of_system(event)
+        with self.device.instant(at_ns * 1e-9), self.esc.frame_at(at_ns):
+            if self.esc.al_state is A.OP and self._outputs is not None:
+                self._cycle(self._outputs)
+            else:
+                self.refresh_inputs()
 
     def refresh_inputs(self) -> None:
         """Keep the inputs current while no outputs arrive (SAFE-OP)."""

@@ -137,6 +137,15 @@ class Esc:
         """DC system time: local time plus the offset the master wrote (0x0920) [ns]."""
         return self.system_time_of(self.local_time_ns())
 
+    def system_time_at(self, clock_ns: int) -> int:
+        """The DC system time [ns] when the ESC clock (``clock_ns``) reads ``clock_ns``."""
+        return self.system_time_of(clock_ns - self._t0_ns)
+
+    def clock_of_system(self, system_ns: int) -> int:
+        """The ESC clock's reading [ns] (``clock_ns``) when the DC system time is ``system_ns``."""
+        (offset,) = struct.unpack_from("<q", self.mem, R.DC_SYSTEM_TIME_OFFSET)
+        return (system_ns - offset) % 2**64 + self._t0_ns
+
     def system_time_of(self, local_ns: int) -> int:
         """The DC system time [ns] of the local time ``local_ns`` (plus the offset 0x0920)."""
         (offset,) = struct.unpack_from("<q", self.mem, R.DC_SYSTEM_TIME_OFFSET)

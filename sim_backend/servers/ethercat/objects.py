@@ -80,13 +80,13 @@ def _array(name: str, index: int, data_type: int, values: list[int], access: str
     return arr
 
 
-def _sync_parameter(index: int, cycle_ns: int) -> ODRecord:
+def _sync_parameter(index: int, cycle_ns: int, supported: int) -> ODRecord:
     rec = ODRecord("SM output parameter" if index == SM_OUTPUT_PARAMETER else
                    "SM input parameter", index)  # fmt: skip
     members = (
         (1, "Synchronization type", od_types.UNSIGNED16, SYNC_FREE_RUN, "rw"),
         (2, "Cycle time", od_types.UNSIGNED32, cycle_ns, "rw"),
-        (4, "Synchronization types supported", od_types.UNSIGNED16, SYNC_TYPES_SUPPORTED, "ro"),
+        (4, "Synchronization types supported", od_types.UNSIGNED16, supported, "ro"),
         (5, "Minimum cycle time", od_types.UNSIGNED32, MIN_CYCLE_NS, "ro"),
         (6, "Calc and copy time", od_types.UNSIGNED32, 0, "ro"),
         (9, "Delay time", od_types.UNSIGNED32, 0, "ro"),
@@ -107,8 +107,15 @@ def _set_mapping(od: canopen.ObjectDictionary, index: int, entries) -> None:
         mapping[sub].default = obj << 16 | subindex << 8 | bits
 
 
-def ethercat_od(cycle_s: float, timestamp: bool = True) -> canopen.ObjectDictionary:
-    """The slave's object dictionary (see the module docstring); ``timestamp``: 0x1013 and 0x10F8."""
+def ethercat_od(
+    cycle_s: float, timestamp: bool = True, dc_synchronous: bool = True
+) -> canopen.ObjectDictionary:
+    """The slave's object dictionary (see the module docstring).
+
+    ``timestamp``: 0x1013 and 0x10F8 served; ``dc_synchronous``: 0x1C32:04
+    announces DC SYNC0 synchronisation (a lock-step slave does not: it makes
+    one cycle of each frame).
+    """
     od = load_eds(1) if timestamp else load_eds(1, NO_TIMESTAMP_EDS)
     for index in list(od.indices):
         if index in CAN_ONLY or 0x1400 <= index < 0x1600 or 0x1800 <= index < 0x1A00:
@@ -128,8 +135,9 @@ def ethercat_od(cycle_s: float, timestamp: bool = True) -> canopen.ObjectDiction
     od.add_object(rx)
     od.add_object(tx)
     cycle_ns = round(cycle_s * 1e9)
-    od.add_object(_sync_parameter(SM_OUTPUT_PARAMETER, cycle_ns))
-    od.add_object(_sync_parameter(SM_INPUT_PARAMETER, cycle_ns))
+    supported = SYNC_TYPES_SUPPORTED if dc_synchronous else SYNC_TYPES_SUPPORTED & ~0x0004
+    od.add_object(_sync_parameter(SM_OUTPUT_PARAMETER, cycle_ns, supported))
+    od.add_object(_sync_parameter(SM_INPUT_PARAMETER, cycle_ns, supported))
     if timestamp:
         stamp = _var("Timestamp object", TIMESTAMP, 0, od_types.UNSIGNED64, 0, "ro")
         stamp.pdo_mappable = True

@@ -14,7 +14,8 @@ Faults (``--fault``): ``fault@N`` and ``freeze@N`` act on the drive at
 process data cycle N, ``delay@N:MS`` returns that cycle's frame MS ms late.
 
 Between frames, and at least every :data:`POLL_S`, the loop checks the SM
-watchdog. ``options["sim_keys"]`` holds the served drive's own ``sim://``
+watchdog and runs the SYNC0 events due of a DC-synchronous slave
+(:mod:`.coe_drive`), each at the instant of its event. ``options["sim_keys"]`` holds the served drive's own ``sim://``
 keys (its factor group and position loop gains, as on CANopen).
 
 The announced URL names the interface a master on this host reaches the
@@ -115,23 +116,26 @@ def _kind(iface: str) -> str:
     return done.stdout
 
 
-def answer(slave: CoeSlave, raw: bytes) -> bytes | None:
+def answer(slave: CoeSlave, raw: bytes, arrival_ns: int | None = None) -> bytes | None:
     """The frame the slave sends back for ``raw``; ``None`` when it is not for it.
 
     The whole frame is handled at one instant, as it passes an ESC in
-    microseconds: the device's
-    (:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`) and, read
-    right after on the same monotonic clock, the DC unit's (:meth:`~.esc.Esc.frame_at`).
+    microseconds, ``arrival_ns`` (``time.monotonic_ns()``, default now): the
+    device's (:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`)
+    and the DC unit's (:meth:`~.esc.Esc.frame_at`); the SYNC0 events due by
+    then run first, each at its own instant (:meth:`CoeSlave.sync0_due`).
     """
+    arrival_ns = time.monotonic_ns() if arrival_ns is None else arrival_ns
     try:
         frame = decode_frame(raw)
     except FrameError:
         return None
     if frame.src[0] & SOURCE_MAC_MARK:
         return None  # already processed by a slave: a returning frame
-    # the drive and its DC unit: one instant per frame (with-items enter left to right)
-    with slave.lock, slave.device.instant(), slave.esc.frame_at(time.monotonic_ns()):
-        datagrams = tuple(slave.esc.execute(d) for d in frame.datagrams)
+    with slave.lock:
+        slave.sync0_due(arrival_ns)
+        with slave.device.instant(arrival_ns * 1e-9), slave.esc.frame_at(arrival_ns):
+            datagrams = tuple(slave.esc.execute(d) for d in frame.datagrams)
     return encode_frame(Frame(frame.dst, returned_source(frame.src), datagrams))
 
 
@@ -165,4 +169,5 @@ def serve(
                         slave.pdo.delay_s = 0.0
                     sock.send(reply)
             with slave.lock:
+                slave.sync0_due(time.monotonic_ns())
                 slave.esc.poll()
