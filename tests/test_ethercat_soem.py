@@ -8,8 +8,10 @@ saw, the test judges it. The steps: scan and SII identity; SDO reads, writes
 and aborts; the AL state machine's refusals; PDO remapping by SDO (complete
 access, as SOEM's own example does) and the default assignment; OP; the
 CiA 402 state machine through the process data; torque in and velocity out
-at 1 kHz against the plant; DC system time; the SM watchdog stopping the
-axis when the master falls silent.
+at 1 kHz against the plant (lock-step, exact); DC system time; a real-time
+slave made DC-synchronous by SOEM (0x1C32:01 = 2, SYNC0), its samples on its
+SYNC0 grid (0x10F8) and on the plant driven by the outputs in force at each
+event; the SM watchdog stopping the axis when the master falls silent.
 
 The cyclic run lasts :data:`RUN_S` (3 s, 3000 cycles at 1 kHz): the issue asks
 10 s, which ``benchmarks/ethercat_soem.py`` runs; three seconds hold the same
@@ -25,7 +27,7 @@ import numpy as np
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
-from servobench.sim_backend.physics.plant import PlantParams, simulate
+from servobench.sim_backend.physics.plant import Plant, PlantParams, simulate
 
 pytest.importorskip("pysoem")
 _WHY = link_unavailable()
@@ -83,7 +85,64 @@ def _to_op(pysoem, master, cycles: int = 200) -> int:
     return master.read_state()
 
 
+def _remap_dc_synchronous(slave) -> None:
+    """TxPDO 0x1A00 with the timestamp object 0x10F8, and 0x1C32:01 = 2 (DC SYNC0), in PRE-OP."""
+    entries = [0x60410010, 0x60640020, 0x606C0020, 0x60770010, 0x10F80040]
+    slave.sdo_write(0x1C13, 0, struct.pack("<BxH", 1, 0x1A00), ca=True)
+    slave.sdo_write(
+        0x1A00, 0, struct.pack("<Bx" + "I" * len(entries), len(entries), *entries), ca=True
+    )
+    slave.sdo_write(0x1C32, 1, struct.pack("<H", 2))
+
+
 # ------------------------------------------------------------ link functions
+def link_dc_synchronous(iface: str, url: str) -> dict:
+    """A real-time slave, DC-synchronous: CST at 1 kHz, 0x10F8 and the frame's DC time read."""
+    pysoem, master = _open(iface)
+    out: dict = {}
+    try:
+        master.config_init()
+        slave = master.slaves[0]
+        out["supported"] = struct.unpack("<H", slave.sdo_read(0x1C32, 4))[0]
+        slave.sdo_write(0x6060, 0, struct.pack("<b", 10))
+        slave.config_func = lambda pos: _remap_dc_synchronous(master.slaves[pos])
+        master.config_map()
+        slave.set_watchdog("processdata", 2000)
+        out["has_dc"] = bool(master.config_dc())
+        slave.dc_sync(True, int(CYCLE_S * 1e9))
+        out["sync0"] = [struct.unpack("<Q", slave._fprd(0x0990, 8))[0],
+                        struct.unpack("<I", slave._fprd(0x09A0, 4))[0]]  # fmt: skip
+        out["op"] = _to_op(pysoem, master)
+        while master.dc_time < out["sync0"][0] + 2 * out["sync0"][1]:  # SYNC0 starts later
+            master.send_processdata()
+            master.receive_processdata(RECEIVE_US)
+            time.sleep(CYCLE_S)
+        for cw in (0x06, 0x07, 0x0F):
+            for _ in range(5):
+                slave.output = struct.pack("<Hh4xh", cw, 0, 0)
+                master.send_processdata()
+                master.receive_processdata(RECEIVE_US)
+                time.sleep(CYCLE_S)  # the outputs take force at the next SYNC0
+        n = int(2.0 / CYCLE_S)
+        u_permille = np.where((np.arange(n) // 500) % 2 == 0, 600, -600)
+        rows, dc = [], []
+        deadline = time.monotonic()
+        for k in range(n):
+            deadline += CYCLE_S
+            slave.output = struct.pack("<Hh4xh", 0x0F, int(u_permille[k]), 0)
+            master.send_processdata()
+            master.receive_processdata(RECEIVE_US)
+            rows.append(struct.unpack("<HiihQ", slave.input))
+            dc.append(master.dc_time)
+            time.sleep(max(0.0, deadline - time.monotonic()))
+        out["rows"], out["dc"], out["u"] = rows, dc, u_permille.tolist()
+        master.state = pysoem.INIT_STATE
+        master.write_state()
+    finally:
+        master.close()
+    return out
+
+
 def link_bringup(iface: str, url: str) -> dict:
     pysoem, master = _open(iface)
     out: dict = {"url": url}
@@ -206,6 +265,7 @@ def link_watchdog(iface: str, url: str) -> dict:
                 slave.output = struct.pack("<Hh4xh", cw, torque, 0)
                 master.send_processdata()
                 master.receive_processdata(RECEIVE_US)
+                time.sleep(CYCLE_S)  # a real-time slave: the axis moves in wall-clock time
         out["moving"] = struct.unpack_from("<Hii", slave.input)
         time.sleep(WATCHDOG_MS / 1000 + 0.8)  # silent: the watchdog trips, the axis coasts down
         master.read_state()
@@ -292,6 +352,33 @@ def test_cyclic_torque_in_velocity_out_against_the_plant() -> None:
     assert np.all(np.diff(dc) > 0)  # DC system time read every frame (FRMW)
     # the DC clock runs in real time: its span over the run is the host's (whatever the load)
     assert (dc[-1] - dc[0]) * 1e-9 == pytest.approx(out["elapsed_s"], abs=0.05)
+
+
+def test_dc_synchronous_slave_samples_on_its_sync0_grid_in_real_time() -> None:
+    """SOEM sets DC SYNC0 and 0x1C32:01 = 2 on a real-time slave: each sample is taken at a
+    SYNC0 event (0x10F8), the last before the frame, and the plant from the first sample, driven
+    at each event by the outputs last received before it, gives every later one."""
+    out = run_on_link(__file__, "link_dc_synchronous", SIM, ["--clock", "real"])
+    assert out["supported"] & 0x0004 and out["has_dc"] and out["op"] == 0x08
+    start, cycle = out["sync0"]
+    assert cycle == 1_000_000
+    rows = np.array(out["rows"], dtype=np.int64)
+    stamp, dc = rows[:, 4], np.array(out["dc"], dtype=np.int64)
+    assert np.all((stamp - start) % cycle == 0)  # on the grid, whatever the host's timing
+    assert np.all((stamp <= dc) & (stamp > dc - cycle))  # the last event before the frame
+    assert np.all(rows[:, 0] & 0x6F == 0x27)  # operation enabled throughout
+    # the command in force from each event: the outputs of the last frame before it
+    u = np.array(out["u"]) / 1000.0
+    events = np.arange(stamp[0], stamp[-1] + cycle, cycle)
+    last_frame = np.searchsorted(dc, events, side="left") - 1
+    u_events = np.where(last_frame >= 0, u[np.maximum(last_frame, 0)], 0.0)
+    plant = Plant(PARAMS)
+    plant.reset(rows[0, 2] * 1e-6, rows[0, 1] * 1e-6)
+    v_ref, x_ref = plant.step_block(u_events, cycle * 1e-9)
+    at = (stamp - stamp[0]) // cycle
+    np.testing.assert_allclose(rows[:, 2] * 1e-6, v_ref[at], atol=1e-5)  # µrad/s
+    np.testing.assert_allclose(rows[:, 1] * 1e-6, x_ref[at], atol=1e-5)  # µrad
+    assert np.max(np.abs(v_ref)) > 0.3
 
 
 def test_sm_watchdog_stops_the_axis_when_the_master_falls_silent() -> None:

@@ -288,6 +288,12 @@ class EthercatMaster:
         self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
         self.request(OP)
         self.wait_state(OP, cycling=True)
+        if self.dc_synchronous:  # SOEM starts SYNC0 a while ahead: no inputs until it runs
+            deadline = time.monotonic() + STATE_TIMEOUT_S
+            while self.cycle(self.outputs, count_errors=False)[1] < sum(self.sync0):
+                if time.monotonic() > deadline:
+                    raise StateTransitionError(f"{self.name}: SYNC0 did not start")
+                time.sleep(0.001)
 
     def choose_dc_synchronous(self) -> None:
         """In PRE-OP: 0x1C32:01 = 2 (DC SYNC0) where 0x1C32:04 announces it (and ``dc`` is not off).
