@@ -300,7 +300,11 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     ("serve_args", "clock"),
     [
         ([], "0x10F8 DC system time of each sample"),
-        (["--no-timestamp"], "DC system time of each sample (the SYNC0 event"),  # from the grid
+        # from the grid; and the slave asks for real-time priority, as a drive with its own CPU
+        (
+            ["--no-timestamp", "--rt-priority", "10"],
+            "DC system time of each sample (the SYNC0 event",
+        ),
     ],
     ids=["timestamp", "no-timestamp"],
 )

@@ -174,3 +174,60 @@ def test_safe_op_needs_sync_managers_matching_the_pdos(slave: CoeSlave) -> None:
     assert slave.esc.al_state is A.SAFE_OP and not slave.esc.al_error
     slave.esc.write(0x1100, bytes(10))
     assert slave.esc.al_state is A.OP
+
+
+def test_dc_synchronous_slave_runs_its_cycle_at_each_sync0_event() -> None:
+    """0x1C32:01 = 2 and SYNC0 on, real time: outputs take force and inputs are sampled at the
+    SYNC0 events of the slave's DC clock, each at its own instant however late it is handled;
+    frames between events only deliver outputs. The clock is driven by hand (ns)."""
+    from servobench.sim_backend.physics.plant import Plant, PlantParams
+
+    now = [10**9]
+    device = device_from_url("sim://?M=0.1&B=1", clock_mode="real", clock=lambda: now[0] * 1e-9)
+    slave = CoeSlave(device, FaultInjector(device, FaultPlan("ethercat")), clock_ns=lambda: now[0])
+    esc = slave.esc
+    _configure_mailboxes(slave)
+    esc.write(0x0120, b"\x02\x00")
+    slave.node.set_data(0x6060, 0, b"\x0a")  # CST
+    slave.node.set_data(0x1C32, 1, b"\x02\x00")  # DC SYNC0
+    slave.node.set_data(0x1A00, 0, b"\x00")  # TxPDO: statusword, position, velocity, torque, 0x10F8
+    slave.node.set_data(0x1A00, 5, struct.pack("<I", 0x10F80040))
+    slave.node.set_data(0x1A00, 0, b"\x05")
+    assert slave.node.get_data(0x1C32, 4) == b"\x07\x00"  # free run, SM2, DC SYNC0 announced
+    esc.write(0x0810, struct.pack("<HHBBBB", 0x1100, 10, 0x64, 0, 1, 0))
+    esc.write(0x0818, struct.pack("<HHBBBB", 0x1180, 20, 0x20, 0, 1, 0))
+    start, cycle = 5_000_000, 1_000_000  # DC system time [ns]: offset 0, local time since t0
+    esc.write(0x0990, struct.pack("<Q", start))
+    esc.write(0x09A0, struct.pack("<I", cycle))
+    esc.write(0x0981, b"\x03")
+    esc.write(0x0120, b"\x04\x00")
+    assert esc.al_state is A.SAFE_OP and slave.dc_synchronous
+    t0 = now[0]  # the ESC's local time 0
+
+    def outputs(cw: int, torque: int) -> None:
+        esc.write(0x1100, struct.pack("<Hhih", cw, torque, 0, 0))
+
+    def event(k: int, late_ns: int = 0) -> None:  # the loop gets to event k late_ns late
+        now[0] = t0 + start + k * cycle + late_ns
+        slave.sync0_due(now[0])
+
+    esc.write(0x0120, b"\x08\x00")
+    outputs(0x06, 0)
+    assert esc.al_state is A.OP
+    for k, cw in enumerate((0x06, 0x07, 0x0F)):
+        outputs(cw, 0)
+        event(k)
+    assert struct.unpack_from("<H", esc.read(0x1180, 2))[0] & 0x6F == 0x27  # enabled
+    now[0] = t0 + start + 2 * cycle + 300_000
+    outputs(0x0F, 800)  # 0.8 N m (rated 1 N m, per mille), between events 2 and 3
+    before = esc.read(0x1180, 20)
+    slave.sync0_due(now[0])  # no event due: the inputs stay those of event 2
+    assert esc.read(0x1180, 20) == before
+    event(3, late_ns=700_000)  # handled 0.7 ms late, taken at its own instant
+    event(5, late_ns=100_000)  # event 4 merged into 5: the same outputs in force
+    _sw, pos, vel, _torque, stamp = struct.unpack("<HiihQ", esc.read(0x1180, 20))
+    assert stamp == start + 5 * cycle  # 0x10F8: the DC system time of the sample, event 5
+    plant = Plant(PlantParams(M=0.1, B=1.0))
+    plant.hold(0.8, 2 * cycle * 1e-9)  # from event 3 to event 5
+    assert vel == pytest.approx(plant.state.v * 1e6, abs=1)  # µrad/s
+    assert pos == pytest.approx(plant.state.x * 1e6, abs=1)  # µrad

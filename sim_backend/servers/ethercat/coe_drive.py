@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import struct
 import threading
+import time
 from collections.abc import Callable
 
 import canopen
@@ -248,6 +249,7 @@ class CoeSlave(Application):
         keys: dict[str, str] | None = None,
         serial: int = 1,
         timestamp: bool = True,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self.device = device
         od = O.ethercat_od(device.cycle_s, timestamp, dc_synchronous=device.realtime)
@@ -259,7 +261,7 @@ class CoeSlave(Application):
         self.drive.dc_time_of = self._dc_time_of
         self.pdo = self.drive.sync = PdoCycle(self.drive)
         self.lock = threading.RLock()
-        self.esc = Esc(build_image(self.description), self)
+        self.esc = Esc(build_image(self.description), self, clock_ns)  # the device's clock, in ns
         self.sdo = SdoServer(self.node, O.MAILBOX_BYTES, complete_access)
         self.drive.attach(_CoeNetwork(self._emergency))
         # power-on: transition 1 (CANopen's boot() also sends NMT messages CoE has not)
