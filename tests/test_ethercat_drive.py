@@ -367,7 +367,8 @@ def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() 
 
 def test_closed_loop_sidbe_on_a_limited_travel_axis() -> None:
     _link_tests()
-    # pace=fast: an algorithm test, lock-step
+    # pace=fast: an algorithm test, lock-step (on a real-time slave under load, 2 runs: one passed,
+    # one stopped as the hold could not keep the axis within 80 % of its 5 cm room)
     out = run_on_link(__file__, "link_sidbe_closed", NOISY, LOCKSTEP)
     assert out["rc"] == 0, out["stderr"]
     model = json.loads(out["stdout"])
