@@ -25,6 +25,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "modbus+tcp": ("servobench.drivers.modbus", "ModbusDrive"),
     "modbus+rtu": ("servobench.drivers.modbus", "ModbusDrive"),
     "serial": ("servobench.drivers.serial_ascii", "SerialAsciiDrive"),
+    "ethercat": ("servobench.drivers.ethercat.drive", "EthercatDrive"),
 }
 
 ENTRY_POINT_GROUP = "servobench.drives"

@@ -200,20 +200,23 @@ class SimulatedDevice:
 
     # ------------------------------------------------------------ host side
     @contextlib.contextmanager
-    def instant(self) -> Iterator[None]:
+    def instant(self, at_s: float | None = None) -> Iterator[None]:
         """Handle one request at one instant: the wall clock stands still inside (``real``).
 
         A request that carries a command and asks for feedback (a Modbus FC23,
         a SYNC that applies the synchronous RPDO before it) is handled at the
         instant it arrived, as a drive does: the command latches and the
         feedback is sampled at that same instant, however long the simulator
-        takes over it. Holds the device lock throughout; nests.
+        takes over it. ``at_s``: that instant on the device's clock (a
+        hardware event the simulator handles late, e.g. an EtherCAT SYNC0),
+        default now; never before the instant the plant has been integrated
+        up to. Holds the device lock throughout; nests.
         """
         with self._lock:
             if self._pinned is not None:
                 yield
                 return
-            self._pinned = self._clock()
+            self._pinned = self._clock() if at_s is None else float(at_s)
             try:
                 yield
             finally:

@@ -98,12 +98,18 @@ class Peer:
     needed_by: tuple[str, ...]
 
 
+#: The test files that make a private EtherCAT link (a veth pair in a namespace of their own).
+ETHERCAT_TESTS = ("test_ethercat_soem.py", "test_ethercat_drive.py")
+
 #: Every peer the suite pairs with. Add a row for a new one.
 PEERS: tuple[Peer, ...] = (
     # renders the commissioning record headless; every figure must decode
     Peer("chromium", on_path("chromium"), DEBIAN, "chromium", ("test_commission_report.py",)),
     # libmodbus's command-line client against the served Modbus drive
     Peer("mbpoll", on_path("mbpoll"), DEBIAN, "mbpoll", ("test_modbus_mbpoll.py",)),
+    # SOEM, the open EtherCAT master, against the served slave; and ``ip`` for its veth link
+    Peer("pysoem", importable("pysoem"), PIP, "pysoem>=1.1.13", ETHERCAT_TESTS),
+    Peer("iproute2", on_path("ip"), DEBIAN, "iproute2", ETHERCAT_TESTS),
 )
 
 

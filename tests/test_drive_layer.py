@@ -46,7 +46,7 @@ def test_malformed_urls_raise_config_errors(bad):
 
 def test_unknown_scheme_and_unknown_keys():
     with pytest.raises(DriveUnavailableError, match="unknown drive scheme"):
-        open_drive("ethercat://eth0")
+        open_drive("profinet://eth0")
     with pytest.raises(DriveConfigError, match="Mass"):
         open_drive("sim://?Mass=1")
     with pytest.raises(DriveConfigError, match="not a number"):

@@ -14,7 +14,14 @@ from servobench.sim_backend.faults.can import CanFaultHook, emcy_frame
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.modbus import corrupt_crc
 from servobench.sim_backend.faults.serial import STRAY_LINE, SerialFaultHook
-from servobench.sim_backend.faults.spec import KINDS, TRANSPORTS, FaultSpec, kinds_for, parse_plan
+from servobench.sim_backend.faults.spec import (
+    KINDS,
+    LINK_TRANSPORTS,
+    TRANSPORTS,
+    FaultSpec,
+    kinds_for,
+    parse_plan,
+)
 from servobench.sim_backend.faults.state import StateReporter, snapshot
 from servobench.sim_backend.physics.plant import PlantParams
 from servobench.sim_backend.servers.pty_link import PtyLink
@@ -86,9 +93,10 @@ def test_bad_items_name_the_item_and_why(text: str, transport: str, why: str) ->
 
 
 def test_every_transport_has_kinds_and_every_kind_a_transport() -> None:
-    for transport in TRANSPORTS:
+    for transport in TRANSPORTS + LINK_TRANSPORTS:
         assert {"fault", "freeze", "delay"} <= set(kinds_for(transport))
-    assert all(k.transports <= set(TRANSPORTS) and k.summary for k in KINDS.values())
+    everywhere = set(TRANSPORTS + LINK_TRANSPORTS)
+    assert all(k.transports <= everywhere and k.summary for k in KINDS.values())
 
 
 def test_injector_fault_and_freeze() -> None:

@@ -21,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="listen address for TCP transports")
     p.add_argument("--port", type=int, default=0, help="TCP port (0: pick a free one)")
     p.add_argument("--node", type=int, default=2, help="CANopen node id")
+    p.add_argument("--iface", default="", help="EtherCAT: network interface to serve on")
     p.add_argument("--unit", type=int, default=1, help="Modbus unit id")
     p.add_argument("--baud", type=int, default=115200, help="baud rate emulated on pty links")
     p.add_argument("--map", default="servobench-sim", help="Modbus register map name or file")
@@ -60,7 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--no-timestamp",
         action="store_true",
         help="serve a drive that gives no time stamp: CANopen without 0x1013 (EDS cia402-nostamp), "
-        "Modbus without the timestamp register (map servobench-sim-nostamp)",
+        "Modbus without the timestamp register (map servobench-sim-nostamp), "
+        "EtherCAT without 0x1013 and the timestamp object 0x10F8",
     )
     p.add_argument(
         "--rt-priority",
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         "firmware": args.firmware,
         "can": args.can,
         "eds": args.eds or "",
+        "iface": args.iface,
         "fault": ";".join(args.fault),
     }
     if args.no_timestamp:

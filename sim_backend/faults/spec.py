@@ -41,7 +41,9 @@ Kinds (see :data:`KINDS` for the transports each applies to):
 Old spellings still work: ``silence@N`` (``drop`` on CANopen and serial,
 ``timeout`` on Modbus), ``busy@N`` (``exception@N:6``), and CANopen's
 ``reject_mode=M`` (SDO abort when 0x6060 is set to ``M``) and
-``ignore_mode=M`` (0x6060 = ``M`` accepted, 0x6061 does not follow).
+``ignore_mode=M`` (0x6060 = ``M`` accepted, 0x6061 does not follow), which
+apply to EtherCAT's CoE too; EtherCAT's ``complete_access=0`` (the slave
+neither announces nor accepts SDO complete access: abort 0x06010000).
 
 Pure: text in, frozen dataclasses out.
 """
@@ -53,10 +55,15 @@ from dataclasses import dataclass, field
 
 from servobench.errors import DriveConfigError
 
-#: Transports of ``serve-sim --transport``.
+#: Transports of ``serve-sim --transport`` served on this host's own links (the fault
+#: matrix, :mod:`servobench.bench.testing.fault_scenarios`, runs each of them).
 TRANSPORTS = ("canopen", "modbus-tcp", "modbus-rtu", "serial")
-_ALL = frozenset(TRANSPORTS)
+#: Transports that need a link of their own (EtherCAT: a network interface, in tests a veth
+#: pair in a namespace); their faults are tested there (tests/test_ethercat_drive.py).
+LINK_TRANSPORTS = ("ethercat",)
+_ALL = frozenset(TRANSPORTS + LINK_TRANSPORTS)
 _CAN = frozenset({"canopen"})
+_ECAT = frozenset({"ethercat"})
 _MODBUS = frozenset({"modbus-tcp", "modbus-rtu"})
 _SERIAL = frozenset({"serial"})
 #: Largest delay or bus-off time accepted [ms].
@@ -133,7 +140,11 @@ ALIASES: dict[str, dict[str, tuple[str, int | None]]] = {
     "busy": {"modbus-tcp": ("exception", 6), "modbus-rtu": ("exception", 6)},
 }
 #: ``KEY=VALUE`` set-up faults: key -> transports.
-SETTINGS: dict[str, frozenset[str]] = {"reject_mode": _CAN, "ignore_mode": _CAN}
+SETTINGS: dict[str, frozenset[str]] = {
+    "reject_mode": _CAN | _ECAT,
+    "ignore_mode": _CAN | _ECAT,
+    "complete_access": _ECAT,
+}
 
 
 def kinds_for(transport: str) -> list[str]:
@@ -299,7 +310,7 @@ def grammar_help() -> str:
     """A few lines for ``serve-sim --help``."""
     lines = [
         "fault items (--fault, repeatable; ';' separates items; N counts the drive's cycles",
-        "from 1: SYNCs, clocking Modbus reads, serial feedback queries):",
+        "from 1: SYNCs, clocking Modbus reads, serial feedback queries, EtherCAT process data):",
     ]
     for name, k in KINDS.items():
         arg = {"": "", "ms": ":MS", "code": ":CODE"}[k.arg]
@@ -308,4 +319,5 @@ def grammar_help() -> str:
         where = "all" if k.transports == _ALL else ",".join(sorted(k.transports))
         lines.append(f"  {name + '@N' + arg:<19} {k.summary} ({where})")
     lines.append("  silence@N, busy@N, reject_mode=M, ignore_mode=M: older spellings")
+    lines.append("  complete_access=0: EtherCAT slave without SDO complete access")
     return "\n".join(lines)

@@ -41,6 +41,7 @@ TRANSPORTS: dict[str, str] = {
     "modbus-tcp": "servobench.sim_backend.servers.serve_modbus",
     "modbus-rtu": "servobench.sim_backend.servers.serve_modbus",
     "serial": "servobench.sim_backend.servers.serve_serial",
+    "ethercat": "servobench.sim_backend.servers.ethercat.serve_ethercat",
 }
 
 #: What ``--no-timestamp`` serves per transport: the option set, and the value without a time stamp.
@@ -48,9 +49,10 @@ NO_TIMESTAMP = {
     "canopen": ("eds", "cia402-nostamp"),  # the generic CiA 402 EDS without 0x1013
     "modbus-tcp": ("map", "servobench-sim-nostamp"),  # servobench-sim without its timestamp register
     "modbus-rtu": ("map", "servobench-sim-nostamp"),
+    "ethercat": ("timestamp", "none"),  # no 0x1013 (EDS cia402-nostamp), no 0x10F8
 }
 #: The option values that serve a time stamp, which ``--no-timestamp`` replaces.
-WITH_TIMESTAMP = {"eds": ("",), "map": ("", "servobench-sim")}
+WITH_TIMESTAMP = {"eds": ("",), "map": ("", "servobench-sim"), "timestamp": ("",)}
 
 
 def no_timestamp_options(transport: str, options: Mapping[str, str]) -> dict[str, str]:
@@ -58,7 +60,9 @@ def no_timestamp_options(transport: str, options: Mapping[str, str]) -> dict[str
 
     CANopen serves the shipped EDS ``cia402-nostamp`` (no 0x1013), Modbus the
     map ``servobench-sim-nostamp`` (no ``timestamp`` register); the URL the
-    transport announces names them. The ODrive serial dialect carries no time
+    transport announces names them. EtherCAT serves a slave without 0x1013 and
+    without the timestamp object 0x10F8 (``timestamp=none``; the master still
+    reads the DC system time of each frame). The ODrive serial dialect carries no time
     stamp at all: nothing changes. An EDS or map of the user's own is kept
     only if it has no time stamp either, else :class:`DriveConfigError`.
     """

@@ -1,0 +1,445 @@
+"""``ethercat://`` -- a CiA 402 servo drive over EtherCAT (CoE), servobench as the master.
+
+``ethercat://eth1?slave=1`` (query keys: :mod:`servobench.drivers.ethercat.options`).
+
+Needs pysoem (``pip install 'servobench[ethercat]'``) and CAP_NET_RAW. At open
+(:class:`~servobench.drivers.ethercat.master.EthercatMaster`): scan, the
+slave's identity, the CiA 402 check (0x1000 profile 402; 0x6502 must announce
+cyclic synchronous torque), the factor group read as on CANopen
+(:mod:`servobench.drivers.cia402_units`), max torque 0x6072 from ``max_u``
+where the slave has it, mode 0x6060 = 10 (CST), the PDO mapping
+(:mod:`.layout`), then SAFE-OP and OP with DC SYNC0 at the cycle period where
+the slave has distributed clocks, DC-synchronous (0x1C32:01 = 2) where the
+slave announces it in 0x1C32:04. :meth:`set_cycle` (before enabling) takes
+the slave back to PRE-OP, writes 0x1C32:02 [ns] and 0x60C2 where it has them,
+and comes back to OP with SYNC0 at the new period.
+
+Each :meth:`exchange` is one frame (two with a DC-synchronous slave, whose
+outputs take force and inputs are sampled at its SYNC0 events: the outputs,
+then, once its DC clock passed the next event, the inputs sampled there,
+:meth:`_sample_at_sync0`): the controlword and target torque (or,
+in the hold, the torque offset and target position) out; statusword,
+position, velocity, torque actual and the time stamp in. The drive clock
+(``Feedback.t_s``, from 0 at the first sample of the session) is the DC
+system time at which the slave sampled its inputs, the timestamp object
+0x10F8 [ns], where it maps one; else its time stamp 0x1013 [µs]; else from
+the DC system time of the frame (the reference clock's 0x0910 read in the
+same frame by an FRMW): the SYNC0 event before it for a DC-synchronous
+slave, else the instant the frame passed the slave (when a slave
+synchronous to the SM2 event samples); else the host's clock.
+``drive_clock`` is True in all but the last case; the log's ``drive_clock``
+says which. Position and 0x1013 are unwrapped across their 32-bit roll-over.
+
+The CiA 402 state machine is walked through the process data with
+:func:`servobench.drivers.cia402.plan`, each step under a deadline. Drive-side
+hold (:meth:`hold_position`): where 0x6502 offers cyclic synchronous position
+and the slave maps 0x607A, 0x60B2 and 0x6077, the drive's loop holds 0x607A and
+the host's command is the torque offset. Safety: the SM watchdog is armed at
+open (``watchdog``), disarmed at close; a statusword in FAULT raises
+:class:`~servobench.errors.DriveFaultError` (0x603F), a lost link
+:class:`~servobench.errors.DriveConnectionError`; the Drive base stops the axis
+on any error.
+
+Log metadata beside the units: ``scale_u``/``scale_v``/``scale_x`` and their
+``_source``, ``drive_clock``, ``distributed_clocks``, ``complete_access``,
+``drive_hold``; the trailer counts ``link_wkc_errors``.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+from collections.abc import Mapping
+
+from servobench.drivers.base import Drive, DriveInfo, Feedback
+from servobench.drivers.canopen_link import CounterUnwrap
+from servobench.drivers.cia402 import (
+    CW_DISABLE_VOLTAGE,
+    CW_QUICK_STOP,
+    MODE_CSP,
+    MODE_CST,
+    CiA402State,
+    decode_statusword,
+    interpolation_period,
+    plan,
+    supports_mode,
+)
+from servobench.drivers.cia402_units import FactorObjects, Scaling, derive_scaling
+from servobench.drivers.ethercat.layout import TIMESTAMPS
+from servobench.drivers.ethercat.master import EthercatMaster
+from servobench.drivers.ethercat.options import QUERY_KEYS, EthercatOptions
+from servobench.errors import (
+    DriveConfigError,
+    DriveConnectionError,
+    DriveFaultError,
+    StateTransitionError,
+    UsageError,
+)
+
+S = CiA402State
+#: Deadline of each CiA 402 state transition [s].
+STATE_TIMEOUT_S = 1.0
+#: A DC-synchronous exchange: margin after the SYNC0 event before the inputs are read [s],
+#: and how many cycles (beyond 1 s) it waits for the slave's DC clock to pass the event.
+SYNC0_MARGIN_S = 50e-6
+SYNC0_WAIT_CYCLES = 100
+DEFAULT_CYCLE_S = 1e-3
+_I16 = 32767
+
+
+class EthercatDrive(Drive):
+    """A CiA 402 drive on EtherCAT, commanded in torque (see the module docstring)."""
+
+    query_keys = QUERY_KEYS
+    drive_clock = True  # the slave's time stamp, or DC system time (False: host clock only)
+
+    def __init__(self, url) -> None:
+        super().__init__(url)
+        self.options = EthercatOptions.from_url(self.url)
+        self.bus: EthercatMaster | None = None
+        self.scaling: Scaling | None = None
+        self.supports_drive_hold = False
+        self.clock_source = ""
+        self._cycle_s = DEFAULT_CYCLE_S
+        self._values: dict[int, int] = {}
+        self._x_unwrap = CounterUnwrap(32)
+        self._t_unwrap = CounterUnwrap(32)
+        self._dc0: int | None = None
+        self._expected: CiA402State | None = None
+        self._hold_reason = "not checked"
+        self._identity: dict[str, object] = {}
+
+    # -------------------------------------------------------------- lifecycle
+    def _open(self) -> None:
+        bus = self.bus = EthercatMaster(self.options)
+        try:
+            bus.open()
+            self._bring_up(bus)
+        except BaseException:
+            self.bus = None
+            bus.close()
+            raise
+
+    def _bring_up(self, bus: EthercatMaster) -> None:
+        device_type = bus.sdo_read(0x1000, 0, "I")
+        if device_type & 0xFFFF != 402:
+            raise DriveConfigError(
+                f"{bus.name} is no CiA 402 drive: device type 0x{device_type:08X} (0x1000)"
+            )
+        modes = bus.sdo_read(0x6502, 0, "I")
+        if not supports_mode(modes, MODE_CST):
+            raise DriveConfigError(
+                f"{bus.name} does not announce cyclic synchronous torque (0x6502 = 0x{modes:08X})"
+            )
+        self._identity = {**bus.identity(), "device_type": device_type, "modes": modes}
+        self.scaling = derive_scaling(self._factors(bus), self.options.overrides)
+        self.units = self.scaling.units
+        if math.isfinite(self.limits.max_command) and bus.sdo_optional(0x6072, 0, "H") is not None:
+            lsb = min(0xFFFF, int(self.limits.max_command / abs(self.scaling.u.scale)))
+            bus.sdo_write(0x6072, 0, struct.pack("<H", lsb))
+        bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CST))
+        rx = [
+            i for i in (0x6040, 0x6071, 0x607A, 0x60B2) if bus.sdo_optional(i, 0, "h") is not None
+        ]
+        tx = [i for i in (0x6041, 0x6064, 0x606C, 0x6077)
+              if bus.sdo_optional(i, 0, "H") is not None]  # fmt: skip
+        stamp = next((i for i in TIMESTAMPS if bus.sdo_optional(i, 0, "H") is not None), None)
+        tx += [stamp] if stamp is not None else []
+        self._write_cycle(bus, self._cycle_s)
+        bus.choose_dc_synchronous()  # in PRE-OP: map_pdos ends with the request for SAFE-OP
+        bus.map_pdos(rx, tx)  # SOEM's config_map ends with the request for SAFE-OP
+        self._hold_reason = self._hold_check(bus, modes)
+        self.supports_drive_hold = self._hold_reason is None
+        bus.go_op(self._cycle_s)
+        self.clock_source = (
+            "0x10F8 DC system time of each sample [ns]" if bus.tx.has(0x10F8)
+            else "0x1013 time stamp of each sample [µs]" if bus.tx.has(0x1013)
+            else "DC system time of each sample (the SYNC0 event before each frame)"
+            if bus.dc_synchronous
+            else "DC system time of each frame (SYNC0 on)" if bus.has_dc
+            else "host clock (no time stamp, no DC)"
+        )  # fmt: skip
+        self.drive_clock = bus.tx.has(0x10F8) or bus.tx.has(0x1013) or bus.has_dc
+        self._dc0 = None  # the drive clock starts at 0 with the session
+        bus.keep_alive = True
+        bus.start_keepalive()
+        state = self._state()
+        if state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):  # left enabled by someone else
+            self._goto(S.SWITCH_ON_DISABLED)
+
+    @staticmethod
+    def _factors(bus: EthercatMaster) -> FactorObjects:
+        def pair(index: int):
+            a, b = bus.sdo_optional(index, 1, "I"), bus.sdo_optional(index, 2, "I")
+            return None if a is None or b is None else (a, b)
+
+        return FactorObjects(
+            rated_torque_mNm=bus.sdo_optional(0x6076, 0, "I"),
+            rated_current_mA=bus.sdo_optional(0x6075, 0, "I"),
+            encoder=pair(0x608F), gear=pair(0x6091), feed=pair(0x6092),
+            position_unit=bus.sdo_optional(0x60A8, 0, "I"),
+            velocity_unit=bus.sdo_optional(0x60A9, 0, "I"),
+        )  # fmt: skip
+
+    @staticmethod
+    def _hold_check(bus: EthercatMaster, modes: int) -> str | None:
+        if not supports_mode(modes, MODE_CSP):
+            return "0x6502 announces no cyclic synchronous position"
+        lacking = [f"0x{i:04X}" for i, layout in ((0x607A, bus.rx), (0x60B2, bus.rx),
+                                                  (0x6077, bus.tx)) if not layout.has(i)]  # fmt: skip
+        return f"the slave lacks {', '.join(lacking)}" if lacking else None
+
+    @staticmethod
+    def _write_cycle(bus: EthercatMaster, period_s: float) -> None:
+        ns = round(period_s * 1e9)
+        if bus.sdo_optional(0x1C32, 2, "I") is not None:
+            bus.sdo_write(0x1C32, 2, struct.pack("<I", ns))
+        if bus.sdo_optional(0x60C2, 1, "B") is not None:
+            value, index = interpolation_period(period_s)
+            bus.sdo_write(0x60C2, 1, struct.pack("<B", value))
+            bus.sdo_write(0x60C2, 2, struct.pack("<b", index))
+
+    def _configure_watchdog(self, timeout_s: float) -> None:
+        self.bus.set_watchdog(timeout_s)
+
+    def _close(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            bus.close()
+
+    def _set_cycle(self, period_s: float) -> None:
+        if self.enabled:
+            raise UsageError("set the cycle before enabling: 0x1C32 and SYNC0 are set in PRE-OP")
+        if self.bus is None or period_s == self._cycle_s:
+            self._cycle_s = period_s
+            return
+        self.bus.keep_alive = False
+        self.bus.back_to_pre_op()
+        self._write_cycle(self.bus, period_s)
+        self._cycle_s = period_s
+        self.bus.go_op(period_s)
+        self.bus.keep_alive = True
+
+    # ---------------------------------------------------------------- cycles
+    def _frame(self) -> dict[int, int]:
+        bus = self.bus
+        if bus.keepalive_error is not None:
+            raise bus.keepalive_error
+        inputs, dc_ns = bus.cycle(bus.rx.pack(self._values))
+        values = bus.tx.unpack(inputs)
+        values["dc"] = dc_ns
+        return values
+
+    def _state(self) -> CiA402State:
+        return decode_statusword(self._frame()[0x6041])
+
+    def _goto(self, target: CiA402State) -> None:
+        state = self._state()
+        from_fault = state in (S.FAULT, S.FAULT_REACTION_ACTIVE)
+        for step in plan(state, target):
+            if step.controlword is not None:
+                self._values[0x6040] = step.controlword
+            deadline = time.monotonic() + STATE_TIMEOUT_S
+            while (state := self._state()) is not step.next_state:
+                if state in (S.FAULT, S.FAULT_REACTION_ACTIVE) and not from_fault:
+                    raise self._fault_error(f"while going to {step.next_state.value}")
+                if time.monotonic() > deadline:
+                    if from_fault:
+                        raise self._fault_error("persists after fault reset")
+                    raise StateTransitionError(
+                        f"{self.bus.name} stayed in {state.value}, expected "
+                        f"{step.next_state.value} within {STATE_TIMEOUT_S} s"
+                    )
+
+    def _fault_error(self, context: str) -> DriveFaultError:
+        code = self.bus.sdo_read(0x603F, 0, "H")
+        self._expected = None
+        return DriveFaultError(f"{self.bus.name} in FAULT 0x{code:04X} {context}", code)
+
+    def _enable(self) -> None:
+        if self._state() in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            raise self._fault_error("cannot enable; reset the fault first")
+        self._values.update({0x6071: 0, 0x60B2: 0})
+        self._goto(S.OPERATION_ENABLED)
+        self._expected = S.OPERATION_ENABLED
+        self.bus.keep_alive = False  # from now on only the host's cycles feed the SM watchdog
+
+    def _disable(self) -> None:
+        if self.bus is None:
+            return
+        self._expected = None
+        self._values.update({0x6071: 0, 0x60B2: 0})
+        try:
+            if self._state() in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, S.SWITCHED_ON,
+                                 S.READY_TO_SWITCH_ON):  # fmt: skip
+                self._goto(S.SWITCH_ON_DISABLED)
+        finally:
+            if self._holding:
+                self._leave_hold()
+            self.bus.keep_alive = True
+
+    def _quick_stop(self) -> None:
+        self._values.update({0x6071: 0, 0x60B2: 0})
+        if self._state() is S.OPERATION_ENABLED:
+            self._values[0x6040] = CW_QUICK_STOP
+            self._goto(S.QUICK_STOP_ACTIVE)
+            self._expected = S.QUICK_STOP_ACTIVE
+
+    def _reset_fault(self) -> None:
+        if self._state() not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            return
+        self._values[0x6040] = CW_DISABLE_VOLTAGE  # bit 7 low first: the reset is an edge
+        self._frame()
+        self._goto(S.SWITCH_ON_DISABLED)
+        self._expected = None
+
+    def _fault_code(self) -> int:
+        return self.bus.sdo_read(0x603F, 0, "H")
+
+    def _representable(self, u: float) -> float:
+        if self.scaling is None:
+            return u
+        scale = self.scaling.u.scale
+        return max(-_I16, min(_I16, round(u / scale))) * scale
+
+    def _write_command(self, u: float) -> None:
+        raw = round(u / self.scaling.u.scale)
+        self._values[0x60B2 if self._holding else 0x6071] = raw
+        if self._holding:
+            self._values[0x6071] = 0
+        self._frame()
+
+    def _exchange(self, u: float) -> Feedback:
+        raw = round(u / self.scaling.u.scale)
+        self._values[0x60B2 if self._holding else 0x6071] = raw
+        values = self._frame()
+        if self.bus.dc_synchronous:
+            values = self._sample_at_sync0(values["dc"])
+        return self._feedback(values)
+
+    def _sample_at_sync0(self, sent_dc_ns: int) -> dict[int, int]:
+        """A DC-synchronous slave: the inputs of the SYNC0 event at which the outputs sent take force.
+
+        The outputs of the frame that passed the slave at ``sent_dc_ns`` take
+        force at the next SYNC0 event, where the inputs are sampled; this
+        waits for the slave's DC clock to pass that event (it runs at the
+        host's rate) and reads them, so ``u_k`` is held from the instant of the
+        sample returned, as the exchange contract says. A frame that comes too
+        early (its DC time before the event) is sent again.
+        """
+        bus = self.bus
+        due, sent_at = bus.next_sync0(sent_dc_ns), time.monotonic_ns()
+        deadline = time.monotonic() + SYNC0_WAIT_CYCLES * bus.sync0[1] * 1e-9 + 1.0
+        while True:
+            wait_ns = due - sent_dc_ns - (time.monotonic_ns() - sent_at)
+            if wait_ns > 0:
+                time.sleep(wait_ns * 1e-9 + SYNC0_MARGIN_S)
+            values = self._frame()
+            if values["dc"] >= due:
+                return values
+            if time.monotonic() > deadline:
+                raise DriveConnectionError(
+                    f"{bus.name}: its DC clock did not reach the next SYNC0 event "
+                    f"({(due - values['dc']) * 1e-6:.3f} ms short)"
+                )
+
+    def _feedback(self, values: Mapping[int, int]) -> Feedback:
+        state = decode_statusword(values[0x6041])
+        if state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            raise self._fault_error(f"(statusword 0x{values[0x6041]:04X})")
+        if self._expected is not None and state is not self._expected:
+            raise StateTransitionError(
+                f"{self.bus.name} left {self._expected.value}: statusword 0x{values[0x6041]:04X}"
+            )
+        s = self.scaling
+        if 0x10F8 in values:
+            self._dc0 = values[0x10F8] if self._dc0 is None else self._dc0
+            t_s = (values[0x10F8] - self._dc0) * 1e-9
+        elif 0x1013 in values:
+            t_s = self._t_unwrap(values[0x1013]) * 1e-6
+        elif self.bus.has_dc:  # the frame's DC time; DC-synchronous: the SYNC0 event before it
+            dc = self.bus.last_sync0(values["dc"]) if self.bus.dc_synchronous else values["dc"]
+            self._dc0 = dc if self._dc0 is None else self._dc0
+            t_s = (dc - self._dc0) * 1e-9
+        else:
+            t_s = time.monotonic()
+        applied = values[0x6077] * s.u.scale if 0x6077 in values else math.nan
+        return Feedback(
+            t_s=t_s,
+            velocity=values[0x606C] * s.v.scale,
+            position=self._x_unwrap(values[0x6064]) * s.x.scale,
+            applied=applied,
+        )
+
+    def _read_feedback(self) -> Feedback:
+        """Over SDO (mailbox): no process data, the slave is not clocked."""
+        bus = self.bus
+        values = {0x6041: bus.sdo_read(0x6041, 0, "H"), 0x6064: bus.sdo_read(0x6064, 0, "i"),
+                  0x606C: bus.sdo_read(0x606C, 0, "i"), "dc": 0}  # fmt: skip
+        if bus.tx.has(0x10F8):
+            values[0x10F8] = bus.sdo_read(0x10F8, 0, "Q")
+        if bus.tx.has(0x1013):
+            values[0x1013] = bus.sdo_read(0x1013, 0, "I")
+        if bus.tx.has(0x6077):
+            values[0x6077] = bus.sdo_read(0x6077, 0, "h")
+        return self._feedback(values)
+
+    # ------------------------------------------------------------- the hold
+    def _hold_position(self, x_ref: float) -> None:
+        if not self.limits.min_position <= x_ref <= self.limits.max_position:
+            raise UsageError(
+                f"x_ref {x_ref:.6g} is outside the allowed travel "
+                f"[{self.limits.min_position:.6g}, {self.limits.max_position:.6g}]"
+            )
+        target = round(x_ref / self.scaling.x.scale)
+        self._values.update({0x607A: (target + 2**31) % 2**32 - 2**31, 0x60B2: 0, 0x6071: 0})
+        self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CSP))
+
+    def _release_hold(self) -> None:
+        self._leave_hold()
+
+    def _leave_hold(self) -> None:
+        self._values.update({0x60B2: 0, 0x6071: 0})
+        self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CST))
+
+    # ---------------------------------------------------------------- status
+    def link_recoveries(self) -> Mapping[str, int]:
+        return {"wkc_errors": self.bus.wkc_errors} if self.bus is not None else {}
+
+    def log_metadata(self) -> dict[str, str]:
+        meta = super().log_metadata()
+        if self.scaling is None or self.bus is None:
+            return meta
+        for key in ("u", "v", "x"):
+            factor = getattr(self.scaling, key)
+            meta[f"scale_{key}"] = f"{factor.scale:.12g}"
+            meta[f"scale_{key}_source"] = factor.source
+        meta.update(
+            drive_clock=self.clock_source,
+            distributed_clocks=(f"SYNC0 every {self._cycle_s * 1e6:.0f} µs"
+                                + (", DC-synchronous (0x1C32:01 = 2)" if self.bus.dc_synchronous
+                                   else "")) if self.bus.has_dc else "none",
+            complete_access="yes" if self.bus.complete_access else "refused: mapped entry by entry",
+            drive_hold="cyclic synchronous position: target 0x607A, offset 0x60B2, 0x6077 read back"
+            if self._hold_reason is None else f"unavailable: {self._hold_reason}",
+        )  # fmt: skip
+        return meta
+
+    def _info(self) -> DriveInfo:
+        ident, bus = self._identity, self.bus
+        state = decode_statusword(bus.sdo_read(0x6041, 0, "H"))
+        al_state, al_code = bus.read_state()
+        return DriveInfo(
+            transport="ethercat",
+            vendor=f"0x{ident['vendor']:08X}",
+            product=f"{ident['name']} (product code 0x{ident['product']:08X})",
+            firmware=f"revision 0x{ident['revision']:08X}",
+            state=state.value,
+            fault_code=self._fault_code() if state is S.FAULT else 0,
+            units=dict(self.units),
+            extra={"slave": self.options.slave, "iface": self.options.iface,
+                   "al_state": f"0x{al_state:02X}", "al_status_code": f"0x{al_code:04X}",
+                   "emergency": None if bus.emergency is None else f"0x{bus.emergency[0]:04X}",
+                   "wkc_errors": bus.wkc_errors, **self.log_metadata()},
+        )  # fmt: skip
