@@ -36,11 +36,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.identify.auto import identify  # noqa: E402
 from servobench.bench.identify.output_error import Chunk, sensitivity  # noqa: E402
-from servobench.bench.logio import read_log  # noqa: E402
-from servobench.bench.model import ServoModel  # noqa: E402
+from servobench.bench.log.io import read_log  # noqa: E402
+from servobench.bench.model.servo import ServoModel  # noqa: E402
+from servobench.bench.procedure.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.run.closed import stream_closed_runs  # noqa: E402
 from servobench.bench.run.hold import simulate_hold  # noqa: E402
 from servobench.bench.run.runner import stream_runs  # noqa: E402

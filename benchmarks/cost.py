@@ -20,9 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.identify.auto import identify  # noqa: E402
-from servobench.bench.logio import ExperimentLog, RunData, read_log  # noqa: E402
+from servobench.bench.log.io import ExperimentLog, RunData, read_log  # noqa: E402
+from servobench.bench.procedure.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.run.runner import stream_runs  # noqa: E402
 from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402
 from servobench.drivers.registry import open_drive  # noqa: E402

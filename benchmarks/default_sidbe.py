@@ -23,8 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from servobench.bench.excitation import DEFAULT_PERIOD_S, DEFAULT_PERIODS
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
+from servobench.bench.procedure.excitation import DEFAULT_PERIOD_S, DEFAULT_PERIODS
 from servobench.bench.testing.served import ServedSim
 from servobench.sim_backend.servers.serve import TRANSPORTS
 

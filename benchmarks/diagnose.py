@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from servobench.bench.diagnose.verdict import VERDICT_FACTOR  # noqa: E402
 from servobench.bench.diagnose.workflow import diagnose  # noqa: E402
-from servobench.bench.logio import read_log  # noqa: E402
+from servobench.bench.log.io import read_log  # noqa: E402
 from servobench.bench.testing.hidden_effects import random_case, write_case_log  # noqa: E402
 from servobench.sim_backend.physics import effects as library  # noqa: E402
 

@@ -31,7 +31,7 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.logio import parse_log_text  # noqa: E402
+from servobench.bench.log.io import parse_log_text  # noqa: E402
 from servobench.bench.run.runner import stream_runs  # noqa: E402
 from servobench.bench.testing.fault_scenarios import (  # noqa: E402
     CASES,
@@ -72,7 +72,7 @@ with open_drive(sys.argv[1]) as drive:
 # ------------------------------------------------------------------ faults
 def kill_case(transport: str, work: Path) -> bool:
     """Kill a streaming host: the drive's watchdog must fault the axis, the log must read back."""
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
 
     state, log = work / f"kill-{transport}.json", work / f"kill-{transport}.csv"
     args = [*SERVE_ARGS[transport], "--state-file", str(state)]

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from servobench.bench.fleet.engine import connect, run_on, run_sequential  # noqa: E402
 from servobench.bench.fleet.sources import find_logs  # noqa: E402
-from servobench.bench.logio import LogWriter, read_log  # noqa: E402
+from servobench.bench.log.io import LogWriter, read_log  # noqa: E402
 from servobench.bench.testing.fleet_logs import AxisSpec, write_fleet  # noqa: E402
 
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench import logtable  # noqa: E402
-from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
-from servobench.bench.logio import parse_log_text, read_log  # noqa: E402
+from servobench.bench.log import table as logtable  # noqa: E402
+from servobench.bench.log.io import parse_log_text, read_log  # noqa: E402
+from servobench.bench.procedure.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.run.runner import stream_runs  # noqa: E402
 from servobench.drivers.registry import open_drive  # noqa: E402
 

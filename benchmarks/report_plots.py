@@ -30,8 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.excitation import make_design  # noqa: E402
 from servobench.bench.identify.auto import identify  # noqa: E402
+from servobench.bench.procedure.excitation import make_design  # noqa: E402
 from servobench.bench.report.plot_data import frf_evidence, friction_map  # noqa: E402
 from servobench.bench.report.plots import write_plots  # noqa: E402
 from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402

@@ -23,10 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.identify.auto import identify  # noqa: E402
 from servobench.bench.identify.output_error import Chunk, cramer_rao  # noqa: E402
-from servobench.bench.model import ServoModel  # noqa: E402
+from servobench.bench.model.servo import ServoModel  # noqa: E402
+from servobench.bench.procedure.excitation import design_excitation, make_design  # noqa: E402
 from servobench.bench.testing.synthetic import simulate_experiment  # noqa: E402
 from servobench.sim_backend.physics.plant import PlantParams, simulate_coulomb  # noqa: E402
 

@@ -23,9 +23,9 @@ from scipy.io import loadmat
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from servobench.bench.identify.auto import identify  # noqa: E402
-from servobench.bench.logio import read_log  # noqa: E402
-from servobench.bench.model import ServoModel  # noqa: E402
-from servobench.bench.validate import validate  # noqa: E402
+from servobench.bench.log.io import read_log  # noqa: E402
+from servobench.bench.model.servo import ServoModel  # noqa: E402
+from servobench.bench.model.validate import validate  # noqa: E402
 
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
 PUBLISHED = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}

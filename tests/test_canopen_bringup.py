@@ -25,7 +25,7 @@ import can
 import numpy as np
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.bench.testing.served_canopen import SIM, served
 from servobench.drivers.registry import open_drive

@@ -18,7 +18,7 @@ import sys
 import numpy as np
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.served import ServedSim
 from servobench.bench.testing.served_canopen import served
 from servobench.drivers.registry import open_drive

@@ -17,13 +17,13 @@ import pytest
 
 import servobench.drivers.registry
 from servobench.bench.cli import main
-from servobench.bench.excitation import design_excitation, freqs_from, make_design
 from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.regression import fit_pairs, select_pairs
-from servobench.bench.logio import ExperimentLog, read_log
-from servobench.bench.model import ServoModel
-from servobench.bench.procedure import SidbeOptions, run_sidbe
+from servobench.bench.log.io import ExperimentLog, read_log
+from servobench.bench.model.servo import ServoModel
+from servobench.bench.procedure.excitation import design_excitation, freqs_from, make_design
+from servobench.bench.procedure.sidbe import SidbeOptions, run_sidbe
 from servobench.bench.report.plot_data import frf_evidence
 from servobench.bench.run.closed import stream_closed_runs
 from servobench.bench.run.hold import HoldController, HoldLoop, design_hold

@@ -16,7 +16,7 @@ import pytest
 
 import servobench.drivers.registry
 from servobench.bench.cli import main
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.drivers.sim import SimDrive
 
 URL = "sim://?noise=0.01&seed=1&xmin=-0.5&xmax=0.5&pace=fast"

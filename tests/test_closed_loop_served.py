@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.served import ServedSim
 
 pytestmark = pytest.mark.slow  # closed-loop sidbe over served drives, 20 s

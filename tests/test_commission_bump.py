@@ -14,7 +14,7 @@ from servobench.bench.commission.config import BumpSettings
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.limits import ConfirmedLimits, url_with_limits
 from servobench.bench.commission.ui import Console
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.drivers.base import Feedback
 from servobench.drivers.sim import SimDrive
 from servobench.sim_backend.device import PowerState

@@ -12,7 +12,7 @@ from test_commission_bump import StuckFault
 
 import servobench.drivers.registry
 from servobench.bench.cli import main
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.drivers.sim import SimDrive
 from servobench.sim_backend.device import PowerState
 

@@ -13,8 +13,8 @@ import math
 import pytest
 
 from servobench.bench.commission.design import design_pi, friction_feed_forward
-from servobench.bench.commission.program import DriveScale, program_values
-from servobench.bench.model import Resonance, ServoModel
+from servobench.bench.model.program import DriveScale, program_values
+from servobench.bench.model.servo import Resonance, ServoModel
 from servobench.errors import LogFormatError
 from servobench.units import ROTARY, SignalUnits
 

@@ -16,7 +16,7 @@ from test_commission_cli import CONFIG, PLANT
 
 import servobench.drivers.registry
 from servobench.bench.cli import main
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.drivers.sim import SimDrive
 
 #: What one FC23 cycle of servobench-sim.toml takes over RTU at 115200 baud (test_link_rate.py).

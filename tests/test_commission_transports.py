@@ -12,7 +12,7 @@ import pytest
 from test_commission_cli import CONFIG, check_record
 
 from servobench.bench.cli import main
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.registry import open_drive
 

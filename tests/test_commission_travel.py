@@ -9,7 +9,7 @@ import numpy as np
 from test_commission_cli import CONFIG, check_record
 
 from servobench.bench.cli import main
-from servobench.bench.logio import ExperimentLog, RunData, read_log
+from servobench.bench.log.io import ExperimentLog, RunData, read_log
 
 
 def test_commission_with_finite_travel_completes_with_the_whole_record(tmp_path, capsys):

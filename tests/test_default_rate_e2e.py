@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servobench.bench.excitation import DEFAULT_PERIOD_S, DEFAULT_PERIODS
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
+from servobench.bench.procedure.excitation import DEFAULT_PERIOD_S, DEFAULT_PERIODS
 from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.drivers.link_budget import default_rate_hz
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from servobench.bench.cli import main
-from servobench.bench.logio import LogWriter
+from servobench.bench.log.io import LogWriter
 from servobench.bench.testing.hidden_effects import random_case, write_case_log
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from servobench.bench.diagnose.workflow import diagnose
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 
 pytestmark = pytest.mark.slow  # the EMPS diagnosis, 18 s
 

@@ -12,7 +12,7 @@ from servobench.bench.diagnose.refit import refit
 from servobench.bench.diagnose.signatures import compute_signatures
 from servobench.bench.diagnose.simulate import Candidate, gap_percent, simulate
 from servobench.bench.identify.derivative import differentiate_position
-from servobench.bench.logio import ExperimentLog, RunData
+from servobench.bench.log.io import ExperimentLog, RunData
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams
 from servobench.sim_backend.physics.plant import simulate as plant_simulate
@@ -228,7 +228,7 @@ def test_position_friction_s_knot_count_is_chosen_on_held_out_samples(seed, shap
     from dataclasses import replace
 
     from servobench.bench.diagnose.screening import screen_input
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
     from servobench.bench.testing.hidden_effects import (
         position_friction_params,
         random_case,

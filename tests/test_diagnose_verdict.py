@@ -20,7 +20,7 @@ import pytest
 
 from servobench.bench.cli import main
 from servobench.bench.diagnose.workflow import diagnose
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.report.diagnose import summary_lines, to_json
 from servobench.bench.testing.hidden_effects import (
     CaseResults,

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from servobench.bench.identify.auto import identify
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 EMPS = REPO.parent / "shared" / "data" / "emps"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from servobench.bench.excitation import (
+from servobench.bench.procedure.excitation import (
     ExcitationDesign,
     binary_period,
     default_freqs,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.fault_scenarios import SIM_URL, read_state
 from servobench.bench.testing.served import ServedSim
 

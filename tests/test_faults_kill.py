@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.fault_scenarios import (
     FS_HZ,
     HOST_KEYS,

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.fault_scenarios import (
     CASES,
     Case,

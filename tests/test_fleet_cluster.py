@@ -26,11 +26,11 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
 
-from servobench.bench.excitation import make_design
 from servobench.bench.fleet.engine import run_sequential
 from servobench.bench.fleet.sources import find_logs
 from servobench.bench.fleet.table import COLUMNS
-from servobench.bench.logidentity import parse_time
+from servobench.bench.log.identity import parse_time
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.testing.fleet_logs import AxisSpec, write_fleet, write_log
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.sim_backend.physics.plant import PlantParams

@@ -21,7 +21,7 @@ import pytest
 from servobench.bench.fleet.sources import find_logs
 from servobench.bench.fleet.table import COLUMNS, UNITS_KEY, FleetRow, write_csv, write_parquet
 from servobench.bench.fleet.trend import axis_trends
-from servobench.bench.logidentity import axis_of_url, log_identity, parse_time
+from servobench.bench.log.identity import axis_of_url, log_identity, parse_time
 from servobench.drivers.url import parse_drive_url
 from servobench.errors import LogFormatError, UsageError
 
@@ -186,9 +186,9 @@ def test_batches_keep_order_and_bound_their_size():
 
 
 def test_an_incomplete_log_is_identified_but_reported(tmp_path):
-    from servobench.bench.excitation import make_design
     from servobench.bench.fleet.job import process_log
     from servobench.bench.fleet.sources import LogSource
+    from servobench.bench.procedure.excitation import make_design
     from servobench.bench.testing.fleet_logs import write_log
     from servobench.bench.testing.synthetic import simulate_experiment
     from servobench.sim_backend.physics.plant import PlantParams
@@ -266,7 +266,7 @@ def test_the_time_axis_is_in_the_natural_unit_of_its_span():
 
 def test_sim_logs_of_different_plants_are_different_axes(tmp_path):
     from servobench.bench.cli import main
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
 
     for name, url in (("a", "sim://?fc_pos=0.4&pace=fast"), ("b", "sim://?fc_pos=0.6&max_u=5"),
                       ("c", "sim://?pace=fast&fc_pos=0.4")):  # fmt: skip

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from servobench.bench.logio import LogWriter, parse_log_text, read_log
+from servobench.bench.log.io import LogWriter, parse_log_text, read_log
 from servobench.errors import LogFormatError, ServobenchError
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -101,7 +101,7 @@ def test_whatever_the_writer_writes_reads_back(tmp_path_factory, meta, rows) -> 
 # ------------------------------------------------------------ fast pass = reference
 def _reference(text: str):
     """What the line-by-line reference parser makes of ``text`` (result or error message)."""
-    from servobench.bench import logtable
+    from servobench.bench.log import table as logtable
 
     text = text.removeprefix("\ufeff")
     truncated = bool(text) and not text.endswith(("\n", "\r"))
@@ -116,7 +116,7 @@ def _reference(text: str):
 
 
 def _fast(text: str, engine: str):
-    from servobench.bench import logtable
+    from servobench.bench.log import table as logtable
 
     try:
         table = logtable.parse_table(text, "fuzz", lambda h: None, engine)
@@ -151,7 +151,7 @@ def test_fast_readers_agree_with_the_line_by_line_reference(text: str, engine: s
 
 def test_a_clean_log_never_needs_the_reference(monkeypatch) -> None:
     """The fast pass really runs: with the reference disabled, clean logs (',' and ';') still read."""
-    from servobench.bench import logtable
+    from servobench.bench.log import table as logtable
 
     def no_reference(*_args):
         raise AssertionError("the line-by-line reference ran")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from servobench.bench.excitation import design_excitation, make_design
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
+from servobench.bench.procedure.excitation import design_excitation, make_design
 from servobench.bench.run.hold import (
     HoldController,
     HoldGains,
@@ -72,7 +72,7 @@ def test_the_predicted_hold_is_the_simulated_drive_held_by_the_host():
     plan = ClosedLoopPlan(design, controller, 0.5, predicted.excursion(), SIM)
     from tempfile import TemporaryDirectory
 
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
 
     with TemporaryDirectory() as d, open_drive("sim://?xmin=-0.5&xmax=0.5") as drive:
         stream_closed_runs(drive, [(1, u1)], 1000.0, f"{d}/log.csv", plan, settle_s=0.01)

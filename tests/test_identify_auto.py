@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from servobench.bench.excitation import make_design
 from servobench.bench.identify.auto import identify
-from servobench.bench.logio import ExperimentLog
-from servobench.bench.model import IdentificationResult, ServoModel, fit_percent
+from servobench.bench.log.io import ExperimentLog
+from servobench.bench.model.servo import IdentificationResult, ServoModel, fit_percent
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError, UsageError
 from servobench.sim_backend.physics.plant import PlantParams
@@ -89,7 +89,7 @@ def test_fit_percent_definition():
 
 
 def test_incomplete_log_is_identified_with_a_note(tmp_path):
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
 
     log = simulate_experiment(TRUE, make_design(2.0, periods=2, period_s=1.0))
     path = tmp_path / "cut.csv"

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.bench.excitation import make_design
 from servobench.bench.identify.auto import identify
 from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.joint import identify_joint
-from servobench.bench.logio import ExperimentLog, RunData
+from servobench.bench.log.io import ExperimentLog, RunData
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams, PlantState, simulate_coulomb

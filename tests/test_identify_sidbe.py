@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.bench.excitation import design_excitation, make_design
 from servobench.bench.identify.auto import identify
 from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.frequency import (
@@ -16,7 +15,8 @@ from servobench.bench.identify.frequency import (
     model_frf,
 )
 from servobench.bench.identify.sidbe import identify_sidbe
-from servobench.bench.model import Resonance, ServoModel
+from servobench.bench.model.servo import Resonance, ServoModel
+from servobench.bench.procedure.excitation import design_excitation, make_design
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.plant import PlantParams

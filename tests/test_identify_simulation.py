@@ -3,13 +3,13 @@
 import numpy as np
 from numpy.testing import assert_allclose
 
-from servobench.bench.excitation import design_excitation, make_design
 from servobench.bench.identify.simulation import (
     simulate_run,
     simulate_steady_period,
     simulate_variable_dt,
 )
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
+from servobench.bench.procedure.excitation import design_excitation, make_design
 from servobench.sim_backend.physics.plant import PlantState, simulate_coulomb
 
 MODEL = ServoModel(0.1, 1.0, 0.5, 0.4)

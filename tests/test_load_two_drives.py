@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.registry import open_drive

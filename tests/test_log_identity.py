@@ -13,8 +13,8 @@ from datetime import datetime, timedelta
 import numpy as np
 
 from servobench.bench.cli import main
-from servobench.bench.logidentity import configured_axis, parse_time
-from servobench.bench.logio import read_log
+from servobench.bench.log.identity import configured_axis, parse_time
+from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
 from servobench.drivers.registry import open_drive
 

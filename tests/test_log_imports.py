@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servobench.bench.logio import parse_log_text, read_log
+from servobench.bench.log.io import parse_log_text, read_log
 from servobench.errors import LogFormatError
 
 REPO = Path(__file__).resolve().parents[1]

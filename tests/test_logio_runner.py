@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.bench.logio import LogWriter, parse_log_text, read_log
+from servobench.bench.log.io import LogWriter, parse_log_text, read_log
 from servobench.bench.run.runner import LOG_COLUMNS, stream_runs
 from servobench.drivers.registry import open_drive
 from servobench.errors import DriveFaultError, LogFormatError, UsageError

@@ -16,8 +16,8 @@ from functools import cache
 import numpy as np
 import pytest
 
-from servobench.bench.excitation import make_design
 from servobench.bench.identify.auto import identify
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.report import plots
 from servobench.bench.report.plot_data import frf_evidence, friction_map
 from servobench.bench.testing.synthetic import simulate_experiment

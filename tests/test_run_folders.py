@@ -11,7 +11,7 @@ import pytest
 
 import servobench.drivers.registry
 from servobench.bench.cli import main
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.fault_scenarios import SIM_URL
 from servobench.bench.testing.served import ServedSim
 from servobench.drivers.sim import SimDrive

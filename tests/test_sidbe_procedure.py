@@ -5,8 +5,8 @@ import json
 import pytest
 from numpy.testing import assert_allclose
 
-from servobench.bench.logio import read_log
-from servobench.bench.procedure import SidbeOptions, run_sidbe
+from servobench.bench.log.io import read_log
+from servobench.bench.procedure.sidbe import SidbeOptions, run_sidbe
 from servobench.drivers.registry import open_drive
 from servobench.errors import UsageError
 

@@ -44,7 +44,7 @@ def test_metadata_round_trip(units):
 
 def test_a_log_without_units_gives_generic_parameter_units(tmp_path):
     from servobench.bench.identify.auto import identify
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
 
     rows = []
     v = 0.0

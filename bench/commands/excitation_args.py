@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from servobench.bench import excitation as exc
+from servobench.bench.procedure import excitation as exc
 from servobench.errors import UsageError
 
 #: Choices of ``--loop``.

@@ -49,10 +49,10 @@ def run(args: argparse.Namespace) -> None:
     from dataclasses import replace
     from pathlib import Path
 
-    from servobench.bench.commission.program import drive_scale_json
     from servobench.bench.identify.auto import identify
+    from servobench.bench.model.program import drive_scale_json
+    from servobench.bench.procedure.run_folder import MODEL_FILE
     from servobench.bench.report.summary import print_json, print_result
-    from servobench.bench.run_folder import MODEL_FILE
     from servobench.errors import UsageError
 
     out_dir = Path(args.out) if args.out else None

@@ -46,8 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    from servobench.bench.commission.program import DriveScale, design_values
-    from servobench.bench.modelfile import program_model, read_model
+    from servobench.bench.model.file import program_model, read_model
+    from servobench.bench.model.program import DriveScale, design_values
     from servobench.errors import UsageError
     from servobench.units import SignalUnits
 
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> None:
     units = SignalUnits(saved.units.get("u", ""), saved.units.get("v", ""), saved.units.get("x", ""))
     scale = DriveScale()
     if args.log:
-        from servobench.bench.logio import read_log
+        from servobench.bench.log.io import read_log
 
         scale = DriveScale.from_metadata(read_log(args.log).metadata, args.log)
     elif saved.drive_scale:

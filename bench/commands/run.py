@@ -30,8 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.excitation import design_excitation
-    from servobench.bench.procedure import SidbeOptions
+    from servobench.bench.procedure.excitation import design_excitation
+    from servobench.bench.procedure.sidbe import SidbeOptions
     from servobench.bench.report.summary import print_json
     from servobench.bench.run.runner import stream_runs
     from servobench.drivers.registry import open_drive
@@ -74,8 +74,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _closed(drive, options, out: Path, tick):
     """Probe, plan and stream in closed loop; the result, the design applied and the hold's facts."""
-    from servobench.bench.closed_loop import facts, prepare
-    from servobench.bench.excitation import design_excitation
+    from servobench.bench.procedure.closed_rounds import facts, prepare
+    from servobench.bench.procedure.excitation import design_excitation
     from servobench.bench.run.closed import stream_closed_runs
     from servobench.bench.run.runner import default_pace
 

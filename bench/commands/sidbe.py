@@ -26,7 +26,7 @@ RUNS_DIR = "servobench-runs"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from servobench.bench.procedure import DEFAULT_FIT_THRESHOLD, DEFAULT_MAX_ITERATIONS
+    from servobench.bench.procedure.sidbe import DEFAULT_FIT_THRESHOLD, DEFAULT_MAX_ITERATIONS
 
     add_excitation_arguments(p)
     p.add_argument(
@@ -83,7 +83,7 @@ def default_out_dir(base: Path | None = None) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.procedure import SidbeOptions, check_run_folder, run_sidbe
+    from servobench.bench.procedure.sidbe import SidbeOptions, check_run_folder, run_sidbe
     from servobench.bench.report.summary import print_json, print_result, rate_text
     from servobench.bench.run.runner import default_pace
     from servobench.drivers.registry import open_drive

@@ -4,7 +4,7 @@ MODEL is any model servobench writes (``identify --json``, ``diagnose --json``,
 the ``model.json`` of ``sidbe`` and ``commission``); LOG any log ``identify``
 reads. Prints ``fit_percent`` and ``gap_percent`` with the definitions of
 ``identify`` and ``diagnose``, and for closed-loop logs the relative force
-error of the EMPS reference (see :mod:`servobench.bench.validate`).
+error of the EMPS reference (see :mod:`servobench.bench.model.validate`).
 
 The verdict leads: the first line is ``PASS: ...`` when ``fit_percent`` is at
 least ``--min-fit`` (default 90 %, the SIDBE verification threshold) and
@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 
 from servobench.bench.commands.log_args import add_log_arguments, read_log_of
-from servobench.bench.validate import DEFAULT_MAX_GAP_PERCENT, DEFAULT_MIN_FIT_PERCENT
+from servobench.bench.model.validate import DEFAULT_MAX_GAP_PERCENT, DEFAULT_MIN_FIT_PERCENT
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,9 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace):
-    from servobench.bench.modelfile import read_model
+    from servobench.bench.model.file import read_model
+    from servobench.bench.model.validate import judge, validate
     from servobench.bench.report.summary import print_json
-    from servobench.bench.validate import judge, validate
     from servobench.units import SignalUnits
     from servobench.verdict import Verdict
 

@@ -6,7 +6,9 @@ verification loop and the diagnosis, designs friction feed-forward and a
 velocity-loop PI from the identified model, checks both in simulation and
 writes the commissioning record (``model.json``, the log, ``report.html``,
 ``commission.mat``): verdict and identity first, then the values to program
-into the drive, then the evidence.
+into the drive, then the evidence. The values to program themselves are
+computed by :mod:`servobench.bench.model.program` (pure, shared with
+``servobench program``).
 
 Modules
 -------
@@ -18,7 +20,6 @@ bump         the bump test: does it move, in the right direction, with sane feed
 integration  the one adapter to the SIDBE procedure, the model and the diagnosis
 design       friction feed-forward and PI design (pure)
 closedloop   velocity-loop simulation of the design on the identified plant
-program      the values to program into the drive, in the log's and the drive's own units
 source       which model the values to program come from (SIDBE, or the diagnosed model)
 record       model.json, the .mat export, commission.json
 figures      the plots only commissioning draws (excitation, bump, compensation)

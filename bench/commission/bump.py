@@ -31,7 +31,7 @@ from servobench.bench.commission.config import BumpSettings
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.limits import ConfirmedLimits
 from servobench.bench.identify.resolution import signal_step
-from servobench.bench.logio import LogWriter
+from servobench.bench.log.io import LogWriter
 from servobench.bench.run.runner import LOG_COLUMNS
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
@@ -137,7 +137,7 @@ def at_link_rate(settings: BumpSettings, sidbe_fs_hz: object, drive: Drive) -> B
     :class:`~servobench.errors.UsageError` naming the achievable rate, before
     anything moves.
     """
-    from servobench.bench.excitation import DEFAULT_FS_HZ
+    from servobench.bench.procedure.excitation import DEFAULT_FS_HZ
     from servobench.drivers.link_budget import drive_rate_hz
 
     if isinstance(sidbe_fs_hz, int | float):  # other values: [sidbe] is checked in step 2

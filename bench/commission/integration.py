@@ -1,7 +1,7 @@
 """The one place commissioning touches identification, SIDBE and the diagnosis.
 
-Everything the steps need from :mod:`servobench.bench.procedure` (``run_sidbe``,
-``SidbeOptions``), :mod:`servobench.bench.model` (``IdentificationResult``) and
+Everything the steps need from :mod:`servobench.bench.procedure.sidbe` (``run_sidbe``,
+``SidbeOptions``), :mod:`servobench.bench.model.servo` (``IdentificationResult``) and
 :mod:`servobench.bench.diagnose.workflow` (``diagnose``, ``report.to_json``/``write_report``)
 passes through here and comes out as the small result types below, so an
 API change elsewhere is a fix in this module only.
@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from servobench.bench.model import IdentificationResult, ServoModel
+from servobench.bench.model.servo import IdentificationResult, ServoModel
 from servobench.drivers.base import Drive
 from servobench.errors import UsageError
 
 ProgressCallback = Callable[[int, int], None]
 
-#: Model keys of ``servobench identify --json`` (servobench.bench.model.IdentificationResult.to_json()).
+#: Model keys of ``servobench identify --json`` (servobench.bench.model.servo.IdentificationResult.to_json()).
 IDENTIFY_KEYS = ("M", "B", "pole", "dc_gain", "coulomb_pos", "coulomb_neg", "fit_percent", "method")
 #: Default SIDBE amplitude over the bump pulse that moved the axis.
 AMPLITUDE_OVER_BUMP = 2.0
@@ -34,7 +34,7 @@ class SidbeOutcome:
     Attributes
     ----------
     result : IdentificationResult
-        The accepted model (:mod:`servobench.bench.model`): ``result.model`` (M, B,
+        The accepted model (:mod:`servobench.bench.model.servo`): ``result.model`` (M, B,
         coulomb_pos, coulomb_neg, pole, dc_gain), ``std``, ``fit_percent``,
         ``method``, ``to_json()`` (the ``identify --json`` keys).
     log_path : Path
@@ -86,7 +86,7 @@ class DiagnoseOutcome:
 def sidbe_options(
     options: Mapping[str, Any], max_u: float, moved_at: float, travel_finite: bool = False
 ) -> Any:
-    """:class:`servobench.bench.procedure.SidbeOptions` from the ``[sidbe]`` table.
+    """:class:`servobench.bench.procedure.sidbe.SidbeOptions` from the ``[sidbe]`` table.
 
     Keys are the option names (``amplitude``, ``ratio``, ``fs_hz``, ``periods``,
     ``period_s``, ``freqs_hz``, ``loop``, ``method``, ``fit_threshold``,
@@ -99,7 +99,7 @@ def sidbe_options(
     procedure fits it to the travel. The options are validated here
     (:class:`UsageError`).
     """
-    from servobench.bench.procedure import SidbeOptions
+    from servobench.bench.procedure.sidbe import SidbeOptions
 
     values = dict(options)
     loop = values.get("loop", "auto")
@@ -123,7 +123,7 @@ def bump_model(log_path: Path) -> Any:
     the pulses cannot yield a model it learns the axis by its own relay probe.
     """
     from servobench.bench.identify.auto import identify
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
     from servobench.errors import IdentificationError
 
     try:
@@ -144,7 +144,7 @@ def run_sidbe(
     ``known``: the model of the bump test (:func:`bump_model`), which a closed-loop
     run designs its hold from.
     """
-    from servobench.bench import procedure
+    from servobench.bench.procedure import sidbe as procedure
 
     def tick(iteration: int, done: int, total: int) -> None:
         if progress is not None:
@@ -180,7 +180,7 @@ def diagnose(log_path: Path, options: Mapping[str, Any], out_dir: Path) -> Diagn
     """Diagnose ``log_path`` (``[diagnose]`` keys, read by :mod:`.config`: ``horizon_s``);
     ``comparison.csv``, plots, ``report.md`` in ``out_dir``."""
     from servobench.bench.diagnose.workflow import diagnose as run_diagnosis
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.io import read_log
     from servobench.bench.report.diagnose import to_json, write_report
 
     d = run_diagnosis(read_log(log_path), horizon_s=options.get("horizon_s"))

@@ -6,7 +6,7 @@ coulomb_neg, fit_percent, method, and ``units``: the unit of every
 parameter), then ``std`` (1-sigma of every parameter), the friction
 feed-forward, the suggested PI, the simulation check, ``program`` (the
 values to program into the drive, in the log's and the drive's own units,
-:mod:`servobench.bench.commission.program`), ``identity`` (site, machine,
+:mod:`servobench.bench.model.program`), ``identity`` (site, machine,
 axis, operator from the config; vendor, product, firmware, serial number
 from the drive) and the facts of the commissioning (drive, limits, bump
 test, diagnosis). ``commission.mat`` carries the log arrays and the same numbers
@@ -30,9 +30,9 @@ from servobench.bench.commission.closedloop import CompensationCheck
 from servobench.bench.commission.config import IdentitySettings
 from servobench.bench.commission.design import FrictionFeedForward, PIDesign
 from servobench.bench.commission.integration import IDENTIFY_KEYS
-from servobench.bench.commission.program import ProgramValue
-from servobench.bench.logio import ExperimentLog
-from servobench.bench.model import STD_KEYS, IdentificationResult
+from servobench.bench.log.io import ExperimentLog
+from servobench.bench.model.program import ProgramValue
+from servobench.bench.model.servo import STD_KEYS, IdentificationResult
 from servobench.bench.report.summary import derived_std
 from servobench.drivers.base import DriveInfo
 
@@ -149,7 +149,7 @@ def write_mat(
 ) -> Path:
     """``commission.mat``: ``run, t, u, v, x`` (column vectors over all runs), ``fs`` and the numbers.
 
-    Readable back with :func:`servobench.bench.logio.read_log` (default variable names).
+    Readable back with :func:`servobench.bench.log.io.read_log` (default variable names).
     """
     from scipy.io import savemat
 

@@ -47,7 +47,6 @@ from servobench.bench.commission.limits import (
     merge_limits,
     url_with_limits,
 )
-from servobench.bench.commission.program import DriveScale, integral_unit, program_values
 from servobench.bench.commission.record import (
     MAT_FILE,
     MODEL_FILE,
@@ -61,9 +60,10 @@ from servobench.bench.commission.record import (
 )
 from servobench.bench.commission.source import DIAGNOSE, ProgramSource, choose_source
 from servobench.bench.commission.ui import Console
-from servobench.bench.logidentity import configured_axis
-from servobench.bench.logio import read_log
-from servobench.bench.model import IdentificationResult, ServoModel
+from servobench.bench.log.identity import configured_axis
+from servobench.bench.log.io import read_log
+from servobench.bench.model.program import DriveScale, integral_unit, program_values
+from servobench.bench.model.servo import IdentificationResult, ServoModel
 from servobench.bench.report import commission_record as document
 from servobench.bench.report.html import REPORT_FILE, write_report
 from servobench.drivers.base import Drive

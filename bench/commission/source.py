@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 
 #: ``ProgramSource.model`` of each origin.
 SIDBE, DIAGNOSE = "sidbe", "diagnose"

@@ -34,7 +34,7 @@ import numpy as np
 from servobench.bench.identify.dataset import Dataset, Segment
 from servobench.bench.identify.dataset import prepare as prepare_log
 from servobench.bench.identify.resolution import signal_step, step_noise_std
-from servobench.bench.logio import ExperimentLog
+from servobench.bench.log.io import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
 from servobench.units import SignalUnits
 

@@ -21,7 +21,7 @@
 * ``gap_percent``, ``noise_floor_percent``, ``verdict``, ``comparison`` (how
   the gap was measured) and ``source`` (the log).
 
-The one reader of model files, :func:`servobench.bench.modelfile.read_model`
+The one reader of model files, :func:`servobench.bench.model.file.read_model`
 (``servobench validate``), reads it back: the base keys at the top level and
 ``effects`` as a mapping; ``sim_url`` is for the simulated drive and
 ``serve-sim``, not read back.

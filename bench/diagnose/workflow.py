@@ -28,7 +28,7 @@ from servobench.bench.diagnose.search import SearchTrace, Step, search
 from servobench.bench.diagnose.signatures import Signatures, compute_signatures
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.bench.diagnose.verdict import Verdict, judge
-from servobench.bench.logio import ExperimentLog
+from servobench.bench.log.io import ExperimentLog
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects import position_friction
 

@@ -43,8 +43,8 @@ def process_log(source: LogSource, diagnose: bool = False) -> FleetRow:
         Its ``error`` names what went wrong, "" when nothing did.
     """
     from servobench.bench.identify.auto import identify
-    from servobench.bench.logidentity import log_identity
-    from servobench.bench.logio import read_log
+    from servobench.bench.log.identity import log_identity
+    from servobench.bench.log.io import read_log
 
     row = _named_by_file(source)
     try:
@@ -92,7 +92,7 @@ def _replace(row: FleetRow, **changes: object) -> FleetRow:
 
 def _named_by_file(source: LogSource) -> FleetRow:
     """A row named by the file alone (for a log that cannot be read)."""
-    from servobench.bench.logidentity import log_identity
+    from servobench.bench.log.identity import log_identity
 
     try:
         axis, time = log_identity({}, source.path)

@@ -36,7 +36,7 @@ from datetime import datetime
 from typing import Any
 
 from servobench.bench.fleet.table import FleetRow
-from servobench.bench.logidentity import parse_time
+from servobench.bench.log.identity import parse_time
 from servobench.errors import UsageError
 
 #: Parameters trended, in table order.

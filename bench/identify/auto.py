@@ -27,8 +27,8 @@ from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.motion import require_motion
 from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
 from servobench.bench.identify.verify import verify
-from servobench.bench.logio import ExperimentLog
-from servobench.bench.model import IdentificationResult
+from servobench.bench.log.io import ExperimentLog
+from servobench.bench.model.servo import IdentificationResult
 from servobench.errors import IdentificationError, UsageError
 
 #: Methods :func:`identify` accepts.
@@ -50,7 +50,7 @@ def identify(
     Parameters
     ----------
     log : ExperimentLog
-        From :func:`servobench.bench.logio.read_log` (or built in memory).
+        From :func:`servobench.bench.log.io.read_log` (or built in memory).
     method : {"auto", "sidbe", "joint"}
     resonance : bool
         Let SIDBE fit the series resonance of the paper's eq. (2)-(3).

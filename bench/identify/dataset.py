@@ -1,6 +1,6 @@
 """The prepared log: analysis-ready runs, shared by identification and diagnosis.
 
-Each run of an :class:`~servobench.bench.logio.ExperimentLog` becomes a
+Each run of an :class:`~servobench.bench.log.io.ExperimentLog` becomes a
 :class:`Segment` holding the command ``u``, the velocity ``v`` (measured, or
 derived from position with a zero-phase filter), the sample interval
 (nominal ``1/fs``, or per interval from ``t`` when the time stamps jitter by
@@ -21,14 +21,14 @@ from functools import cached_property
 
 import numpy as np
 
-from servobench.bench.excitation import ExcitationDesign, design_from_metadata
 from servobench.bench.identify.derivative import (
     DerivedMotion,
     differentiate_position,
     lowpass,
     settle_samples,
 )
-from servobench.bench.logio import ExperimentLog, RunData
+from servobench.bench.log.io import ExperimentLog, RunData
+from servobench.bench.procedure.excitation import ExcitationDesign, design_from_metadata
 from servobench.errors import IdentificationError
 from servobench.units import SignalUnits
 

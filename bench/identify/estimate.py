@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 
 
 @dataclass(frozen=True)

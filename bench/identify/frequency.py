@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from servobench.bench.excitation import ExcitationDesign
+from servobench.bench.procedure.excitation import ExcitationDesign
 from servobench.errors import IdentificationError
 
 
@@ -120,7 +120,7 @@ def zoh_first_order(M: float, B: float, z: np.ndarray, dt_s: float) -> np.ndarra
 
 
 def model_frf(model, f_hz: np.ndarray, dt_s: float | None = None) -> np.ndarray:
-    """Linear-block response of a :class:`~servobench.bench.model.ServoModel` at ``f_hz`` [Hz].
+    """Linear-block response of a :class:`~servobench.bench.model.servo.ServoModel` at ``f_hz`` [Hz].
 
     Continuous ``1/(M s + B)`` (times the resonance) without ``dt_s``; the
     exact ZOH-sampled response (feedback before command) with it.

@@ -30,7 +30,7 @@ from servobench.bench.identify.derivative import (
 )
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.output_error import MAX_RAW_SAMPLES, Chunk, refine
-from servobench.bench.model import STD_KEYS, ServoModel
+from servobench.bench.model.servo import STD_KEYS, ServoModel
 from servobench.errors import IdentificationError
 
 #: Samples with |v| below this fraction of max |v| count as standstill.

@@ -51,7 +51,7 @@ from servobench.bench.identify.regression import (
     select_pairs,
 )
 from servobench.bench.identify.simulation import simulate_run
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 from servobench.errors import IdentificationError
 
 #: Noise below this fraction of the rms velocity counts as none (log rounding is ~1e-10).

@@ -23,7 +23,7 @@ import numpy as np
 
 from servobench.bench.identify.derivative import DerivedMotion, differentiate_position
 from servobench.bench.identify.simulation import simulate_steady_period, simulate_velocity
-from servobench.bench.model import STD_KEYS, ServoModel
+from servobench.bench.model.servo import STD_KEYS, ServoModel
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.coulomb import PlantState, simulate_coulomb
 

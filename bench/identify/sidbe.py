@@ -38,7 +38,7 @@ from servobench.bench.identify.frequency import (
     position_over_velocity,
 )
 from servobench.bench.identify.regression import noise_std_from_residual, select_pairs
-from servobench.bench.model import Resonance, ServoModel
+from servobench.bench.model.servo import Resonance, ServoModel
 from servobench.errors import IdentificationError
 
 #: Pairs closer to zero velocity than this many noise sigmas are not used for friction.

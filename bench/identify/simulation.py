@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 
 #: Time constants of pre-roll that make the periodic steady state exact to ~3e-7.

@@ -20,7 +20,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset, initial_velocity
 from servobench.bench.identify.simulation import simulate_run
-from servobench.bench.model import ServoModel, fit_percent
+from servobench.bench.model.servo import ServoModel, fit_percent
 
 
 @dataclass(frozen=True)

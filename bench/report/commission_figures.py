@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from servobench.bench.commission.closedloop import CompensationCheck
-from servobench.bench.logio import ExperimentLog
+from servobench.bench.log.io import ExperimentLog
 from servobench.bench.report.figure import new_figure, png_bytes
 from servobench.units import SignalUnits
 

@@ -8,7 +8,7 @@ Order, as the reader needs it:
    with its 1-sigma uncertainties and units;
 3. **Values to program into the drive**: friction feed-forward per
    direction, viscous, PI gains and any filter, in the log's units and in
-   the drive's own (:mod:`servobench.bench.commission.program`);
+   the drive's own (:mod:`servobench.bench.model.program`);
 4. **Evidence**: drive and limits, bump test, one excitation period,
    velocities, frequency response, friction map, diagnosis, and the
    design's margins and simulation check, every figure captioned.
@@ -26,10 +26,10 @@ from servobench.bench.commission.checks import DriveCheck, describe_info
 from servobench.bench.commission.config import CommissionConfig
 from servobench.bench.commission.integration import DiagnoseOutcome, SidbeOutcome
 from servobench.bench.commission.limits import ConfirmedLimits
-from servobench.bench.commission.program import DriveScale, ProgramValue
 from servobench.bench.commission.record import Design
 from servobench.bench.commission.source import DIAGNOSE, ProgramSource
-from servobench.bench.logio import ExperimentLog, read_log
+from servobench.bench.log.io import ExperimentLog, read_log
+from servobench.bench.model.program import DriveScale, ProgramValue
 from servobench.bench.report import commission_figures as figures
 from servobench.bench.report import plots
 from servobench.bench.report.html import (

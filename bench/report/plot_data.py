@@ -33,7 +33,7 @@ from servobench.bench.identify.derivative import (
     settle_samples,
 )
 from servobench.bench.identify.frequency import line_spectrum
-from servobench.bench.model import IdentificationResult
+from servobench.bench.model.servo import IdentificationResult
 
 #: Velocity bins on each side of zero in the friction map.
 BINS_PER_DIRECTION = 12

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from servobench.bench.model import IdentificationResult
+from servobench.bench.model.servo import IdentificationResult
 from servobench.bench.report.figure import new_figure, save_png
 from servobench.bench.report.plot_data import FrfEvidence, FrictionMap, frf_evidence, friction_map
 

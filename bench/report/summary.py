@@ -12,7 +12,7 @@ import math
 import sys
 from typing import Any
 
-from servobench.bench.model import IdentificationResult
+from servobench.bench.model.servo import IdentificationResult
 from servobench.units import SignalUnits
 
 #: Said when a log states no units.

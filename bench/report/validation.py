@@ -1,6 +1,6 @@
 """The figure of ``servobench validate --out DIR``: measured against predicted.
 
-Consumes a :class:`~servobench.bench.validate.Validation` only. One panel per
+Consumes a :class:`~servobench.bench.model.validate.Validation` only. One panel per
 run with the measured velocity and the model's simulated one; for closed-loop
 logs a last panel with the filtered command and the inverse model's command.
 """
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from servobench.bench.model.validate import Validation
 from servobench.bench.report.figure import new_figure, save_png
-from servobench.bench.validate import Validation
 from servobench.units import SignalUnits
 
 FIGURE_FILE = "validation.png"

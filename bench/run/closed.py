@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.logio import LogWriter
+from servobench.bench.log.io import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.hold import HoldLoop
 from servobench.bench.run.runner import (

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.coulomb import PlantState, simulate_coulomb
 

@@ -31,8 +31,8 @@ import numpy as np
 
 from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.joint import identify_joint
-from servobench.bench.logio import LogWriter, read_log
-from servobench.bench.model import ServoModel
+from servobench.bench.log.io import LogWriter, read_log
+from servobench.bench.model.servo import ServoModel
 from servobench.bench.run.runner import (
     LOG_COLUMNS,
     REST_SAMPLES,

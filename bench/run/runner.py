@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.logidentity import run_identity
-from servobench.bench.logio import LogWriter
+from servobench.bench.log.identity import run_identity
+from servobench.bench.log.io import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.timing_stats import PeriodStats, TimingStats
 from servobench.clock import sleep_until
@@ -146,7 +146,7 @@ def stream_runs(
         CSV log, written as samples arrive.
     metadata : mapping
         Extra ``# key = value`` header lines. ``fs`` is always written, and so are
-        ``axis`` and ``time`` (:func:`~servobench.bench.logidentity.run_identity`),
+        ``axis`` and ``time`` (:func:`~servobench.bench.log.identity.run_identity`),
         which ``metadata`` may override.
     pace : {"real", "fast"}, optional
         Default: the drive's ``pace`` URL key, else ``"fast"`` for a drive whose

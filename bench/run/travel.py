@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench import excitation as exc
 from servobench.bench.identify.output_error import Chunk, cramer_rao
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
+from servobench.bench.procedure import excitation as exc
 from servobench.bench.run.hold import (
     LINE_OVER_BANDWIDTH,
     HoldController,
@@ -194,7 +194,7 @@ def plan_closed_loop(
     known (:func:`~servobench.bench.run.hold.fit_hold_gains`), else the host's
     design stands in for them in the prediction.
 
-    1. The lowest line is the lowest of :func:`~servobench.bench.excitation.lowest_line_choices`
+    1. The lowest line is the lowest of :func:`~servobench.bench.procedure.excitation.lowest_line_choices`
        that fits at ``base.amplitude``, found by bisection; while none fits, the
        amplitude is lowered by :data:`AMPLITUDE_STEP`, down to
        :data:`MIN_AMPLITUDE_OVER_FRICTION` times the larger Coulomb level.

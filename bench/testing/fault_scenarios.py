@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.drivers.registry import open_drive

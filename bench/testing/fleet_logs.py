@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.excitation import make_design
-from servobench.bench.logio import ExperimentLog, LogWriter
+from servobench.bench.log.io import ExperimentLog, LogWriter
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.sim_backend.physics.plant import PlantParams
 

@@ -13,7 +13,7 @@ Inputs (``inputs=``):
 * ``two-level`` (default): a binary-plus-multisine command at two amplitudes,
   run 1 and run 2 (like SIDBE's u1/u2, amplitude ratio 2);
 * ``sidbe``: the SIDBE pair itself -- a periodic multi-frequency binary
-  excitation ``u1`` and ``u2 = 0.9 u1`` (:mod:`servobench.bench.excitation`),
+  excitation ``u1`` and ``u2 = 0.9 u1`` (:mod:`servobench.bench.procedure.excitation`),
   with its design in the log's metadata;
 * ``square``, ``sine``, ``triangle``: one run of the classic test commands,
   period :data:`WAVE_PERIOD_S`.
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.logio import LogWriter
+from servobench.bench.log.io import LogWriter
 from servobench.sim_backend.physics.effects import collect_terms, position_friction
 from servobench.sim_backend.physics.plant import Plant, PlantParams, PlantState
 from servobench.sim_backend.physics.rich_plant import RichModel
@@ -294,7 +294,7 @@ def case_commands(case: HiddenCase, rng: np.random.Generator) -> list[tuple[int,
 
 
 def _sidbe(case: HiddenCase):
-    from servobench.bench.excitation import design_excitation, make_design
+    from servobench.bench.procedure.excitation import design_excitation, make_design
 
     design = make_design(
         WAVE_PEAK * case.amplitude,

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from servobench.bench.excitation import ExcitationDesign, design_excitation
-from servobench.bench.logio import ExperimentLog, RunData
+from servobench.bench.log.io import ExperimentLog, RunData
+from servobench.bench.procedure.excitation import ExcitationDesign, design_excitation
 from servobench.sim_backend.physics.plant import Plant, PlantParams
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from servobench.bench.model import Resonance, ServoModel
+from servobench.bench.model.servo import Resonance, ServoModel
 from servobench.errors import IdentificationError, UsageError, one_line
 from servobench.sim_backend.physics import effects as effect_library
 

@@ -32,10 +32,11 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from servobench.bench import excitation as exc
 from servobench.bench.identify.auto import identify
-from servobench.bench.logio import read_log
-from servobench.bench.model import IdentificationResult, ServoModel
+from servobench.bench.log.io import read_log
+from servobench.bench.model.servo import IdentificationResult, ServoModel
+from servobench.bench.procedure import excitation as exc
+from servobench.bench.procedure.run_folder import HOLD_TRIAL_LOG, round_log_name
 from servobench.bench.run.closed import stream_closed_runs
 from servobench.bench.run.hold import HoldGains, fit_hold_gains
 from servobench.bench.run.probe import PROBE_LOG, probe_start, run_probe
@@ -49,12 +50,11 @@ from servobench.bench.run.travel import (
     plan_closed_loop,
     predict_travel,
 )
-from servobench.bench.run_folder import HOLD_TRIAL_LOG, round_log_name
 from servobench.drivers.base import Drive
 from servobench.errors import IdentificationError, UsageError
 
 if TYPE_CHECKING:
-    from servobench.bench.procedure import Iteration, SidbeOptions
+    from servobench.bench.procedure.sidbe import Iteration, SidbeOptions
 
 #: Doublings the probe may try without a drive limit (max_u) or --max-amplitude.
 PROBE_DOUBLINGS = 10
@@ -77,7 +77,7 @@ def closed_rounds(
 ) -> tuple[list[Iteration], Best | None, dict[str, Any]]:
     """The rounds of the procedure in closed loop (see module docstring).
 
-    ``record`` builds the :class:`~servobench.bench.procedure.Iteration` of a round.
+    ``record`` builds the :class:`~servobench.bench.procedure.sidbe.Iteration` of a round.
     Returns the rounds, the best ``(result, design, log, fs_achieved_hz)``, and the facts of the hold
     (for ``model.json``).
     """

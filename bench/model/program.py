@@ -28,7 +28,7 @@ from servobench.bench.commission.design import (
     design_pi,
     friction_feed_forward,
 )
-from servobench.bench.model import ServoModel
+from servobench.bench.model.servo import ServoModel
 from servobench.errors import LogFormatError
 from servobench.units import SignalUnits
 

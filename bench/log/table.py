@@ -1,6 +1,6 @@
 """The text of a CSV log, parsed: metadata lines, the header and the table of numbers.
 
-The format is described in :mod:`servobench.bench.logio`. Parsing takes two
+The format is described in :mod:`servobench.bench.log.io`. Parsing takes two
 passes over the text, neither of them one Python step per row:
 
 1. structure, with ``str.find``: the ``#`` metadata lines (before, between

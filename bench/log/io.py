@@ -25,9 +25,9 @@ cut short by a crash, and is dropped (the log then reads as incomplete).
 
 Files of other tools: a header whose separator is ``;`` (or a tab) and
 numbers with a decimal comma are read as they are (see
-:mod:`servobench.bench.logtable`); header names of other tools are mapped to
+:mod:`servobench.bench.log.table`); header names of other tools are mapped to
 the signals with ``columns="t=Time,u=Input,v=Velocity,x=Position"``, the
-syntax of ``.mat`` variable mappings (:mod:`servobench.bench.logmap`).
+syntax of ``.mat`` variable mappings (:mod:`servobench.bench.log.mapping`).
 
 MATLAB ``.mat`` files are read with a variable mapping such as
 ``t=t,u=vir*gtau,x=qm`` (a factor may be a number or a scalar variable);
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.logmap import (
+from servobench.bench.log.mapping import (
     CLOSED_LOOP_SIGNALS,
     REQUIRED,
     SIGNALS,
@@ -57,7 +57,7 @@ from servobench.bench.logmap import (
     read_mat,
     sources,
 )
-from servobench.bench.logtable import parse_table, show
+from servobench.bench.log.table import parse_table, show
 from servobench.errors import LogFormatError, one_line
 from servobench.units import SignalUnits
 
@@ -261,7 +261,7 @@ def read_log(
         The log.
     mat_map, columns : str or mapping, optional
         Which column or variable holds each signal, ``"t=Time,u=Input*35.15,x=Position"``
-        (see :mod:`servobench.bench.logmap`); the two names are one option, for
+        (see :mod:`servobench.bench.log.mapping`); the two names are one option, for
         ``.mat`` variables and CSV columns alike. Without it, CSV columns and
         ``.mat`` variables named ``run``, ``t``, ``u``, ``v``, ``x`` are used.
 
@@ -300,9 +300,9 @@ def parse_log_text(
 ) -> ExperimentLog:
     """Parse the text of a CSV log, or its UTF-8 bytes (see the module docstring for the format).
 
-    ``columns`` maps signals to header names (:mod:`servobench.bench.logmap`);
+    ``columns`` maps signals to header names (:mod:`servobench.bench.log.mapping`);
     ``engine`` forces the number reader (``"numpy"`` or ``"pyarrow"``, see
-    :mod:`servobench.bench.logtable`).
+    :mod:`servobench.bench.log.table`).
     """
     source = one_line(source)
     mapping = parse_map(columns)

@@ -63,7 +63,7 @@ def describe_files(
 ) -> dict[str, str]:
     """``model.json``'s ``files`` object: file name -> what it holds.
 
-    ``iterations`` are the rounds (:class:`~servobench.bench.procedure.Iteration`);
+    ``iterations`` are the rounds (:class:`~servobench.bench.procedure.sidbe.Iteration`);
     ``closed`` adds the closed loop's logs that ``out_dir`` holds.
     """
     source = accepted_log.name if accepted_log is not None else "the best round's log"

@@ -40,8 +40,8 @@ from servobench.bench.identify.derivative import (
     settle_samples,
 )
 from servobench.bench.identify.verify import verify
-from servobench.bench.logio import ExperimentLog
-from servobench.bench.model import ServoModel, fit_percent
+from servobench.bench.log.io import ExperimentLog
+from servobench.bench.model.servo import ServoModel, fit_percent
 from servobench.errors import IdentificationError, UsageError
 from servobench.sim_backend.physics.coulomb import PlantParams
 from servobench.sim_backend.physics.effects import collect_terms

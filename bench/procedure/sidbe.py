@@ -1,7 +1,7 @@
 """The whole SIDBE procedure on a drive, including the paper's step 6.
 
 1. Design the periodic binary excitation ``u1`` and ``u2 = ratio * u1``
-   (:mod:`servobench.bench.excitation`).
+   (:mod:`servobench.bench.procedure.excitation`).
 2.-3. Apply both to the drive and log them (:func:`servobench.bench.run.runner.stream_runs`).
 4.-5. Identify the model (:func:`servobench.bench.identify.auto.identify`: SIDBE and/or the
    joint estimator) and verify it by simulation.
@@ -13,11 +13,11 @@
 
 An axis with limited travel (``xmin``/``xmax`` of the drive, ``loop =
 auto``, the default) is excited in closed loop instead
-(:mod:`servobench.bench.closed_loop`): a hold loop keeps it inside its
+(:mod:`servobench.bench.procedure.closed_rounds`): a hold loop keeps it inside its
 window, the excitation is designed to fit, and step 6 raises the amplitude
 only while the measured travel still fits.
 
-The run folder (:mod:`servobench.bench.run_folder`): each round streams to
+The run folder (:mod:`servobench.bench.procedure.run_folder`): each round streams to
 ``log-<i>.csv`` as its samples arrive; the round whose model is accepted is
 copied to ``log.csv``, the log ``model.json`` describes. A folder that
 already holds a run is refused, never overwritten.
@@ -38,20 +38,20 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from servobench.bench import excitation as exc
-from servobench.bench.closed_loop import closed_rounds
 from servobench.bench.identify.auto import METHODS, identify
-from servobench.bench.logio import read_log
-from servobench.bench.model import IdentificationResult, ServoModel
-from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
-from servobench.bench.run.travel import TravelWindow
-from servobench.bench.run_folder import (
+from servobench.bench.log.io import read_log
+from servobench.bench.model.servo import IdentificationResult, ServoModel
+from servobench.bench.procedure import excitation as exc
+from servobench.bench.procedure.closed_rounds import closed_rounds
+from servobench.bench.procedure.run_folder import (
     LOG_FILE,
     MODEL_FILE,
     check_run_folder,
     describe_files,
     round_log_name,
 )
+from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
+from servobench.bench.run.travel import TravelWindow
 from servobench.drivers.base import Drive, Limits
 from servobench.errors import IdentificationError, UsageError
 
@@ -76,7 +76,7 @@ class SidbeOptions:
     Attributes
     ----------
     amplitude, ratio, fs_hz, periods, period_s, freqs_hz
-        The excitation (see :func:`servobench.bench.excitation.make_design`); ``freqs_hz``
+        The excitation (see :func:`servobench.bench.procedure.excitation.make_design`); ``freqs_hz``
         None means log-spaced default lines; ``fs_hz`` None means the drive's
         link decides (:meth:`for_drive`). ``amplitude`` None means the default: 1
         in open loop, chosen to fit the travel in closed loop.
@@ -363,7 +363,7 @@ def run_sidbe(
 
         plots = tuple(write_plots(result, out))
     model_path = out / MODEL_FILE
-    from servobench.bench.commission.program import drive_scale_json
+    from servobench.bench.model.program import drive_scale_json
 
     sr = SidbeResult(
         result,
