@@ -20,7 +20,10 @@ drive they too belong to ``t_k``. The link (:mod:`servobench.drivers.modbus_link
 retries nothing but a "busy" answer and turns every failure into a typed
 error that says what happened (no answer, a gateway's exception, a drive
 fault). Feedback carries the drive's clock when the map has a ``timestamp``
-register (unwrapped), else the host's ``time.monotonic()`` at reception.
+register (unwrapped), else the host's ``time.monotonic()`` midway through
+the clocking transaction (request out to answer in). Either way that
+midpoint and half the transaction's length are ``Feedback.t_host_s`` and
+``Feedback.t_unc_s``.
 
 A map whose watchdog is fed by any request (``feed = "any_request"``) over
 TCP gets a one-line :class:`~servobench.errors.DriveWarning` at open: a
@@ -239,7 +242,9 @@ class ModbusDrive(Drive):
         """Feed, read the secondary feedback blocks, then ``primary()`` (the read that clocks)."""
         self._feed()
         rest = [self._read_block(b) for b in self.regmap.blocks[1:]]
-        return self._decode_feedback([primary(), *rest])
+        sent = time.monotonic()
+        words = primary()
+        return self._decode_feedback([words, *rest], (sent, time.monotonic()))
 
     def _exchange(self, u: float) -> Feedback:
         m = self.regmap
@@ -282,7 +287,9 @@ class ModbusDrive(Drive):
     def _read_feedback(self) -> Feedback:
         return self._cycle(lambda: self._read_block(self.regmap.feedback))
 
-    def _decode_feedback(self, block_words: list[list[int]]) -> Feedback:
+    def _decode_feedback(
+        self, block_words: list[list[int]], bracket: tuple[float, float]
+    ) -> Feedback:
         values: dict[str, list[int]] = {}
         for block, words in zip(self.regmap.blocks, block_words, strict=True):
             for name in block.names:
@@ -291,12 +298,15 @@ class ModbusDrive(Drive):
         fault = int(decode_raw(m["fault"], values["fault"]))
         if fault:
             raise DriveFaultError(f"drive at {self.where} reports fault 0x{fault:04X}", fault)
-        t_s = self._drive_time(values["timestamp"]) if "timestamp" in values else time.monotonic()
+        t_host_s, t_unc_s = 0.5 * (bracket[0] + bracket[1]), 0.5 * (bracket[1] - bracket[0])
+        t_s = self._drive_time(values["timestamp"]) if "timestamp" in values else t_host_s
         return Feedback(
             t_s,
             decode(m["velocity"], values["velocity"]),
             decode(m["position"], values["position"]),
             fault,
+            t_host_s=t_host_s,
+            t_unc_s=t_unc_s,
         )
 
     def _drive_time(self, words: list[int]) -> float:

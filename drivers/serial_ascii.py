@@ -28,8 +28,9 @@ then ``u_k`` acts), which is the :class:`~servobench.drivers.base.Drive` contrac
 ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
 raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
-Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
-protocol carries no drive clock), except on a lock-step drive (one that
+Feedback ``t_s`` is the host's ``time.monotonic()`` midway between the
+query going out and its reply coming in, with half that interval as
+``Feedback.t_unc_s`` (and the midpoint as ``Feedback.t_host_s``) (the protocol carries no drive clock), except on a lock-step drive (one that
 took the cycle extension): it integrates exactly one cycle per feedback
 query, so its clock is the count of them times the cycle, and
 :attr:`SerialAsciiDrive.drive_clock` is True.
@@ -79,6 +80,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from dataclasses import replace
 
 from servobench.drivers.ascii_link import AsciiLink
 from servobench.drivers.base import Drive, DriveInfo, Feedback
@@ -373,14 +375,20 @@ class SerialAsciiDrive(Drive):
         if poll:
             lines.append(d.request("error", axis=self.axis))
             self._next_poll = now + self.poll_s
+        sent = time.monotonic()
         self.link.send(*lines)
         fb = self.link.read_reply("feedback").fields
-        t_s = self._now()
+        received = time.monotonic()
         self._cycles += 1
         code = int(self.link.read_reply("error").fields["code"]) if poll else 0
         if code:
             self._raise_fault(code, "faulted while streaming")
-        return self._feedback(t_s, float(fb["v"]), float(fb["x"]), code)
+        if self.lockstep and self.cycle_s is not None:
+            return self._feedback(self._now(), float(fb["v"]), float(fb["x"]), code)
+        # a free-running drive sampled somewhere between the query going out and its reply
+        mid = 0.5 * (sent + received)
+        fb_ = self._feedback(mid, float(fb["v"]), float(fb["x"]), code)
+        return replace(fb_, t_host_s=mid, t_unc_s=0.5 * (received - sent))
 
     def _now(self) -> float:
         """Sample time [s]: the lock-step drive's cycle count times the cycle, else host time."""
