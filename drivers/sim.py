@@ -1,10 +1,20 @@
 """``sim://`` -- the simulated DC servo with friction, in-process.
 
 ``sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.001&pace=fast`` (see
-:mod:`servobench.sim_backend.simurl` for every key). ``pace=real`` paces each cycle to
-wall-clock time like a real drive; ``pace=fast`` (default) runs as fast as
-the host asks, and supports block exchange for batch work.
-Timestamps are the drive's own clock (cycle count times cycle period).
+:mod:`servobench.sim_backend.simurl` for every key).
+
+``clock=lockstep`` (default): the drive is clocked once per exchange, exact
+zero-order hold; its time stamps are its cycle count times the cycle period.
+``pace=real`` paces each cycle to wall-clock time like a real drive;
+``pace=fast`` (default) runs as fast as the host asks, and supports block
+exchange for batch work.
+
+``clock=real``: the drive does not wait for the host, as a real axis
+(:mod:`servobench.sim_backend.device`): its physics integrates wall-clock
+time, each exchange samples the plant when it is handled and then latches
+the command, and its time stamps are its free-running clock (wall time
+since the drive was opened) at each sample. :attr:`realtime` is True, so
+the runner paces it; there is no block exchange.
 
 Drive-side position hold: with ``pos_kp``, ``pos_ki`` or ``pos_kd`` in the
 URL the simulated drive has its own position loop -- the served CiA 402
@@ -32,7 +42,7 @@ import numpy as np
 
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
-from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.device import REAL, PowerState, SimulatedDevice, clock_mode_from_url
 from servobench.sim_backend.servers.can_position_loop import Gains, PositionLoop, gains_from_keys
 from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
 
@@ -51,11 +61,14 @@ class SimDrive(Drive):
         pace = self.url.get_str("pace", "fast")
         if pace not in ("fast", "real"):
             raise DriveConfigError(f"sim pace must be 'fast' or 'real', got {pace!r}")
-        self.realtime = pace == "real"
+        clock_mode = clock_mode_from_url(self.url)
+        #: The device integrates wall-clock time (``clock=real``): nothing to pace here.
+        self.real_clock = clock_mode == REAL
+        self.realtime = pace == "real" or self.real_clock
         self.supports_block = not self.realtime
         given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
         plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
-        self.device = SimulatedDevice(plant_from_url(plant_url))
+        self.device = SimulatedDevice(plant_from_url(plant_url), clock_mode=clock_mode)
         p = self.device.params
         self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None
         self.supports_drive_hold = self.hold_gains is not None
@@ -79,6 +92,8 @@ class SimDrive(Drive):
 
     def _open(self) -> None:
         self._t0_wall = None
+        if self.real_clock:  # a new host session: the drive clock starts at 0 now
+            self.device.begin_session()
 
     def _close(self) -> None:
         self.device.disable()
@@ -113,7 +128,7 @@ class SimDrive(Drive):
         self.device.set_command(u)
 
     def _pace(self, cycles: int = 1) -> None:
-        if not self.realtime:
+        if not self.realtime or self.real_clock:
             return
         now = time.monotonic()
         if self._t0_wall is None:

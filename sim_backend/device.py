@@ -8,23 +8,43 @@ applies the latest command for one control cycle each time it is clocked
 max torque 0x6072, and a drive-side watchdog that trips when the host falls
 silent.
 
-Wall-clock time (served drives)
--------------------------------
+Clock modes
+-----------
+``clock="lockstep"`` (the default; ``sim://`` unless ``clock=real``): the
+drive is clocked once per control cycle, exact zero-order hold, its drive
+clock counting clocked cycles times the cycle. For algorithm tests: the
+host's timing never reaches the data.
+
+``clock="real"`` (served drives by default, ``serve-sim --clock real``, and
+``sim://?clock=real``): the drive does not wait for its host. Its physics
+integrates wall-clock time (:class:`~servobench.sim_backend.physics.realtime.TimedPlant`),
+enabled or not. Feedback is sampled when the SYNC or the read is handled:
+every call first integrates the plant from the last integration instant up
+to now with the command in force, then measures. The command in force is the
+last one received: a new command first integrates up to its arrival with the
+old one, then latches. A power stage that goes off removes the torque at
+that instant. The drive clock (:attr:`DeviceSample.t_s`) is the drive's own
+free-running clock: the wall time [s] since the host session began, read at
+the instant each sample is taken (not a cycle count); the transports encode
+it at their register's resolution (CiA 402 0x1013: UNSIGNED32 microseconds,
+wrapping).
+
+Wall-clock time in lockstep (served drives)
+-------------------------------------------
 A real axis does not wait for the host: after a quick stop it coasts down
-whether anybody polls it or not. A device made with ``wall_clock=True``
-(every served transport, :func:`servobench.sim_backend.servers.serve.run_server`)
-therefore integrates wall-clock time while its power stage is off
-(disabled, quick stop, fault): every call first advances the plant by the
-time since it was last integrated, with zero command, so the axis coasts
-down as a real one does, polled or not. (The drive clock counts clocked
-cycles, as before: it stands while nobody clocks the drive.) While the axis is
-enabled the drive stays lock-step (one clock per cycle, exact ZOH), as the
-host's streaming contract says, so a host that falls behind on a loaded
-machine does not change the data; its silence is still bounded by the
-watchdog, which trips in wall-clock time and is integrated (with the command
-that was applied) up to the moment it tripped. A new host session
+whether anybody polls it or not. A lockstep device made with
+``wall_clock=True`` (``serve-sim --clock lockstep``) therefore integrates
+wall-clock time while its power stage is off (disabled, quick stop, fault):
+every call first advances the plant by the time since it was last
+integrated, with zero command, so the axis coasts down as a real one does,
+polled or not. (The drive clock counts clocked cycles: it stands while
+nobody clocks the drive.) While the axis is enabled the drive stays
+lock-step (one clock per cycle, exact ZOH), so a host that falls behind on a
+loaded machine does not change the data; its silence is still bounded by
+the watchdog, which trips in wall-clock time and is integrated (with the
+command that was applied) up to the moment it tripped. A new host session
 (:meth:`SimulatedDevice.begin_session`) integrates whatever time has passed.
-The in-process ``sim://`` drive keeps ``wall_clock=False``: pure lock-step.
+With ``wall_clock=False`` (in-process lockstep ``sim://``): pure lock-step.
 
 Sessions
 --------
@@ -50,6 +70,7 @@ import numpy as np
 
 from servobench.errors import DriveFaultError
 from servobench.sim_backend.physics.plant import Plant, PlantParams
+from servobench.sim_backend.physics.realtime import TimedPlant
 
 #: Fault code the watchdog raises: CiA 301/402 "heartbeat / life guard error".
 WATCHDOG_FAULT = 0x8130
@@ -62,6 +83,20 @@ MAX_CATCH_UP_STEPS = 100_000
 STALL_S = 0.05
 #: Power states in which the watchdog is checked by default (an axis with torque).
 TORQUE_STATES = frozenset({"enabled", "quick_stop"})
+#: Clock modes (see the module doc): one clock per cycle, or wall-clock time.
+LOCKSTEP = "lockstep"
+REAL = "real"
+CLOCK_MODES = (LOCKSTEP, REAL)
+
+
+def clock_counts(t_s: float, resolution_s: float) -> int:
+    """The drive clock ``t_s`` [s] as a counter ticking every ``resolution_s`` [s] (whole ticks elapsed).
+
+    A hardware counter reads the ticks that have elapsed (it truncates); the
+    tolerance of 1e-6 tick keeps a lockstep clock, an exact multiple of the
+    cycle, on its tick despite rounding in ``k * cycle_s``.
+    """
+    return math.floor(t_s / resolution_s + 1e-6)
 
 
 class PowerState(Enum):
@@ -107,6 +142,9 @@ class SimulatedDevice:
         Check the watchdog whatever the power state, as ODrive firmware 0.5
         does (``Firmware/MotorControl/axis.cpp``, ``watchdog_check``); False:
         only while the axis has torque (enabled or quick stop).
+    clock_mode : str
+        ``"lockstep"`` or ``"real"`` (see the module doc); ``"real"`` implies
+        ``wall_clock``.
     """
 
     def __init__(
@@ -119,13 +157,18 @@ class SimulatedDevice:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: bool = False,
         watchdog_in_every_state: bool = False,
+        clock_mode: str = LOCKSTEP,
     ) -> None:
+        if clock_mode not in CLOCK_MODES:
+            raise ValueError(f"clock mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
         self.params = params
         self.plant = Plant(params)
         self.cycle_s = float(cycle_s)
         self.max_command = float(max_command)
         self.watchdog_s = watchdog_s
-        self.wall_clock = wall_clock
+        self.clock_mode = clock_mode
+        self.realtime = clock_mode == REAL
+        self.wall_clock = wall_clock or self.realtime
         self.watchdog_in_every_state = watchdog_in_every_state
         self._clock = clock
         self._lock = threading.RLock()
@@ -133,6 +176,9 @@ class SimulatedDevice:
         self._t_base_s = 0.0  # drive clock at the last rebase [s]
         self._t_s = 0.0
         self._wall_due = clock()  # wall time up to which the plant has been integrated
+        self._wall_base = self._wall_due  # wall time at which the drive clock read _t_base_s
+        #: The plant in wall-clock time (``clock="real"`` only).
+        self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
         self._command = 0.0
         #: Host sessions begun (:meth:`begin_session`).
         self.sessions = 0
@@ -158,7 +204,11 @@ class SimulatedDevice:
             if not cycle_s > 0:
                 raise ValueError("cycle must be > 0 s")
             self._catch_up()
-            self._rebase(self._t_s)
+            if self.timed is None:
+                self._rebase(self._t_s)
+            else:  # the free-running clock goes on; sub-steps no longer than the new cycle
+                self._k = 0
+                self.timed.max_step_s = float(cycle_s)
             self.cycle_s = float(cycle_s)
 
     def begin_session(self) -> None:
@@ -185,6 +235,8 @@ class SimulatedDevice:
             if not math.isfinite(u):
                 u = 0.0
             self._command = min(max(float(u), -self.max_command), self.max_command)
+            if self.timed is not None and self.state is PowerState.ENABLED:
+                self.timed.latch(self._wall_due, self._command)
 
     @property
     def command(self) -> float:
@@ -223,6 +275,11 @@ class SimulatedDevice:
         """Enter the fault state: torque off until :meth:`reset_fault`."""
         with self._lock:
             self._catch_up()
+            self._fault_now(code, reason)
+
+    def _fault_now(self, code: int, reason: str) -> None:
+        """Fault at the instant the plant has been integrated up to."""
+        with self._lock:
             self._command = 0.0
             self.fault_code = int(code)
             self.fault_reason = reason
@@ -239,26 +296,36 @@ class SimulatedDevice:
     def _set_state(self, state: PowerState) -> None:
         changed = state is not self.state
         self.state = state
+        if self.timed is not None and changed:  # the power stage switches at this instant
+            self.timed.cut(self._wall_due)
         if changed:
             for listener in self.listeners:
                 listener(state, self.fault_code)
 
     # --------------------------------------------------------------- clocking
     def sample(self) -> DeviceSample:
-        """Feedback at the current cycle start, without clocking the plant."""
+        """Feedback at the current cycle start (``real``: now), without clocking the plant."""
         with self._lock:
             self._catch_up()
             if self.frozen_feedback is not None:
                 return self.frozen_feedback
+            if self.timed is not None:
+                return self._sample_now()
             v, x = self.plant._measure(
                 np.array([self.plant.state.v]), np.array([self.plant.state.x])
             )
             return DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
 
     def step(self) -> DeviceSample:
-        """One cycle: sample feedback at ``t_k``, then hold the command until ``t_{k+1}``."""
+        """One cycle: sample feedback at ``t_k``, then hold the command until ``t_{k+1}``.
+
+        ``real``: sample the plant now (integrated up to now); it moves on by itself.
+        """
         with self._lock:
             self._catch_up()
+            if self.timed is not None:
+                self._k += 1
+                return self.frozen_feedback or self._sample_now()
             v, x = self.plant.step_block(np.array([self.command]), self.cycle_s)
             sample = DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
             self._advance(1)
@@ -272,7 +339,11 @@ class SimulatedDevice:
             return self.step()
 
     def exchange_block(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Many cycles at once: ``(t_s, v, x)`` arrays, one row per cycle."""
+        """Many cycles at once: ``(t_s, v, x)`` arrays, one row per cycle (``real``: one exchange each)."""
+        if self.timed is not None:
+            rows = [self.exchange(float(uk)) for uk in np.asarray(u, dtype=float)]
+            return (np.array([r.t_s for r in rows]), np.array([r.velocity for r in rows]),
+                    np.array([r.position for r in rows]))  # fmt: skip
         with self._lock:
             self._catch_up()
             self.feed()
@@ -287,6 +358,12 @@ class SimulatedDevice:
             self._wall_due = self._clock() + self.cycle_s
             return t, v, x
 
+    def _sample_now(self) -> DeviceSample:
+        """``real``: the measurement of the plant as integrated up to now, on the drive clock."""
+        v, x = self.timed.measure()
+        self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+        return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
+
     def _advance(self, n: int) -> None:
         self._k += n
         self._t_s = self._t_base_s + self._k * self.cycle_s
@@ -295,14 +372,25 @@ class SimulatedDevice:
         """Let the drive clock stand at ``t_s`` and count cycles from there."""
         self._k = 0
         self._t_base_s = self._t_s = float(t_s)
-        self._wall_due = self._clock()
+        if self.timed is None:
+            self._wall_due = self._clock()
+        self._wall_base = self._wall_due
 
     def _catch_up(self, until: float | None = None, force: bool = False) -> None:
         """Integrate the wall-clock time the host left unpolled (``wall_clock`` devices only).
 
         Up to ``until`` (default now), when the axis is not enabled (or at any
         time with ``force``); the power stage applies :attr:`command` over it.
+        ``real`` devices integrate in every state, with the command in force.
         """
+        if self.timed is not None:
+            now = self._clock() if until is None else until
+            if now > self._wall_due:
+                span_s = self.timed.advance_to(now)
+                self._wall_due = now
+                if self.state is not PowerState.ENABLED:
+                    self.idle_s += span_s
+            return
         if not self.wall_clock or (self.state is PowerState.ENABLED and not force):
             return
         now = self._clock() if until is None else until
@@ -328,7 +416,7 @@ class SimulatedDevice:
                 return False
             self._catch_up(until=self.last_host_activity + self.watchdog_s, force=True)
             self.watchdog_trips += 1
-            self.fault(
+            self._fault_now(
                 WATCHDOG_FAULT, f"host silent for {silent:.3f} s (watchdog {self.watchdog_s} s)"
             )
             return True
@@ -341,7 +429,9 @@ class SimulatedDevice:
     @property
     def is_stopped(self) -> bool:
         """True when no torque is applied and the axis is at rest."""
-        return self.command == 0.0 and self.plant.state.v == 0.0
+        with self._lock:
+            self._catch_up()
+            return self.command == 0.0 and self.plant.state.v == 0.0
 
 
 class WatchdogThread(threading.Thread):
@@ -376,7 +466,10 @@ class WatchdogThread(threading.Thread):
 
 
 def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
-    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``)."""
+    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``, ``clock``).
+
+    A ``clock_mode`` keyword wins over the URL's ``clock`` key.
+    """
     from servobench.drivers.url import parse_drive_url
     from servobench.sim_backend.simurl import plant_from_url
 
@@ -387,4 +480,15 @@ def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
         raise DriveConfigError(f"expected a sim:// URL, got {url!r}")
     params = plant_from_url(parsed)
     max_u = parsed.get_float("max_u", math.inf)
+    kwargs.setdefault("clock_mode", clock_mode_from_url(parsed))
     return SimulatedDevice(params, max_command=max_u, **kwargs)  # type: ignore[arg-type]
+
+
+def clock_mode_from_url(url, default: str = LOCKSTEP) -> str:
+    """The ``clock`` key of a parsed ``sim://`` URL: ``lockstep`` or ``real`` (else ``default``)."""
+    from servobench.errors import DriveConfigError
+
+    mode = url.get_str("clock", default)
+    if mode not in CLOCK_MODES:
+        raise DriveConfigError(f"sim clock must be 'lockstep' or 'real', got {mode!r}")
+    return mode

@@ -3,6 +3,8 @@
 ``sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4`` -- the key names are a contract.
 ``sim://?plant=path/to/plant.toml`` reads the same keys from the file's
 ``[plant]`` table (keys given in the URL override the file).
+``clock=lockstep|real`` chooses the drive's clock mode
+(:mod:`servobench.sim_backend.device`), not the physics.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ PLANT_FIELDS: dict[str, str] = {
 }
 PLANT_KEYS = frozenset(PLANT_FIELDS)
 #: Keys that configure the simulated drive rather than the physics.
-DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units"})  # "pace" is also a common key
+DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units", "clock"})  # "pace" is also a common key
 #: ``units=`` of ``sim://``: what the simulated axis's signals are in.
 AXIS_UNITS = {"rotary": ROTARY, "linear": LINEAR}
 

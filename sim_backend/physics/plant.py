@@ -48,6 +48,39 @@ class Plant:
         v, x, self.state = self._model.simulate(np.asarray(u, dtype=float), dt_s, self.state)
         return self._measure(v, x)
 
+    # ------------------------------------------------ continuous time (clock=real)
+    @property
+    def exact(self) -> bool:
+        """True when one integration step of any length is exact (no sub-steps needed)."""
+        return bool(getattr(self._model, "exact", True))
+
+    def at_rest(self) -> bool:
+        """True when, without command, nothing can move: the base plant with its body at rest."""
+        return isinstance(self._model, _CoulombModel) and self.state.v == 0.0
+
+    def detach_delay(self) -> float:
+        """Take the transport delay out of the model and return it [s] (0 without one).
+
+        The model's delay line counts intervals of one fixed step; a plant
+        integrated over irregular spans (:mod:`servobench.sim_backend.physics.realtime`)
+        delays its commands in time instead.
+        """
+        terms = getattr(self._model, "terms", None)
+        if terms is None or not terms.delay_s:
+            return 0.0
+        delay_s, terms.delay_s = float(terms.delay_s), 0.0
+        self._model.forget_step()
+        return delay_s
+
+    def hold(self, u: float, span_s: float, substeps: int = 1) -> None:
+        """Integrate ``span_s`` [s] with ``u`` held, in ``substeps`` equal steps (nothing measured)."""
+        _, _, self.state = self._model.simulate(np.full(int(substeps), float(u)), span_s / substeps, self.state)
+
+    def measure(self) -> tuple[float, float]:
+        """Measured ``(velocity, position)`` of the present state."""
+        v, x = self._measure(np.array([self.state.v]), np.array([self.state.x]))
+        return float(v[0]), float(x[0])
+
     def _measure(self, v: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self.params
         if p.noise > 0:

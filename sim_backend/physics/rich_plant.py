@@ -39,6 +39,8 @@ from servobench.sim_backend.physics.effects.spec import Terms
 DEFAULT_SUBSTEPS = 2
 #: Upper bound on sub-steps per interval (keeps a stiff resonance affordable).
 MAX_SUBSTEPS = 16
+#: Steps whose segments are kept prepared (a plant integrated over irregular spans sees many).
+PREPARED_STEPS = 64
 
 
 def _pattern(substeps: int, frac: float) -> list[tuple[float, bool]]:
@@ -96,6 +98,7 @@ class RichModel(CouplingMixin):
             and terms.coupling is None
         )
         self._dt: float | None = None
+        self._prepared: dict[float, tuple[int, list]] = {}  # step [s] -> (whole delay steps, segments)
         self._mats: dict[tuple, tuple] = {}
         self._systems: dict[tuple, Propagator] = {}
         self.reset()
@@ -119,9 +122,22 @@ class RichModel(CouplingMixin):
         need = math.ceil(dt_s / self.terms.substep_s) if math.isfinite(self.terms.substep_s) else 1
         return int(min(MAX_SUBSTEPS, max(DEFAULT_SUBSTEPS, need)))
 
+    def forget_step(self) -> None:
+        """Drop what was prepared for a step (the terms changed: prepare again)."""
+        self._dt = None
+        self._prepared.clear()
+
     def _prepare(self, dt_s: float) -> None:
         if not dt_s > 0:
             raise UsageError("sample interval must be > 0 s")
+        hit = self._prepared.get(dt_s)
+        if hit is not None:
+            self._whole, self._segs = hit
+            self._dt = dt_s
+            return
+        if len(self._prepared) >= PREPARED_STEPS:  # irregular steps (clock=real): keep it bounded
+            self._prepared.clear()
+            self._mats.clear()
         p, c = self.params, self.terms.coupling
         delay = self.terms.delay_s / dt_s
         self._whole = int(math.floor(delay + 1e-9))
@@ -141,6 +157,7 @@ class RichModel(CouplingMixin):
             segs.append((prev, h, rigid, motor, load))
         self._segs = segs
         self._dt = dt_s
+        self._prepared[dt_s] = (self._whole, segs)
 
     def _commands(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Effective command held in each interval and in the interval before it (delay line)."""
