@@ -335,6 +335,15 @@ class SimulatedDevice:
     def exchange(self, u: float) -> DeviceSample:
         """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts."""
         with self._lock:
+            if self.timed is not None:  # ``real``: sample now, then latch at that same instant
+                sample = self.step()
+                self._catch_up(until=self._wall_due)
+                self._clock, clock = (lambda: self._wall_due), self._clock
+                try:
+                    self.set_command(u)
+                finally:
+                    self._clock = clock
+                return sample
             self.set_command(u)
             return self.step()
 
