@@ -419,6 +419,10 @@ class Drive(ABC):
         """
         return math.inf
 
+    def rate_limit_reason(self) -> str:
+        """What bounds :meth:`max_rate_hz`, in a few words for the terminal (``""``: nothing to add)."""
+        return ""
+
     def log_metadata(self) -> dict[str, str]:
         """``# key = value`` lines this drive contributes to every log streamed from it.
 

@@ -163,6 +163,17 @@ class ModbusDrive(Drive):
             transactions, rtu=self.rtu, baud=self.baud, turnaround_s=m.turnaround_s
         )
 
+    def rate_limit_reason(self) -> str:
+        """How many transactions one cycle takes, when the map spreads them."""
+        m = self.regmap
+        reads = len(m.blocks)
+        extra = [f"{reads} feedback reads per cycle (map {m.name!r}: its registers are not adjacent)"] if reads > 1 else []
+        if "timestamp" not in m:
+            extra.append("no time-stamp register")
+        if m.watchdog_feed == "register":
+            extra.append("a watchdog feed write per cycle")
+        return ", ".join(extra)
+
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
         meta["modbus_map"] = self.regmap.name

@@ -16,15 +16,21 @@ Methods
     in-sample. On a single-run log ``auto`` is ``joint``, and says so.
 
 Every result is verified by simulation on the whole log
-(:func:`servobench.bench.identify.verify.verify`).
+(:func:`servobench.bench.identify.verify.verify`). A real-time log (one that
+states its ``clock_source``) also gets its timing figure
+(:func:`servobench.bench.identify.timing.timing_figure`): the host's jitter,
+missed cycles and the model error its timing predicts.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
+from servobench.bench.identify.timing import timing_figure
 from servobench.bench.identify.verify import verify
 from servobench.bench.logio import ExperimentLog
 from servobench.bench.model import IdentificationResult
@@ -72,7 +78,9 @@ def identify(
     if method not in METHODS:
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
-    return identify_data(data, method, resonance=resonance)
+    result = identify_data(data, method, resonance=resonance)
+    timing = timing_figure(log.metadata, data, result.model)
+    return result if timing is None else replace(result, timing=timing)
 
 
 def identify_data(

@@ -91,6 +91,8 @@ class ClosedRunResult:
     timing: tuple[TimingStats, ...]
     excursion: float
     room: float
+    cycle_timing: None = None  #: the open-loop runner's CycleTiming; the hold loop keeps its own
+    clock_source: str = ""
 
     @property
     def share(self) -> float:
