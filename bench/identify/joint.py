@@ -36,8 +36,8 @@ error, so once a first estimate gives the acceleration the pairs are
 weighted by ``1 / (sigma_v^2 (1 + a^2) + (acc sigma_dt)^2)``
 (:func:`~servobench.bench.identify.regression.timing_weights`), and pairs
 whose interval is uncertain by more than :data:`TIMING_REJECT_SHARE` of the
-nominal cycle are set aside. The output-error refinement weights its raw
-samples alike (the acceleration from the measured velocity).
+nominal cycle are set aside. The output-error refinement sets aside the
+same samples and weights the others equally (:func:`_sample_weights` says why).
 """
 
 from __future__ import annotations
@@ -83,6 +83,8 @@ MAX_PAIRS = 100_000
 #: Pairs (and output-error samples) whose interval is uncertain by more than this share
 #: of the nominal cycle (1 sigma) are set aside.
 TIMING_REJECT_SHARE = 0.25
+#: Setting aside stops short of leaving fewer than this share of the pairs (weights only then).
+MIN_KEPT_SHARE = 0.5
 
 
 def identify_joint(
@@ -156,8 +158,8 @@ def _pairs(
     if pairs.sigma_dt is None:
         return pairs
     keep = pairs.sigma_dt <= TIMING_REJECT_SHARE * data.dt_s
-    if keep.all():
-        return pairs
+    if keep.all() or np.count_nonzero(keep) < MIN_KEPT_SHARE * len(pairs):
+        return pairs  # nothing to set aside, or too much: the weights alone then
     return Pairs(*(None if a is None else a[keep] for a in (
         pairs.v0, pairs.v1, pairs.u, pairs.pos, pairs.neg, pairs.dt, pairs.z0, pairs.zu, pairs.sigma_dt)))  # fmt: skip
 
@@ -172,7 +174,10 @@ def _interval_sigmas(data: Dataset) -> list[np.ndarray] | None:
 def timing_set_aside(data: Dataset) -> int:
     """Intervals set aside because their length is known worse than :data:`TIMING_REJECT_SHARE`."""
     sig = _interval_sigmas(data)
-    return 0 if sig is None else int(sum(np.count_nonzero(s > TIMING_REJECT_SHARE * data.dt_s) for s in sig))
+    if sig is None:
+        return 0
+    bad = int(sum(np.count_nonzero(s > TIMING_REJECT_SHARE * data.dt_s) for s in sig))
+    return bad if bad <= (1.0 - MIN_KEPT_SHARE) * sum(s.size for s in sig) else 0
 
 
 def _closed(data: Dataset) -> bool:
@@ -320,15 +325,17 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
 
 
 def _sample_weights(seg, sigma: float, dt_s: float) -> float | np.ndarray:
-    """Output-error weight of each raw sample whose instant is uncertain (``t_unc``):
-    ``1 / (sigma^2 + (acc sigma_t)^2)`` scaled to mean 1, the acceleration from the
-    measured velocity; 0 for samples known worse than :data:`TIMING_REJECT_SHARE`."""
-    if seg.t_unc is None or len(seg) < 3:
+    """Output-error weight of each raw sample whose instant is uncertain (``t_unc``): 0 for
+    samples known worse than :data:`TIMING_REJECT_SHARE` of the cycle (set aside), else 1.
+
+    Not ``1 / (sigma^2 + (acc sigma_t)^2)`` as in the pair regression: a simulated
+    sample carries the timing errors of every interval before it, not its own alone,
+    so a per-sample weight from the local acceleration misstates it (measured on
+    host-bracketed logs: no gain, at times a loss, against equal weights).
+    """
+    if seg.t_unc is None:
         return 1.0
-    sigma_t = seg.t_unc / math.sqrt(3.0)
-    acc = np.gradient(seg.v, seg.t)
-    timing_var = (acc * sigma_t) ** 2
-    floor = max(1e-2 * float(np.median(timing_var)), 1e-300)
-    w = 1.0 / np.maximum(sigma**2 + timing_var, floor)
-    w[sigma_t > TIMING_REJECT_SHARE * dt_s] = 0.0
-    return w / float(np.mean(w[w > 0])) if np.any(w > 0) else 1.0
+    bad = seg.t_unc / math.sqrt(3.0) > TIMING_REJECT_SHARE * dt_s
+    if not bad.any() or np.count_nonzero(~bad) < MIN_KEPT_SHARE * len(bad):
+        return 1.0
+    return np.where(bad, 0.0, 1.0)

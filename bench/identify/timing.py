@@ -202,11 +202,12 @@ def perturbed_spread_pct(
                 segments.append(s)
                 continue
             t = s.t + rng.uniform(-1.0, 1.0, len(s)) * s.t_unc
-            t = np.maximum.accumulate(t)  # brackets do not overlap; guard against rounding
             dt = np.diff(t)
-            if not np.all(dt > 0):
-                continue
-            segments.append(replace(s, t=t, dt_s=dt))
+            if not np.all(dt > 0):  # overlapping intervals (not a runner's log): move less
+                t = s.t + 0.5 * rng.uniform(-1.0, 1.0, len(s)) * np.minimum(
+                    s.t_unc, np.concatenate(([np.inf], np.diff(s.t))), )
+                dt = np.diff(t)
+            segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12)))
         try:
             est = identify_joint(replace(data, segments=tuple(segments)), refine_oe=False)
         except IdentificationError:
