@@ -8,7 +8,8 @@ keeps whatever is granted:
   thread (Linux applies ``sched_setscheduler(0, ...)`` to the calling thread
   only), else the lowest nice level the thread may take;
 * **CPU affinity** -- the calling thread pinned to one CPU (the last one it
-  may run on, away from CPU 0 where interrupts and most daemons land);
+  may run on that no other cyclic thread holds, away from CPU 0 where
+  interrupts and most daemons land);
 * **memory locked** -- ``mlockall(MCL_CURRENT | MCL_FUTURE)`` through libc,
   so no page of the process is paged out or faulted in mid-cycle;
 * **the garbage collector kept out** -- a full collection first, then the
@@ -148,13 +149,26 @@ def _affinity(undo: _Undo, cpu: int | None) -> str:
         return "all (no sched_getaffinity)"
     if len(old) < 2 and cpu is None:
         return f"{','.join(map(str, sorted(old)))} (the only CPU allowed)"
-    chosen = max(old) if cpu is None else cpu
-    try:
-        os.sched_setaffinity(0, {chosen})
-    except OSError as err:
-        return f"all (sched_setaffinity refused: {_reason(err)})"
-    undo.push(lambda: os.sched_setaffinity(0, old))
+    with _TAKEN_LOCK:  # concurrent cyclic threads (several drives) each get a CPU of their own
+        free = set(old) - _TAKEN
+        chosen = (max(free) if free else max(old)) if cpu is None else cpu
+        try:
+            os.sched_setaffinity(0, {chosen})
+        except OSError as err:
+            return f"all (sched_setaffinity refused: {_reason(err)})"
+        _TAKEN.add(chosen)
+
+    def restore() -> None:
+        with _TAKEN_LOCK:
+            _TAKEN.discard(chosen)
+        os.sched_setaffinity(0, old)
+
+    undo.push(restore)
     return str(chosen)
+
+
+_TAKEN: set[int] = set()  # CPUs a cyclic thread is pinned to now
+_TAKEN_LOCK = threading.Lock()
 
 
 def _lock_memory(undo: _Undo) -> str:
