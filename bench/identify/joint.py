@@ -139,6 +139,12 @@ def identify_joint(
     return _refine(data, model, sigma, threshold, v_all, notes)
 
 
+def pair_regression(data: Dataset) -> ServoModel:
+    """The exact pair regression alone (step 1, timing-weighted where the log gives ``t_unc``):
+    the cheap estimate :mod:`servobench.bench.identify.timing` re-runs on perturbed instants."""
+    return _model(_solve(_pairs(data), data, None))
+
+
 def _pairs(
     data: Dataset, threshold: float = 0.0, references: list[np.ndarray] | None = None
 ) -> Pairs:

@@ -10,9 +10,10 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
 
 * **how** -- the model is identified again :data:`DRAWS` times with every
   instant moved to a random point of its interval (uniform within
-  ``t +- t_unc``, an explicit seeded generator), by the joint estimator
-  without its output-error refinement (the exact pair regression, weighted
-  by the timing uncertainty as the full estimator is). The root mean square
+  ``t +- t_unc``, an explicit seeded generator), by the joint estimator's
+  exact pair regression (:func:`~servobench.bench.identify.joint.pair_regression`,
+  weighted by the timing uncertainty as the full estimator is), and compared
+  with the same regression on the instants as logged. The root mean square
   of the relative change of each parameter over the draws is its predicted
   timing error [%] (1 sigma). The draws cover the excited band as the log
   does: they perturb the very samples the model comes from.
@@ -50,7 +51,7 @@ SEED = 22
 CYCLE_KEYS = ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s", "missed_cycles",
               "late_cycles", "t_unc_p50_s", "t_unc_p99_s", "t_unc_max_s")  # fmt: skip
 METHOD = (
-    f"re-identification ({DRAWS} draws, joint pair regression) with every instant moved at "
+    f"re-identification ({DRAWS} draws, the joint pair regression) with every instant moved at "
     "random within its uncertainty t_unc; rms relative change, 1 sigma"
 )
 
@@ -188,11 +189,11 @@ def perturbed_spread_pct(
     data: Dataset, model: ServoModel, draws: int = DRAWS, seed: int = SEED
 ) -> dict[str, float]:
     """RMS relative change [%] of each parameter when the instants move within ``t_unc``."""
-    from servobench.bench.identify.joint import identify_joint
+    from servobench.bench.identify.joint import pair_regression
 
     rng = np.random.default_rng(seed)
     with contextlib.suppress(IdentificationError):  # the same estimator on the instants as logged
-        model = identify_joint(data, refine_oe=False).model
+        model = pair_regression(data)
     nominal = np.array([model.M, model.B, model.coulomb_pos, model.coulomb_neg])
     changes = []
     for _ in range(draws):
@@ -209,10 +210,9 @@ def perturbed_spread_pct(
                 dt = np.diff(t)
             segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12)))
         try:
-            est = identify_joint(replace(data, segments=tuple(segments)), refine_oe=False)
+            m = pair_regression(replace(data, segments=tuple(segments)))
         except IdentificationError:
             continue
-        m = est.model
         values = np.array([m.M, m.B, m.coulomb_pos, m.coulomb_neg])
         with np.errstate(divide="ignore", invalid="ignore"):
             changes.append(np.where(nominal != 0, values / nominal - 1.0, 0.0))
