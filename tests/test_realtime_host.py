@@ -264,3 +264,43 @@ def test_a_run_with_bad_timing_says_so_in_its_first_lines(tmp_path):
     saved = json.loads((tmp_path / "out" / "model.json").read_text())
     assert saved["timing"]["within_accuracy"] is False and saved["timing"]["advice"]
     assert math.isfinite(saved["timing"]["jitter_max_s"]) and saved["timing"]["missed_cycles"] > 0
+
+
+# ---------------------------------------------------------- kernel-timed SYNC
+def test_kernel_sync_names_the_sync_of_each_answer_and_counts_late_rpdos_and_missed_syncs():
+    from types import SimpleNamespace
+
+    from servobench.drivers.canopen_cycle import MAX_FRAME_BITS, CycleIO, sync_index
+
+    assert sync_index(100.0032, 100.0, 1e-3) == 3
+    io = CycleIO(SimpleNamespace(bitrate=1_000_000, sync_cob=0x80), None, None)
+    io.period_s, io._sync0_wall_s, io._wall_minus_host_s, io._last_index = 1e-3, 100.0, 50.0, -1
+    io._rx_wall_s = 100.0032  # the answer to SYNC 3
+    t_host, unc, t_sync = io._kernel_instant(100.0022 - 50.0)  # RPDO 0.2 ms after SYNC 2: in time
+    assert t_host == pytest.approx(100.003 - 50.0) and t_sync == pytest.approx(0.003)
+    assert unc == pytest.approx(MAX_FRAME_BITS / 1e6)
+    assert io.counts == {"late_rpdos": 0, "missed_syncs": 0}
+    io._rx_wall_s = 100.0062  # SYNC 6: slots 4 and 5 went unanswered
+    io._kernel_instant(100.0058 - 50.0)  # RPDO 0.8 ms after SYNC 5: after the window
+    assert io.counts == {"late_rpdos": 1, "missed_syncs": 2}
+
+
+def test_the_kernel_sync_is_python_cans_periodic_send():
+    from types import SimpleNamespace
+
+    import can
+
+    from servobench.drivers.canopen_cycle import CycleIO
+
+    with can.Bus(interface="virtual", channel="rt-sync") as host, \
+            can.Bus(interface="virtual", channel="rt-sync") as drive:  # fmt: skip
+        io = CycleIO(SimpleNamespace(bitrate=1_000_000, sync_cob=0x80), SimpleNamespace(bus=host), None)
+        io.start_kernel_sync(0.005)
+        assert io.kernel_sync
+        time.sleep(0.2)
+        io.stop_kernel_sync()
+        frames = []
+        while (msg := drive.recv(0.0)) is not None:
+            frames.append(msg)
+        assert not io.kernel_sync
+    assert len(frames) >= 10 and all(m.arbitration_id == 0x80 and not m.data for m in frames)
