@@ -205,7 +205,7 @@ SIDBE_ARGS = ["--fs", "50", "--periods", "3", "--freqs", "1,2,3,5,8,13", "--ampl
 @pytest.fixture(scope="module")
 def served_zeroerr() -> Iterator[ServedSim]:
     eds = str(resources.files("servobench.drivers").joinpath("data/zeroerr-edriver.eds"))
-    with ServedSim("canopen", SIM, ["--eds", eds]) as sim:
+    with ServedSim("canopen", SIM, ["--eds", eds], clock="lockstep") as sim:
         yield sim
     assert sim.returncode == 0, sim.stderr
 

@@ -40,7 +40,7 @@ while True:
 
 @pytest.fixture(scope="module")
 def served() -> Iterator[ServedSim]:
-    with ServedSim("canopen", SIM) as sim:
+    with ServedSim("canopen", SIM, clock="lockstep") as sim:
         yield sim
     assert sim.returncode == 0, sim.stderr
 

@@ -73,7 +73,7 @@ def test_url_scales_still_override() -> None:
 
 
 def test_sidbe_returns_the_si_plant(tmp_path) -> None:
-    with ServedSim("canopen", SIM) as sim:
+    with ServedSim("canopen", SIM, clock="lockstep") as sim:
         assert not {"pos_scale", "vel_scale"} & set(sim.url.replace("&", "=").split("="))
         out = subprocess.run(
             [sys.executable, "-m", "servobench", "sidbe", "--drive", sim.url + "&pace=fast",
@@ -156,7 +156,7 @@ def test_commission_and_validate_give_the_si_model_and_the_drive_s_own_units(tmp
     config = tmp_path / "bench.toml"
     config.write_text(CONFIG)
     out = tmp_path / "record"
-    with ServedSim("canopen", f"{plant}&rated_torque=2&inc_per_rev=131072&vel_unit=rpm") as sim:
+    with ServedSim("canopen", f"{plant}&rated_torque=2&inc_per_rev=131072&vel_unit=rpm", clock="lockstep") as sim:
         assert "scale" not in sim.url
         rc = main(["commission", "--drive", sim.url + "&pace=fast", "--yes", "--config", str(config),
                    "--out", str(out)])  # fmt: skip

@@ -33,7 +33,7 @@ SHORT = ["--period", "2", "--periods", "3", "--no-plots"]
 
 def closed_sidbe(transport: str, timeouts: str, run: Path) -> dict:
     """``sidbe --json`` on a served drive with the travel window ±0.05; the model, checked against the plant."""
-    with ServedSim(transport, PLANT) as served:
+    with ServedSim(transport, PLANT, clock="lockstep") as served:
         # generous reply timeouts and watchdog: the served drive shares a busy test machine
         url = served.url + f"&pace=fast&{timeouts}&watchdog=2&xmin=-0.05&xmax=0.05"
         out = subprocess.run(

@@ -40,7 +40,7 @@ def test_commission_over_a_served_drive(tmp_path, transport, capsys):
     config.write_text(CONFIG)
     out = tmp_path / "record"
     bus = tmp_path / "bus.log"
-    with ServedSim(transport) as served:
+    with ServedSim(transport, clock="lockstep") as served:
         url = fast(served.url)
         rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(out),
                    "--record-bus", str(bus)])  # fmt: skip
@@ -74,7 +74,7 @@ def test_commission_over_a_served_drive(tmp_path, transport, capsys):
 def test_no_motion_on_a_served_drive_refuses_and_leaves_it_disabled(tmp_path, capsys):
     config = tmp_path / "bench.toml"
     config.write_text(CONFIG)
-    with ServedSim("modbus-tcp", "sim://?M=0.1&B=1&fc_pos=50&fc_neg=50") as served:
+    with ServedSim("modbus-tcp", "sim://?M=0.1&B=1&fc_pos=50&fc_neg=50", clock="lockstep") as served:
         url = fast(served.url)
         rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(tmp_path / "o")])
         assert rc == 1

@@ -40,7 +40,7 @@ SETUP_S = 30.0
 
 
 def sidbe(transport: str, out: Path, results: dict) -> None:
-    with ServedSim(transport, SIM) as served:
+    with ServedSim(transport, SIM, clock="lockstep") as served:  # regular drive clock, exact
         t0 = time.monotonic()
         proc = subprocess.run(
             [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url, "--json",

@@ -25,7 +25,7 @@ def test_servobench_run_ends_with_one_line(
 ) -> None:
     state, log = tmp_path / "state.json", tmp_path / "log.csv"
     args = ["--fault", spec, "--state-file", str(state)]
-    with ServedSim(transport, SIM_URL, args) as served:
+    with ServedSim(transport, SIM_URL, args, clock="lockstep") as served:
         proc = subprocess.run(
             [sys.executable, "-m", "servobench", "run", "--drive", served.url + "&pace=fast",
              "--out", str(log), "--periods", "2", "--period", "0.5", "--amplitude", "1"],

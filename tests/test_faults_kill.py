@@ -91,7 +91,7 @@ def run_host_and_kill(url: str, log: Path, sig: signal.Signals) -> subprocess.Po
 def test_killed_host(transport: str, sig: signal.Signals, tmp_path: Path) -> None:
     state_path, log_path = tmp_path / "state.json", tmp_path / "log.csv"
     args = [*SERVE_ARGS[transport], "--state-file", str(state_path)]
-    with ServedSim(transport, SIM_URL, args) as served:
+    with ServedSim(transport, SIM_URL, args, clock="lockstep") as served:
         host = run_host_and_kill(served.url + HOST_KEYS + "&watchdog=0.2", log_path, sig)
         state = wait_for_state(state_path, ("fault", "disabled"))
         stderr = host.stderr.read()

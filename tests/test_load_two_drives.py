@@ -46,10 +46,10 @@ def excitations() -> dict[str, list[tuple[int, np.ndarray]]]:
 @pytest.fixture(scope="module")
 def bus() -> Iterator[dict[str, str]]:
     """Drive A on its own hub, drive B joined to it; yields their URLs."""
-    with ServedSim("canopen", SIM_A, ["--node", "2"]) as a:
+    with ServedSim("canopen", SIM_A, ["--node", "2"], clock="lockstep") as a:
         q = parse_drive_url(a.url)
         hub = f"socketcand://{q.get_str('host')}:{q.get_str('port')}"
-        with ServedSim("canopen", SIM_B, ["--node", "3", "--can", hub]) as b:
+        with ServedSim("canopen", SIM_B, ["--node", "3", "--can", hub], clock="lockstep") as b:
             yield {"A": a.url, "B": b.url}
 
 

@@ -35,7 +35,7 @@ def square_wave(n: int, half_period: int = 60, amplitude: float = 1.0) -> np.nda
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_square_wave_matches_the_plant(transport):
     u = square_wave(CYCLES[transport])
-    with ServedSim(transport, SIM_URL) as served:
+    with ServedSim(transport, SIM_URL, clock="lockstep") as served:
         assert served.url.startswith(transport.replace("-", "+") + "://")
         with open_drive(served.url) as drive:
             drive.set_cycle(0.001)
@@ -73,7 +73,7 @@ while True:
 @pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
 def test_killed_host_trips_the_drive_watchdog(transport):
     watchdog_s = 0.2
-    with ServedSim(transport, SIM_URL) as served:
+    with ServedSim(transport, SIM_URL, clock="lockstep") as served:
         host = subprocess.Popen(
             [sys.executable, "-c", HOST, f"{served.url}&watchdog={watchdog_s}"],
             stdout=subprocess.PIPE,

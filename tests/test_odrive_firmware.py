@@ -158,7 +158,7 @@ def test_a_watchdog_error_an_earlier_host_left_is_cleared_and_said(firmware):
 
 
 def run_on_a_fresh_drive(keys: str) -> tuple[object, list]:
-    with ServedSim("serial", SIM) as served, open_drive(served.url + keys) as drive:
+    with ServedSim("serial", SIM, clock="lockstep") as served, open_drive(served.url + keys) as drive:
         drive.set_cycle(0.002)
         drive.enable()
         return drive, [drive.exchange(1.5)[0] for _ in range(60)]

@@ -148,7 +148,7 @@ def test_commission_names_the_partial_log_and_the_record(tmp_path, capsys, drive
 def test_a_served_drive_that_faults_names_the_partial_log(tmp_path):
     """Through a real transport and the installed command: ``sidbe`` against ``serve-sim --fault``."""
     out = tmp_path / "run"
-    with ServedSim("modbus-tcp", SIM_URL, ["--fault", "exception@300:4"]) as served:
+    with ServedSim("modbus-tcp", SIM_URL, ["--fault", "exception@300:4"], clock="lockstep") as served:
         proc = subprocess.run(
             [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url + "&pace=fast",
              "--out", str(out), "--amplitude", "1", *SHORT],

@@ -40,7 +40,7 @@ ODRIVE_MOTOR_FAILED = 0x40
 @contextlib.contextmanager
 def served(*extra_args: str, sim: str = SIM):
     """A serve-sim child; on exit it must shut down cleanly (exit status 0)."""
-    sim_proc = ServedSim("serial", sim, extra_args)
+    sim_proc = ServedSim("serial", sim, extra_args, clock="lockstep")
     sim_proc.start()
     try:
         yield sim_proc.url

@@ -29,7 +29,7 @@ RESOLUTION = {"modbus-tcp": 1e-6, "modbus-rtu": 1e-6, "serial": 1e-6, "canopen":
 @pytest.mark.parametrize("transport", sorted(TRANSPORTS))
 def test_a_served_axis_coasts_down_while_nobody_polls(transport):
     u = np.full(100, 2.0)  # 0.2 s: v reaches about 1.3
-    with ServedSim(transport, SIM) as served:
+    with ServedSim(transport, SIM, clock="lockstep") as served:
         url = served.url + ("&" if "?" in served.url else "?") + "pace=fast"
         with open_drive(url) as drive:
             drive.set_cycle(CYCLE_S)
@@ -53,7 +53,7 @@ def test_a_served_axis_coasts_down_while_nobody_polls(transport):
 def test_each_session_starts_with_the_drive_clock_at_zero(transport):
     # Issue 10 §4: after an overrun the next run met "the drive clock stands at 6.031 s", then a
     # first time stamp of 120.8 s. A host that vanishes mid-run (no close) leaves nothing behind.
-    with ServedSim(transport, SIM) as served:
+    with ServedSim(transport, SIM, clock="lockstep") as served:
         url = served.url + "&pace=fast&watchdog=0.3"
         gone = open_drive(url)
         gone.open()

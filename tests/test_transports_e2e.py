@@ -35,7 +35,7 @@ def test_every_served_transport_is_a_registered_drive():
 
 @pytest.mark.parametrize("transport", sorted(TRANSPORTS))
 def test_sidbe_identifies_the_served_plant(transport, tmp_path):
-    with ServedSim(transport, PLANT) as served:
+    with ServedSim(transport, PLANT, clock="lockstep") as served:
         assert served.url.startswith(SCHEME[transport] + "://")
         url = served.url + ("&" if "?" in served.url else "?") + "pace=fast"
         out = subprocess.run(

@@ -1,4 +1,8 @@
-"""``servobench serve-sim --transport T --sim SIMURL``: serve the simulated drive."""
+"""``servobench serve-sim --transport T --sim SIMURL``: serve the simulated drive.
+
+The first line on stdout is the drive URL (a contract); ``--rt-priority``
+says on stderr what priority was obtained.
+"""
 
 from __future__ import annotations
 
@@ -45,6 +49,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="inject a fault, e.g. drop@120 or delay@50:30 (repeatable; see below)",
     )
     p.add_argument(
+        "--clock",
+        choices=("real", "lockstep"),
+        default=None,
+        help="real: the axis moves in wall-clock time and samples when the SYNC or read arrives, "
+        "time stamps from its free-running clock (default, or the --sim URL's clock=); "
+        "lockstep: one cycle per SYNC/read, exact, for algorithm tests",
+    )
+    p.add_argument(
+        "--no-timestamp",
+        action="store_true",
+        help="serve a drive that gives no time stamp: CANopen without 0x1013 (EDS cia402-nostamp), "
+        "Modbus without the timestamp register (map servobench-sim-nostamp)",
+    )
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ask for real-time priority SCHED_FIFO N (1-99) for the served drive, as a drive with "
+        "its own processor, else the best nice level; what was obtained goes to stderr",
+    )
+    p.add_argument(
         "--state-file",
         default=None,
         metavar="PATH",
@@ -53,10 +79,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
+
+    from servobench.drivers.url import parse_drive_url
     from servobench.errors import UsageError
+    from servobench.sim_backend.device import clock_mode_from_url
+    from servobench.sim_backend.servers.rt_priority import FIFO_MAX, FIFO_MIN, request_priority
+    from servobench.sim_backend.servers.serve import no_timestamp_options
 
     if args.eds and args.transport != "canopen":
         raise UsageError(f"--eds applies to --transport canopen only, not {args.transport}")
+    if args.rt_priority is not None and not FIFO_MIN <= args.rt_priority <= FIFO_MAX:
+        raise UsageError(f"--rt-priority must be {FIFO_MIN}..{FIFO_MAX}, got {args.rt_priority}")
+    clock_mode = args.clock or clock_mode_from_url(parse_drive_url(args.sim), default="real")
     options = {
         "host": args.host,
         "port": str(args.port),
@@ -70,5 +105,9 @@ def run(args: argparse.Namespace) -> int:
         "eds": args.eds or "",
         "fault": ";".join(args.fault),
     }
-    run_server(args.transport, args.sim, options, state_file=args.state_file)
+    if args.no_timestamp:
+        options = no_timestamp_options(args.transport, options)
+    if args.rt_priority is not None:  # before any thread starts: they inherit it
+        print(f"serve-sim: {request_priority(args.rt_priority).describe()}", file=sys.stderr, flush=True)
+    run_server(args.transport, args.sim, options, state_file=args.state_file, clock_mode=clock_mode)
     return 0

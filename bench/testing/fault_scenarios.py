@@ -241,7 +241,7 @@ class ServerPool:
         for case in cases:
             tr = case.transport if case is not None else transport
             name, args = _serve_args(case, tr, workdir)
-            self._servers[name] = ServedSim(tr, SIM_URL, args)
+            self._servers[name] = ServedSim(tr, SIM_URL, args, clock="lockstep")
 
     def start(self) -> ServerPool:
         errors: list[BaseException] = []
@@ -303,7 +303,7 @@ def run_case(
     log_path, state_path = workdir / f"{name}.csv", workdir / f"{name}.json"
     error: BaseException | None = None
     t0 = time.monotonic()
-    served = pool.take(name) if pool is not None else ServedSim(transport, SIM_URL, args)
+    served = pool.take(name) if pool is not None else ServedSim(transport, SIM_URL, args, clock="lockstep")
     try:
         if served.proc is None:
             served.start()

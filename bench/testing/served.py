@@ -38,7 +38,12 @@ class ServedSim:
     sim_url : str
         The plant as a ``sim://`` URL.
     extra_args : sequence of str
-        More ``serve-sim`` options (``--node 3``, ``--fault ...``).
+        More ``serve-sim`` options (``--node 3``, ``--fault ...``, ``--no-timestamp``,
+        ``--rt-priority 50``).
+    clock : str or None
+        ``"real"`` (the axis moves in wall-clock time) or ``"lockstep"`` (one
+        cycle per SYNC/read, exact): ``serve-sim --clock``; ``None``: serve-sim's
+        default, ``real``.
     """
 
     def __init__(
@@ -46,10 +51,11 @@ class ServedSim:
         transport: str,
         sim_url: str = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4",
         extra_args: Sequence[str] = (),
+        clock: str | None = None,
     ) -> None:
         self.transport = transport
         self.sim_url = sim_url
-        self.extra_args = list(extra_args)
+        self.extra_args = list(extra_args) + (["--clock", clock] if clock else [])
         self.proc: subprocess.Popen[str] | None = None
         self.url = ""
         self.returncode: int | None = None

@@ -21,7 +21,7 @@ import canopen
 
 from servobench.drivers.canopen_link import load_eds
 from servobench.drivers.url import parse_drive_url
-from servobench.sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+from servobench.sim_backend.device import LOCKSTEP, SimulatedDevice, WatchdogThread, device_from_url
 from servobench.sim_backend.servers import serve_canopen
 from servobench.sim_backend.servers.serve import split_served_keys
 
@@ -30,14 +30,18 @@ SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 
 
 @contextmanager
-def served(sim_url: str = SIM, **options: str) -> Iterator[tuple[SimulatedDevice, str]]:
+def served(
+    sim_url: str = SIM, clock: str = LOCKSTEP, **options: str
+) -> Iterator[tuple[SimulatedDevice, str]]:
     """Serve a simulated drive in a thread; yield the device and its drive URL.
 
     ``sim_url`` may hold the served drive's own keys (factor group, gains);
+    ``clock``: ``"lockstep"`` (default here: pure lock-step, exact) or ``"real"``
+    (wall-clock time, as ``serve-sim`` serves by default);
     ``options`` are ``serve_canopen.serve`` options (``eds``, ``fault``, ``can``, ``node``).
     """
     plant_url, keys = split_served_keys("canopen", sim_url)
-    device = device_from_url(plant_url)
+    device = device_from_url(plant_url, clock_mode=clock)
     stop, urls = threading.Event(), queue.Queue()
     errors: list[BaseException] = []
 

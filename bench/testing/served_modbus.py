@@ -13,7 +13,7 @@ import queue
 import threading
 from collections.abc import Iterator
 
-from servobench.sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+from servobench.sim_backend.device import LOCKSTEP, SimulatedDevice, WatchdogThread, device_from_url
 from servobench.sim_backend.servers import serve_modbus
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
@@ -21,13 +21,20 @@ SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 
 @contextlib.contextmanager
 def served_modbus(
-    transport: str, sim_url: str = SIM_URL, wall_clock: bool = False, **options: str
+    transport: str,
+    sim_url: str = SIM_URL,
+    wall_clock: bool = False,
+    clock: str = LOCKSTEP,
+    **options: str,
 ) -> Iterator[tuple[SimulatedDevice, str]]:
     """Serve ``sim_url`` over ``transport`` (``modbus-tcp`` or ``modbus-rtu``); yields (device, URL).
 
+    ``clock``: ``"lockstep"`` (default here; ``wall_clock`` then says whether an
+    idle axis coasts in wall-clock time) or ``"real"`` (wall-clock time
+    throughout, as ``serve-sim`` serves by default).
     ``options`` are serve options (``map``, ``unit``, ``fault``).
     """
-    device = device_from_url(sim_url, wall_clock=wall_clock)
+    device = device_from_url(sim_url, wall_clock=wall_clock, clock_mode=clock)
     stop: threading.Event = threading.Event()
     urls: queue.Queue[str | BaseException] = queue.Queue()
 

@@ -19,7 +19,9 @@ answers SDOs; this module adds what it lacks:
 * PDOs and the SYNC (:mod:`servobench.sim_backend.servers.can_sync`);
 * units: the plant is in SI, the objects speak the drive's factor group
   (:mod:`servobench.sim_backend.servers.can_factor`); 0x1013 is the device
-  clock in µs; 0x6077 reports the torque applied over the cycle before the
+  clock (UNSIGNED32 µs, wrapping; in ``clock=real`` the drive's free-running
+  clock at the instant the SYNC's sample was taken, in lockstep the cycle
+  count times the cycle); 0x6077 reports the torque applied over the cycle before the
   SYNC, as a drive samples its actual value;
 * NMT: PDOs and SYNC only in OPERATIONAL; leaving OPERATIONAL while the
   axis is enabled quick-stops it; a heartbeat goes out at once on a change;
@@ -62,7 +64,7 @@ from servobench.drivers.cia402 import (
     next_state,
     supports_mode,
 )
-from servobench.sim_backend.device import PowerState, SimulatedDevice
+from servobench.sim_backend.device import PowerState, SimulatedDevice, clock_counts
 from servobench.sim_backend.faults.can import CanFaultHook
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import FaultPlan
@@ -299,7 +301,7 @@ class ServedCiA402Drive:
                 return wrap_i32(self.factors.position_raw(sample.position))
             if index == 0x606C:
                 return clamp(self.factors.velocity_raw(sample.velocity), _I32)
-            return round(sample.t_s * 1e6) & 0xFFFFFFFF
+            return clock_counts(sample.t_s, 1e-6) & 0xFFFFFFFF  # UNSIGNED32 µs (CiA 301), wrapping
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         value = od.decode_raw(data)

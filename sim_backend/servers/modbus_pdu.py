@@ -49,7 +49,7 @@ from servobench.drivers.regmap import (
     encode_string,
 )
 from servobench.errors import DriveConfigError, DriveError, UsageError
-from servobench.sim_backend.device import DeviceSample, PowerState, SimulatedDevice
+from servobench.sim_backend.device import DeviceSample, PowerState, SimulatedDevice, clock_counts
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.modbus import ModbusFaultHook
 from servobench.sim_backend.faults.spec import FaultPlan
@@ -213,7 +213,7 @@ class RegisterBridge:
         if reg.name == "fault":
             return encode_raw(reg, s.fault_code)
         if reg.name == "timestamp":  # the drive clock wraps like a hardware counter
-            raw = int(round(s.t_s / reg.scale))
+            raw = clock_counts(s.t_s, reg.scale)  # ticks of the register's resolution
             return encode_raw(
                 reg, raw % (1 << (16 * reg.count)) if reg.format.startswith("u") else raw
             )

@@ -11,8 +11,11 @@ starts its server around the :class:`~servobench.sim_backend.device.SimulatedDev
 calls ``announce(drive_url)`` exactly once when a client can connect, blocks
 until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
-URL (in wall-clock time, :mod:`servobench.sim_backend.device`: a served axis
-coasts down while nobody polls it), the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
+URL in the clock mode asked for (:mod:`servobench.sim_backend.device`:
+``real`` by default, the axis moving in wall-clock time whatever the host
+does; ``lockstep``, clocked once per cycle while enabled and coasting down
+in wall-clock time while nobody polls it), the drive without a time stamp
+(:func:`no_timestamp_options`), the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
 the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
 handling and printing the URL as the first line on stdout.
 """
@@ -27,7 +30,7 @@ from collections.abc import Callable, Mapping
 from urllib.parse import urlencode
 
 from servobench.errors import DriveConfigError
-from servobench.sim_backend.device import SimulatedDevice, WatchdogThread, device_from_url
+from servobench.sim_backend.device import REAL, SimulatedDevice, WatchdogThread, device_from_url
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import parse_plan
 from servobench.sim_backend.faults.state import StateReporter
@@ -39,6 +42,51 @@ TRANSPORTS: dict[str, str] = {
     "modbus-rtu": "servobench.sim_backend.servers.serve_modbus",
     "serial": "servobench.sim_backend.servers.serve_serial",
 }
+
+#: What ``--no-timestamp`` serves per transport: the option set, and the value without a time stamp.
+NO_TIMESTAMP = {
+    "canopen": ("eds", "cia402-nostamp"),  # the generic CiA 402 EDS without 0x1013
+    "modbus-tcp": ("map", "servobench-sim-nostamp"),  # servobench-sim without its timestamp register
+    "modbus-rtu": ("map", "servobench-sim-nostamp"),
+}
+#: The option values that serve a time stamp, which ``--no-timestamp`` replaces.
+WITH_TIMESTAMP = {"eds": ("",), "map": ("", "servobench-sim")}
+
+
+def no_timestamp_options(transport: str, options: Mapping[str, str]) -> dict[str, str]:
+    """``options`` for a drive that gives no time stamp (``serve-sim --no-timestamp``).
+
+    CANopen serves the shipped EDS ``cia402-nostamp`` (no 0x1013), Modbus the
+    map ``servobench-sim-nostamp`` (no ``timestamp`` register); the URL the
+    transport announces names them. The ODrive serial dialect carries no time
+    stamp at all: nothing changes. An EDS or map of the user's own is kept
+    only if it has no time stamp either, else :class:`DriveConfigError`.
+    """
+    out = dict(options)
+    if transport not in NO_TIMESTAMP:
+        return out
+    key, value = NO_TIMESTAMP[transport]
+    given = out.get(key) or ""
+    if given in WITH_TIMESTAMP[key]:
+        out[key] = value
+    elif _serves_timestamp(key, given):
+        flag = "--eds" if key == "eds" else "--map"
+        raise DriveConfigError(
+            f"--no-timestamp: {flag} {given} has a time stamp "
+            f"({'0x1013' if key == 'eds' else 'a timestamp register'}); drop {flag} or --no-timestamp"
+        )
+    return out
+
+
+def _serves_timestamp(key: str, given: str) -> bool:
+    if key == "map":
+        from servobench.drivers.regmap import load_map
+
+        return "timestamp" in load_map(given)
+    from servobench.drivers.canopen_link import load_eds
+
+    return 0x1013 in load_eds(1, given)
+
 
 #: ``serve(device, stop, announce, options, injector=None)``.
 ServeFunction = Callable[..., None]
@@ -81,14 +129,16 @@ def run_server(
     stop: threading.Event | None = None,
     announce: Callable[[str], None] | None = None,
     state_file: str | None = None,
+    clock_mode: str = REAL,
 ) -> SimulatedDevice:
     """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device.
 
     ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
+    ``clock_mode``: ``real`` (default) or ``lockstep`` (:mod:`servobench.sim_backend.device`).
     """
     serve = load_transport(transport)
     sim_url, served_keys = split_served_keys(transport, sim_url)
-    device = device_from_url(sim_url, wall_clock=True)
+    device = device_from_url(sim_url, wall_clock=True, clock_mode=clock_mode)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {}), "sim_keys": served_keys}
     injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))
