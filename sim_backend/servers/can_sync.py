@@ -5,7 +5,9 @@ TPDOs nor applies received RPDOs. :class:`SyncEngine` compiles the maps the
 host wrote (:mod:`servobench.sim_backend.servers.can_pdo`) when the node enters
 OPERATIONAL or a PDO parameter changed, writes received RPDO payloads into
 the object dictionary (controlword, target torque, torque offset, target
-position -> the drive's callbacks), and on each SYNC:
+position -> the drive's callbacks; with the ``real`` clock a synchronous
+RPDO is kept until the next SYNC, as CiA 301 says, and applied at the
+instant that SYNC samples), and on each SYNC:
 
 1. counts the cycle with the fault injector (drive faults applied);
 2. in cyclic synchronous position, runs the drive's position loop on the
@@ -49,6 +51,8 @@ class SyncEngine:
         self._sync_count = 0
         self._acted = 0.0  # the command of the cycle that ended at this SYNC
         self._stepped = 0.0  # the command the last SYNC latched for its cycle
+        #: ``real`` clock: synchronous RPDOs received since the last SYNC, by COB-ID (the last wins)
+        self._pending: dict[int, tuple[can_pdo.PdoChannel, bytes]] = {}
 
     def torque_actual(self) -> float:
         """0x6077 [plant units]: at a SYNC the command of the cycle before, else the present one."""
@@ -80,6 +84,8 @@ class SyncEngine:
     def _rpdo_handler(self, channel: can_pdo.PdoChannel) -> Callable[[int, bytearray, float], None]:
         drive = self.drive
 
+        synchronous = channel.transmission_type <= 240
+
         def on_rpdo(can_id: int, data: bytearray, timestamp: float) -> None:
             with drive.lock:
                 if drive.nmt != NMT_OPERATIONAL:
@@ -87,10 +93,17 @@ class SyncEngine:
                 if len(data) < channel.length:
                     drive.node.emcy.send(EMCY_PDO_LENGTH, drive.error_register())
                     return
-                for entry, chunk in channel.unpack(data):
-                    drive.node.set_data(entry.index, entry.subindex, chunk)
+                if synchronous and drive.device.realtime:
+                    # CiA 301: a synchronous RPDO is processed at the next SYNC
+                    self._pending[channel.cob_id] = (channel, bytes(data))
+                    return
+                self._apply(channel, data)
 
         return on_rpdo
+
+    def _apply(self, channel: can_pdo.PdoChannel, data: bytes | bytearray) -> None:
+        for entry, chunk in channel.unpack(data):
+            self.drive.node.set_data(entry.index, entry.subindex, chunk)
 
     def _clock(self) -> None:
         """Run the drive's loop on this SYNC's feedback (in CSP), then clock the device."""
@@ -119,8 +132,12 @@ class SyncEngine:
                     drive.hook.bus_off(spec)
                     if drive.consumer.abort_option == 1:  # abort connection: fault
                         drive.device.fault(BUSOFF_FAULT, f"CAN bus-off (--fault {spec})")
-            drive.sync_device()
-            self._clock()
+            with drive.device.one_instant():  # the RPDOs take force at the sampled instant
+                pending, self._pending = self._pending, {}
+                for channel, data in pending.values():
+                    self._apply(channel, data)
+                drive.sync_device()
+                self._clock()
             try:
                 frames = [
                     (ch.cob_id, ch.pack(drive.node.get_data))

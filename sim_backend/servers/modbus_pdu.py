@@ -316,8 +316,9 @@ class PduHandler:
             raise ModbusException(ILLEGAL_VALUE)
         self.bridge.check("holding", r_addr, r_count)
         self.bridge.check("holding", w_addr, w_count, write=True)
-        self.bridge.write(w_addr, struct.unpack(f">{w_count}H", pdu[10:]))  # write first (§6.17)
-        return pdu[:1] + _registers(self.bridge.read("holding", r_addr, r_count))
+        with self.bridge.device.one_instant():  # one control tick of the drive
+            self.bridge.write(w_addr, struct.unpack(f">{w_count}H", pdu[10:]))  # write first (§6.17)
+            return pdu[:1] + _registers(self.bridge.read("holding", r_addr, r_count))
 
     def _encapsulated(self, pdu: bytes) -> bytes:
         _need(pdu, 2)
