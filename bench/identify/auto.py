@@ -79,7 +79,8 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
-    timing = timing_figure(log.metadata, data, result.model)
+    estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
+    timing = timing_figure(log.metadata, data, estimate)
     return result if timing is None else replace(result, timing=timing)
 
 

@@ -10,10 +10,12 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
 
 * **how** -- the model is identified again :data:`DRAWS` times with every
   instant moved to a random point of its interval (uniform within
-  ``t +- t_unc``, an explicit seeded generator), by the joint estimator's
-  exact pair regression (:func:`~servobench.bench.identify.joint.pair_regression`,
-  weighted by the timing uncertainty as the full estimator is), and compared
-  with the same regression on the instants as logged. The root mean square
+  ``t +- t_unc``, an explicit seeded generator) by the estimator that gave
+  it: an output-error model is refined again from itself on each moved copy;
+  any other by the joint estimator's exact pair regression
+  (:func:`~servobench.bench.identify.joint.pair_regression`, weighted by the
+  timing uncertainty), compared with the same regression on the instants as
+  logged. The root mean square
   of the relative change of each parameter over the draws is its predicted
   timing error [%] (1 sigma). The draws cover the excited band as the log
   does: they perturb the very samples the model comes from.
@@ -38,7 +40,8 @@ from typing import Any
 import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
-from servobench.bench.model import STD_KEYS, ServoModel
+from servobench.bench.identify.estimate import MethodEstimate
+from servobench.bench.model import STD_KEYS
 from servobench.errors import IdentificationError
 
 #: Accuracy the model states for its parameters [%]: timing that predicts more is reported.
@@ -51,8 +54,8 @@ SEED = 22
 CYCLE_KEYS = ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s", "missed_cycles",
               "late_cycles", "t_unc_p50_s", "t_unc_p99_s", "t_unc_max_s")  # fmt: skip
 METHOD = (
-    f"re-identification ({DRAWS} draws, the joint pair regression) with every instant moved at "
-    "random within its uncertainty t_unc; rms relative change, 1 sigma"
+    f"re-identification ({DRAWS} draws, by the estimator that gave the model) with every instant "
+    "moved at random within its uncertainty t_unc; rms relative change, 1 sigma"
 )
 
 
@@ -168,7 +171,7 @@ def _number(text: str | None) -> float:
 
 
 def timing_figure(
-    metadata: Mapping[str, str], data: Dataset, model: ServoModel
+    metadata: Mapping[str, str], data: Dataset, estimate: MethodEstimate
 ) -> TimingFigure | None:
     """The timing figure of a real-time log and the model identified from it.
 
@@ -181,19 +184,28 @@ def timing_figure(
     cycle = {key: _number(metadata.get(key)) for key in CYCLE_KEYS}
     error = {k: 0.0 for k in STD_KEYS}
     if data.timing_uncertain and not data.derived:
-        error = perturbed_spread_pct(data, model)
+        error = perturbed_spread_pct(data, estimate)
     return TimingFigure(source, cycle, data.fs_hz, error)
 
 
 def perturbed_spread_pct(
-    data: Dataset, model: ServoModel, draws: int = DRAWS, seed: int = SEED
+    data: Dataset, estimate: MethodEstimate, draws: int = DRAWS, seed: int = SEED
 ) -> dict[str, float]:
-    """RMS relative change [%] of each parameter when the instants move within ``t_unc``."""
-    from servobench.bench.identify.joint import pair_regression
+    """RMS relative change [%] of each parameter when the instants move within ``t_unc``.
+
+    The estimator of ``estimate`` is re-run: an output-error estimate is refined
+    again from itself on each perturbed copy (the refinement alone, started where
+    it ended); any other by the joint pair regression, compared with the same
+    regression on the instants as logged.
+    """
+    from servobench.bench.identify.joint import identify_joint, pair_regression
 
     rng = np.random.default_rng(seed)
-    with contextlib.suppress(IdentificationError):  # the same estimator on the instants as logged
-        model = pair_regression(data)
+    refine = estimate.estimator.endswith("output-error")
+    model = estimate.model
+    if not refine:
+        with contextlib.suppress(IdentificationError):  # the same estimator on the instants as logged
+            model = pair_regression(data)
     nominal = np.array([model.M, model.B, model.coulomb_pos, model.coulomb_neg])
     changes = []
     for _ in range(draws):
@@ -209,8 +221,9 @@ def perturbed_spread_pct(
                     s.t_unc, np.concatenate(([np.inf], np.diff(s.t))), )
                 dt = np.diff(t)
             segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12)))
+        moved = replace(data, segments=tuple(segments))
         try:
-            m = pair_regression(replace(data, segments=tuple(segments)))
+            m = identify_joint(moved, start=estimate).model if refine else pair_regression(moved)
         except IdentificationError:
             continue
         values = np.array([m.M, m.B, m.coulomb_pos, m.coulomb_neg])
