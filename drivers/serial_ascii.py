@@ -29,7 +29,9 @@ ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
 raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
 Feedback ``t_s`` is the host's ``time.monotonic()`` midway between the
-query going out and its reply coming in, with half that interval as
+query's last byte reaching the drive and its reply's first byte leaving it
+(the wire time at ``baud`` taken off both ends; the whole exchange where
+the port is faster than that, as USB CDC ports are), with half that interval as
 ``Feedback.t_unc_s`` (and the midpoint as ``Feedback.t_host_s``) (the protocol carries no drive clock), except on a lock-step drive (one that
 took the cycle extension): it integrates exactly one cycle per feedback
 query, so its clock is the count of them times the cycle, and
@@ -80,6 +82,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import replace
 
 from servobench.drivers.ascii_link import AsciiLink
@@ -191,6 +194,10 @@ class SerialAsciiDrive(Drive):
             poll_bytes=poll_out + poll_in,
             poll_s=self.poll_s,
         )
+
+    def clock_source(self) -> str:
+        """``drive`` for a lock-step drive (its cycle count), else ``host`` (query to reply)."""
+        return "drive" if self.lockstep else "host"
 
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
@@ -385,10 +392,28 @@ class SerialAsciiDrive(Drive):
             self._raise_fault(code, "faulted while streaming")
         if self.lockstep and self.cycle_s is not None:
             return self._feedback(self._now(), float(fb["v"]), float(fb["x"]), code)
-        # a free-running drive sampled somewhere between the query going out and its reply
-        mid = 0.5 * (sent + received)
+        lo, hi = self._sample_window(sent, received, lines[:2], fb)
+        mid = 0.5 * (lo + hi)
         fb_ = self._feedback(mid, float(fb["v"]), float(fb["x"]), code)
-        return replace(fb_, t_host_s=mid, t_unc_s=0.5 * (received - sent))
+        return replace(fb_, t_host_s=mid, t_unc_s=0.5 * (hi - lo))
+
+    def _sample_window(
+        self, sent: float, received: float, requests: list[str], fb: Mapping[str, float]
+    ) -> tuple[float, float]:
+        """Host instants [s] between which a free-running drive sampled.
+
+        The query cannot be handled before its last byte arrived, nor the
+        reply leave after its first byte had to: on a UART at ``baud`` (10 bits
+        a character) the interval shrinks by the request's and the reply's
+        wire time. A link faster than that (a USB CDC port) leaves no interval
+        between them: then the whole exchange.
+        """
+        d, extra = self.dialect, (3 if self.use_checksum else 0)
+        char_s = 10.0 / self.baud
+        out = sum(len(r) + len(d.terminator) + extra for r in requests)
+        back = len(d.reply("feedback", x=float(fb["x"]), v=float(fb["v"]))) + len(d.reply_terminator) + extra
+        lo, hi = sent + out * char_s, received - back * char_s
+        return (lo, hi) if lo < hi else (sent, received)
 
     def _now(self) -> float:
         """Sample time [s]: the lock-step drive's cycle count times the cycle, else host time."""

@@ -281,6 +281,7 @@ def _stream_all(
     """Enable, stream every run (resting between them), then stop and disable."""
     drive.set_cycle(plan.dt)
     drive.enable()
+    source = drive.clock_source()
     paced_by_drive = plan.pace == "real" and drive.start_cycle_clock(plan.dt)
     try:
         done = 0
@@ -298,7 +299,7 @@ def _stream_all(
                 else:
                     clock = CycleClock(len(u))
                     clocks.append(clock)
-                    _stream_realtime(drive, u, plan.dt, paced_by_drive, run, clock)
+                    _stream_realtime(drive, u, plan.dt, paced_by_drive, run, clock, source)
             finally:
                 timing.append(_stats(number, run.host, run.clock))
             done += len(u)
@@ -389,7 +390,8 @@ def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run
 
 
 def _stream_realtime(
-    drive: Drive, u: np.ndarray, dt: float, paced_by_drive: bool, run: _Run, clock: CycleClock
+    drive: Drive, u: np.ndarray, dt: float, paced_by_drive: bool, run: _Run, clock: CycleClock,
+    source: str,
 ) -> None:
     """The cyclic loop: absolute deadlines (sleep, then spin), the exchange, its instants.
 
@@ -397,7 +399,7 @@ def _stream_realtime(
     ``t`` counts from the run's first sample.
     """
     n = len(u)
-    by_drive = drive.clock_source() == "drive"
+    by_drive = source == "drive"
     append, mark, check = run.writer.append, clock.mark, run.check.check
     monotonic = time.monotonic
     every = max(1, n // 200)
