@@ -454,6 +454,18 @@ class Drive(ABC):
         """
         return "drive" if self.drive_clock else "host"
 
+    def command_lead_s(self) -> float:
+        """How long before its sample the command of the same exchange takes force [s].
+
+        0 (the default) where the drive samples and applies in one instant (a
+        SYNC with synchronous RPDOs, one FC23 request, a lock-step drive). A
+        transport that sends the command and the feedback query one after the
+        other on a free-running drive states the gap (the query's wire time):
+        the runner logs it as ``# command_lead_s`` and the identification moves
+        each sample back to its command's instant.
+        """
+        return 0.0
+
     def io_threads(self) -> tuple[int, ...]:
         """Native ids of the threads an exchange waits on (a CAN library's receive thread).
 

@@ -195,6 +195,14 @@ class SerialAsciiDrive(Drive):
             poll_s=self.poll_s,
         )
 
+    def command_lead_s(self) -> float:
+        """A free-running drive latches the torque line before the feedback query arrives:
+        the query's wire time at ``baud`` (10 bits a character)."""
+        if self.lockstep or self.lockstep is None:
+            return 0.0
+        d, extra = self.dialect, (3 if self.use_checksum else 0)
+        return (len(d.request("feedback", axis=self.axis)) + len(d.terminator) + extra) * 10.0 / self.baud
+
     def clock_source(self) -> str:
         """``drive`` for a lock-step drive (its cycle count), else ``host`` (query to reply)."""
         return "drive" if self.lockstep else "host"

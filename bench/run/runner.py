@@ -205,7 +205,8 @@ def stream_runs(
     with rt as grant:
         columns = LOG_COLUMNS
         if grant is not None:
-            meta = {"clock_source": drive.clock_source(), **grant.as_metadata(), **meta}
+            lead = {"command_lead_s": drive.command_lead_s()} if drive.command_lead_s() > 0 else {}
+            meta = {"clock_source": drive.clock_source(), **lead, **grant.as_metadata(), **meta}
             columns = REALTIME_COLUMNS
         writer = LogWriter(log_path, meta, columns, flush_every=1)
         sink = RingLogWriter(writer) if realtime else writer
