@@ -1,7 +1,8 @@
 """A default ``sidbe`` through every served transport in real time, under CPU load (issue 22).
 
 The served drive runs in its own process with ``serve-sim --clock real``
-(its axis moves in wall-clock time), with and without its time stamp, while
+(its axis moves in wall-clock time) at real-time priority (``--rt-priority``:
+a real drive has a processor of its own), with and without its time stamp, while
 two busy processes (one per core) load the machine. Each run streams a few
 seconds (two periods of 0.5 s per run) at the rate the link carries; the
 model must come out within 3 % of the plant, and the log and the JSON must
@@ -53,7 +54,9 @@ def two_busy_processes() -> Iterator[None]:
 
 @pytest.mark.parametrize(("transport", "stamped"), CASES, ids=[f"{t}-{'stamp' if s else 'nostamp'}" for t, s in CASES])
 def test_default_sidbe_in_real_time_under_load(transport, stamped, tmp_path):
-    args = ["--clock", "real"] + ([] if stamped or transport == "serial" else ["--no-timestamp"])
+    # the drive has its own processor, as a real one: real-time priority in its process
+    args = ["--clock", "real", "--rt-priority", "70"]
+    args += [] if stamped or transport == "serial" else ["--no-timestamp"]
     with two_busy_processes(), ServedSim(transport, SIM, args) as served:
         proc = subprocess.run(
             [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url, "--json",
