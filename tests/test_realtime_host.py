@@ -90,6 +90,24 @@ def test_realtime_thread_reports_what_it_got_and_reverts_everything():
     assert after == before
 
 
+def test_the_other_threads_cannot_be_preempted_while_they_hold_the_gil_and_get_their_policy_back():
+    import threading
+
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        with realtime_thread() as grant:
+            inside = os.sched_getscheduler(other.native_id)
+        after = os.sched_getscheduler(other.native_id)
+    finally:
+        stop.set()
+        other.join()
+    if grant.fifo:
+        assert inside == os.SCHED_FIFO and grant.other_threads.endswith("SCHED_FIFO 1")
+    assert after == os.SCHED_OTHER
+
+
 def test_realtime_thread_reverts_on_an_error():
     before = (os.sched_getscheduler(0), os.sched_getaffinity(0), gc.isenabled())
     with pytest.raises(RuntimeError), realtime_thread():

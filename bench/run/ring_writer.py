@@ -16,8 +16,10 @@ The ring never drops a row: when the writer falls ``capacity`` rows behind,
 and errors. A failure of the writer thread (a full disk) is raised in the
 cyclic thread by the next :meth:`append` or by :meth:`close`.
 
-The writer thread puts itself back to ``SCHED_OTHER`` on every CPU when it
-starts, whatever the thread that created it had been granted.
+The writer thread runs on every CPU at ``SCHED_FIFO`` 1 (the lowest real-time
+priority, else ``SCHED_OTHER``) whatever the thread that created it had been
+granted: below the cyclic thread, but never preempted by other processes
+while it holds the GIL (:mod:`servobench.realtime`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import time
 import numpy as np
 
 from servobench.bench.logio import LogWriter
+from servobench.realtime import GIL_HOLDER_PRIORITY
 
 #: Rows the ring holds: several seconds at 1 kHz.
 RING_ROWS = 8192
@@ -90,9 +93,12 @@ class RingLogWriter:
         raise OSError(f"writing the log {self.writer.path} failed: {self._failure}") from self._failure
 
     def _run(self) -> None:
-        with contextlib.suppress(OSError, AttributeError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        with contextlib.suppress(OSError, AttributeError):  # not the cyclic thread's CPU or priority
             os.sched_setaffinity(0, range(os.cpu_count() or 1))
+            try:  # the lowest real-time priority: it holds the GIL only briefly, never preempted
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(GIL_HOLDER_PRIORITY))
+            except OSError:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         try:
             while not self._stop.wait(self.flush_s):
                 self._drain()
