@@ -58,13 +58,15 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from servobench.bench.logidentity import run_identity
 from servobench.bench.logio import LogWriter
+from servobench.bench.run.cyclic import Run as _Run
+from servobench.bench.run.cyclic import stream_realtime as _stream_realtime
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.ring_writer import RingLogWriter
 from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodStats, TimingStats
@@ -344,23 +346,6 @@ def _trailer(
     return extra
 
 
-@dataclass
-class _Run:
-    """One run being streamed: where its samples go and what watches them."""
-
-    number: int
-    writer: LogWriter | RingLogWriter
-    check: FeedbackCheck
-    progress: ProgressCallback | None
-    done: int  # samples of earlier runs
-    total: int  # samples of all runs
-    host: PeriodStats = field(default_factory=PeriodStats)
-    clock: PeriodStats = field(default_factory=PeriodStats)
-
-    def report(self, done_here: int) -> None:
-        if self.progress is not None:
-            self.progress(self.done + done_here, self.total)
-
 
 def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run) -> None:
     n = len(u)
@@ -389,50 +374,6 @@ def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run
             run.report(k + 1)
     run.report(n)
 
-
-def _stream_realtime(
-    drive: Drive, u: np.ndarray, dt: float, paced_by_drive: bool, run: _Run, clock: CycleClock,
-    source: str,
-) -> None:
-    """The cyclic loop: absolute deadlines (sleep, then spin), the exchange, its instants.
-
-    Every sample's best instant and uncertainty (see the module docstring);
-    ``t`` counts from the run's first sample.
-    """
-    n = len(u)
-    by_drive = source == "drive"
-    append, mark, check = run.writer.append, clock.mark, run.check.check
-    monotonic = time.monotonic
-    every = max(1, n // 200)
-    acted = 0.0
-    t0_host = monotonic()
-    t_first = math.nan
-    for k in range(n):
-        deadline = t0_host + k * dt
-        if not paced_by_drive:
-            sleep_until(deadline)
-        start = monotonic()
-        fb, applied = drive.exchange(u[k])
-        end = monotonic()
-        if by_drive:
-            t_abs, t_unc = fb.t_s, 0.0
-        elif fb.t_host_s == fb.t_host_s:  # the transport narrowed it
-            t_abs, t_unc = fb.t_host_s, fb.t_unc_s
-        else:
-            t_abs, t_unc = 0.5 * (start + end), 0.5 * (end - start)
-        check(fb.t_s, acted, fb.velocity, fb.position)
-        acted = applied
-        if k == 0:
-            t_first = t_abs
-        t = t_abs - t_first
-        t_host = end - t0_host
-        append(run.number, t, applied, fb.velocity, fb.position, t_host, t_unc)
-        mark(k, start if paced_by_drive else deadline, start, end, t_unc)
-        run.host.add(t_host)
-        run.clock.add(t)
-        if k % every == 0:
-            run.report(k + 1)
-    run.report(n)
 
 
 def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:
