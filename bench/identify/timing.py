@@ -85,6 +85,8 @@ class TimingFigure:
     model_error_pct: Mapping[str, float] = field(default_factory=dict)
     method: str = METHOD
     accuracy_pct: float = ACCURACY_PCT
+    time_constant_s: float = math.nan  #: the model's ``M / B`` [s]
+    link_max_hz: float = math.nan  #: the rate the link carries, from the log [Hz]
 
     @property
     def model_error_max_pct(self) -> float:
@@ -99,8 +101,14 @@ class TimingFigure:
         """What to change, most effective first (empty when within accuracy)."""
         if self.within_accuracy:
             return []
-        lower = _nice_below(self.fs_hz / 2)
-        tips = [f"lower --fs (e.g. --fs {lower:g}: longer cycles, the same timing error weighs less)"]
+        if self.time_constant_s < 2.0 / self.fs_hz:  # the cycle is long against the plant
+            carries = f" (the link carries {self.link_max_hz:.0f} Hz)" if math.isfinite(self.link_max_hz) else ""
+            tips = [f"raise --fs where the link allows{carries}: the plant's time constant "
+                    f"{self.time_constant_s * 1e3:.3g} ms is short against the {1e3 / self.fs_hz:.3g} ms "
+                    "cycle, so the instants' uncertainty weighs on M"]  # fmt: skip
+        else:
+            lower = _nice_below(self.fs_hz / 2)
+            tips = [f"lower --fs (e.g. --fs {lower:g}: longer cycles, the same timing error weighs less)"]
         load = _load_average()
         tips.append(
             "free a core for the host" + (f" (load average {load:.1f})" if load is not None else "")
@@ -185,7 +193,10 @@ def timing_figure(
     error = {k: 0.0 for k in STD_KEYS}
     if data.timing_uncertain and not data.derived:
         error = perturbed_spread_pct(data, estimate)
-    return TimingFigure(source, cycle, data.fs_hz, error)
+    m = estimate.model
+    tau = m.M / m.B if m.B > 0 else math.inf
+    return TimingFigure(source, cycle, data.fs_hz, error, time_constant_s=tau,
+                        link_max_hz=_number(metadata.get("link_max_rate_hz")))  # fmt: skip
 
 
 def perturbed_spread_pct(
