@@ -394,12 +394,13 @@ class SerialAsciiDrive(Drive):
         self.link.send(*lines)
         fb = self.link.read_reply("feedback").fields
         received = time.monotonic()
+        t_count = self._now()  # the lock-step clock of this sample, before it counts the cycle
         self._cycles += 1
         code = int(self.link.read_reply("error").fields["code"]) if poll else 0
         if code:
             self._raise_fault(code, "faulted while streaming")
         if self.lockstep and self.cycle_s is not None:
-            return self._feedback(self._now(), float(fb["v"]), float(fb["x"]), code)
+            return self._feedback(t_count, float(fb["v"]), float(fb["x"]), code)
         lo, hi = self._sample_window(sent, received, lines[:2], fb)
         mid = 0.5 * (lo + hi)
         fb_ = self._feedback(mid, float(fb["v"]), float(fb["x"]), code)
