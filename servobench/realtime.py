@@ -55,6 +55,9 @@ from dataclasses import dataclass
 
 #: ``SCHED_FIFO`` priority of the cyclic thread (1..99; cyclictest's usual 80).
 FIFO_PRIORITY = 80
+#: Environment variable that turns it all off (``SERVOBENCH_REALTIME=off``), e.g. on a
+#: machine where the bench must not take priority over other work; the log says so.
+ENV_OFF = "SERVOBENCH_REALTIME"
 #: ``SCHED_FIFO`` priority of the process's other threads during the run (the lowest).
 GIL_HOLDER_PRIORITY = 1
 #: GIL switch interval during the run [s] (CPython's default is 5 ms).
@@ -312,6 +315,10 @@ def realtime_thread(
     ------
     RealtimeGrant
     """
+    if os.environ.get(ENV_OFF, "").strip().lower() in ("0", "off", "no"):
+        yield RealtimeGrant(f"SCHED_OTHER (turned off by {ENV_OFF})", "all (turned off)",
+                            "no (turned off)", "enabled (turned off)", sys.getswitchinterval())  # fmt: skip
+        return
     undo = _Undo()
     try:
         with _SHARED.lock:
