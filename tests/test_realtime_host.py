@@ -108,6 +108,16 @@ def test_the_other_threads_cannot_be_preempted_while_they_hold_the_gil_and_get_t
     assert after == os.SCHED_OTHER
 
 
+def test_the_real_time_footing_can_be_turned_off_and_the_log_says_so(monkeypatch, tmp_path):
+    monkeypatch.setenv("SERVOBENCH_REALTIME", "off")
+    with realtime_thread() as grant:
+        assert os.sched_getscheduler(0) != os.SCHED_FIFO and gc.isenabled()
+    assert "turned off" in grant.policy
+    with SimDrive(f"sim://?clock=real&{PLANT}") as drive:
+        stream_runs(drive, [(1, square(50, 10, 1.0))], 1000.0, tmp_path / "log.csv")
+    assert "SERVOBENCH_REALTIME" in read_log(tmp_path / "log.csv").metadata["rt_policy"]
+
+
 def test_realtime_thread_reverts_on_an_error():
     before = (os.sched_getscheduler(0), os.sched_getaffinity(0), gc.isenabled())
     with pytest.raises(RuntimeError), realtime_thread():
