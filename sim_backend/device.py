@@ -177,7 +177,7 @@ class SimulatedDevice:
         self._t_base_s = 0.0  # drive clock at the last rebase [s]
         self._t_s = 0.0
         self._wall_due = clock()  # wall time up to which the plant has been integrated
-        self._frozen_at: float | None = None  # the instant held by one_instant()
+        self._pinned: float | None = None  # the instant of the request being handled (instant())
         self._wall_base = self._wall_due  # wall time at which the drive clock read _t_base_s
         #: The plant in wall-clock time (``clock="real"`` only).
         self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
@@ -196,6 +196,29 @@ class SimulatedDevice:
         self.frozen_feedback: DeviceSample | None = None
 
     # ------------------------------------------------------------ host side
+    @contextlib.contextmanager
+    def instant(self) -> Iterator[None]:
+        """Handle one request at one instant: the wall clock stands still inside (``real``).
+
+        A request that carries a command and asks for feedback (a Modbus FC23,
+        a SYNC that applies the synchronous RPDO before it) is handled at the
+        instant it arrived, as a drive does: the command latches and the
+        feedback is sampled at that same instant, however long the simulator
+        takes over it. Holds the device lock throughout; nests.
+        """
+        with self._lock:
+            if self._pinned is not None:
+                yield
+                return
+            self._pinned = self._clock()
+            try:
+                yield
+            finally:
+                self._pinned = None
+
+    def _now(self) -> float:
+        return self._clock() if self._pinned is None else self._pinned
+
     def feed(self) -> None:
         """Note host activity (any valid message counts)."""
         self.last_host_activity = self._clock()
@@ -335,35 +358,13 @@ class SimulatedDevice:
             return self.frozen_feedback or sample
 
     def exchange(self, u: float) -> DeviceSample:
-        """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts."""
-        with self._lock, self.one_instant():
+        """Latch ``u`` and clock one cycle; return the feedback sampled before ``u`` acts.
+
+        ``real``: both at one instant (:meth:`instant`).
+        """
+        with self.instant():
             self.set_command(u)
             return self.step()
-
-    @contextlib.contextmanager
-    def one_instant(self) -> Iterator[None]:
-        """``real``: everything inside happens at one instant of the drive's clock.
-
-        A request that writes the command and reads the feedback (FC23, the
-        RPDOs of a SYNC, ``exchange``) is handled in one control tick of a
-        real drive: the sample is the state at that instant and the new
-        command acts from it, whatever order the handler runs in. Without
-        this, the microseconds the handler spends between the write and the
-        read put a sliver of the new command into every sample (0.1-2 % model
-        errors at 1 kHz even with exact time stamps). Lock-step: no effect.
-        """
-        with self._lock:
-            if self.timed is None or self._frozen_at is not None:
-                yield
-                return
-            self._catch_up()
-            self._frozen_at = self._wall_due
-            clock = self._clock
-            self._clock = lambda: self._frozen_at
-            try:
-                yield
-            finally:
-                self._clock, self._frozen_at = clock, None
 
     def exchange_block(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Many cycles at once: ``(t_s, v, x)`` arrays, one row per cycle (``real``: one exchange each)."""
@@ -384,6 +385,18 @@ class SimulatedDevice:
             self._advance(u.size)
             self._wall_due = self._clock() + self.cycle_s
             return t, v, x
+
+    def true_state(self) -> tuple[float, float, float]:
+        """``(t_s, v, x)``: drive clock [s] and plant state now, unmeasured (no noise drawn).
+
+        ``real``: integrated up to now; lockstep: as of the last clocked cycle
+        (after any wall-clock catch-up of an idle axis).
+        """
+        with self._lock:
+            self._catch_up()
+            if self.timed is not None:
+                self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+            return float(self._t_s), float(self.plant.state.v), float(self.plant.state.x)
 
     def _sample_now(self) -> DeviceSample:
         """``real``: the measurement of the plant as integrated up to now, on the drive clock."""
@@ -411,7 +424,7 @@ class SimulatedDevice:
         ``real`` devices integrate in every state, with the command in force.
         """
         if self.timed is not None:
-            now = self._clock() if until is None else until
+            now = self._now() if until is None else until
             if now > self._wall_due:
                 span_s = self.timed.advance_to(now)
                 self._wall_due = now

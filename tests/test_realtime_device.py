@@ -134,17 +134,22 @@ def _final_velocity(u: np.ndarray, h: float, p: PlantParams) -> float:
     return float(simulate(np.append(u, 0.0), 1 / h, p)[0][-1])
 
 
-RICH = PlantParams(
-    M=0.01, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4,
-    effects=effects.effects_from_query(
-        {"stribeck_fs": 0.8, "stribeck_vs": 0.05, "cog_amp": 0.15, "cog_period": 0.02, "delay": 370e-6}
+#: Plants with effects that are not exact for any step, and the error allowed as a share of the
+#: motion (backlash: its impacts make lock-step at 1 ms itself far off a 5 us reference in
+#: velocity, so only the comparison with lock-step holds there).
+RICH = {
+    "stribeck+cogging+delay": (
+        {"stribeck_fs": 0.8, "stribeck_vs": 0.05, "cog_amp": 0.15, "cog_period": 0.02, "delay": 370e-6},
+        0.01,
     ),
-)  # fmt: skip
+    "resonance": ({"res_wn": 300.0, "res_zeta": 0.1}, 0.01),
+    "backlash": ({"backlash": 0.002}, None),
+}
 
 
-def _rich_run(gaps: np.ndarray, u: np.ndarray, h: float, clock_mode: str):
+def _rich_run(params: PlantParams, gaps: np.ndarray, u: np.ndarray, h: float, clock_mode: str):
     """(v, x) a device samples at each arrival and at the end, and the fine-step reference."""
-    dev, clock = device(RICH, clock_mode=clock_mode)
+    dev, clock = device(params, clock_mode=clock_mode)
     got = []
     for gap, uk in zip(gaps, u, strict=True):
         s = dev.exchange(uk)
@@ -153,12 +158,13 @@ def _rich_run(gaps: np.ndarray, u: np.ndarray, h: float, clock_mode: str):
     s = dev.sample() if clock_mode == REAL else dev.step()
     got.append((s.velocity, s.position))
     fine_u = np.append(np.repeat(u, gaps), 0.0)
-    v, x = simulate(fine_u, 1 / h, RICH)
+    v, x = simulate(fine_u, 1 / h, params)
     idx = np.concatenate(([0], np.cumsum(gaps)))
     return np.array(got), np.column_stack([v[idx], x[idx]])
 
 
-def test_plant_with_effects_matches_a_fine_step_reference_for_irregular_arrivals():
+@pytest.mark.parametrize("name", sorted(RICH))
+def test_plant_with_effects_matches_a_fine_step_reference_for_irregular_arrivals(name):
     """Sub-steps no longer than the cycle keep what lock-step at that cycle achieves.
 
     The reference integrates on a 5 us grid (every arrival on it, the delay
@@ -168,19 +174,23 @@ def test_plant_with_effects_matches_a_fine_step_reference_for_irregular_arrivals
     duration and the same command waveform (within twice it), and to a
     small fraction of the motion.
     """
+    query, share = RICH[name]
+    params = PlantParams(M=0.01, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4,
+                         effects=effects.effects_from_query(query))  # fmt: skip
     h = 5e-6
     rng = np.random.default_rng(7)
     gaps = rng.integers(40, 700, size=150)  # 0.2 to 3.5 cycles
     u = rng.choice([-2.0, -1.0, 0.6, 1.2, 2.0], size=gaps.size)
-    got, ref = _rich_run(gaps, u, h, REAL)
+    got, ref = _rich_run(params, gaps, u, h, REAL)
     err_real = np.abs(got - ref).max(axis=0)
     per_cycle = int(round(DT / h))
     u_lock = np.repeat(u, gaps)[::per_cycle]  # the same waveform, one command per cycle
-    lock_got, lock_ref = _rich_run(np.full(u_lock.size, per_cycle), u_lock, h, LOCKSTEP)
+    lock_got, lock_ref = _rich_run(params, np.full(u_lock.size, per_cycle), u_lock, h, LOCKSTEP)
     err_lock = np.abs(lock_got - lock_ref).max(axis=0)
     span = np.abs(ref).max(axis=0)
     assert np.all(err_real <= 2 * err_lock), (err_real, err_lock)
-    assert np.all(err_real <= 0.01 * span), (err_real, span)
+    if share is not None:
+        assert np.all(err_real <= share * span), (err_real, span)
 
 
 def test_a_delayed_command_takes_force_a_delay_after_it_arrived():

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import subprocess
 import sys
 import time
@@ -100,6 +101,40 @@ def test_feedback_is_the_plant_integrated_in_wall_clock_time(transport, args):
         predicted = 1.0 + (f1.velocity - 1.0) * math.exp(-dt / TAU_S)
         assert f2.velocity == pytest.approx(predicted, abs=3e-4)
     assert all(abs(t * 1e6 - round(t * 1e6)) < 1e-3 for t in stamps)  # whole microseconds
+
+
+@pytest.mark.parametrize("transport", ["canopen", "modbus-tcp", "modbus-rtu"])
+def test_each_stamped_sample_follows_from_the_last_under_the_command_sent_with_it(transport):
+    """The log's model holds exactly: ``v[k]`` sampled at ``t[k]``, then ``u[k]`` acts until ``t[k+1]``.
+
+    The command flips at every exchange and the host waits irregularly, so a
+    command that took force before its sample (or after) by even 10 µs shows
+    as 2e-3 [rad/s] here; the stamps and the velocity are good to about 2e-4.
+    """
+    with ServedSim(transport, PLANT, clock="real") as sim:
+        assert worst_one_step_error(sim.url) < 3e-4
+
+
+def test_sim_clock_real_samples_follow_the_log_model_exactly():
+    assert worst_one_step_error(PLANT + "&clock=real") < 1e-9  # in-process: exact stamps
+
+
+def worst_one_step_error(url: str) -> float:
+    """Flip the command at every exchange, wait irregularly; the worst one-step prediction error."""
+    rng = random.Random(3)
+    rows = []
+    with open_drive(url) as drive:
+        drive.set_cycle(1e-3)
+        drive.enable()
+        for k in range(60):
+            rows.append(drive.exchange(1.0 if k % 2 else -1.0))
+            time.sleep(rng.uniform(0.5e-3, 3e-3))
+        drive.disable()
+    worst = 0.0
+    for (f1, u1), (f2, _) in zip(rows, rows[1:], strict=False):
+        predicted = u1 + (f1.velocity - u1) * math.exp(-(f2.t_s - f1.t_s) / TAU_S)
+        worst = max(worst, abs(f2.velocity - predicted))
+    return worst
 
 
 def test_a_lockstep_drive_sees_one_cycle_per_read_however_long_the_host_waits():
@@ -183,8 +218,8 @@ def test_the_modbus_timestamp_register_counts_microseconds_and_is_absent_without
 
 
 # ---------------------------------------------------------------- serve-sim
-def test_rt_priority_is_asked_for_and_reported_and_the_url_stays_first():
-    with ServedSim("modbus-tcp", PLANT, ["--rt-priority", "5"], clock="real") as sim:
+def test_real_time_is_the_default_and_rt_priority_is_asked_for_and_reported():
+    with ServedSim("modbus-tcp", PLANT, ["--rt-priority", "5"]) as sim:  # serve-sim's default clock
         assert sim.url.startswith("modbus+tcp://")
         policy = os.sched_getscheduler(sim.proc.pid)
         rows = bracketed_reads(sim.url)
@@ -215,3 +250,30 @@ def test_sim_clock_real_integrates_wall_clock_time_in_process():
     check_wall_clock_motion(rows, 1e-12)
     with pytest.raises(DriveConfigError, match="sim clock must be"):
         open_drive(PLANT + "&clock=fast")
+
+
+def test_a_vanished_host_is_stopped_by_the_watchdog_and_the_next_session_finds_the_axis_at_rest():
+    """Real time end to end: the watchdog trips in wall-clock time, the axis coasts to rest
+    while nobody polls, and the next session's drive clock starts again from 0."""
+    with ServedSim("modbus-tcp", PLANT, clock="real") as sim:
+        url = sim.url + "&watchdog=0.2"
+        gone = open_drive(url)
+        gone.open()
+        gone.set_cycle(1e-3)
+        gone.enable()
+        for _ in range(50):
+            moving = gone.exchange(1.0)[0]
+            time.sleep(1e-3)
+        gone._close()  # the link drops: no stop, no disable
+        time.sleep(0.6)  # watchdog 0.2 s, then a coast of a few tau
+        with open_drive(url) as fresh:
+            assert fresh.fault_code() == 0x8130  # the watchdog's fault
+            fresh.reset_fault()
+            first = fresh.read()
+            time.sleep(0.1)
+            second = fresh.read()
+    assert moving.velocity > 0.5
+    assert first.velocity == 0.0 and second.velocity == 0.0  # at rest (no friction: exactly 0 in µrad/s)
+    assert second.position == first.position > moving.position
+    assert 0.1 - 0.01 <= second.t_s - first.t_s <= 0.5  # wall time between two reads
+    assert first.t_s < 0.5  # the session restarted the drive clock

@@ -33,16 +33,23 @@ from servobench.sim_backend.faults.injector import FaultInjector
 POLL_S = 0.02
 
 
-def snapshot(device: SimulatedDevice, injector: FaultInjector | None) -> dict[str, object]:
-    """The report's fields, now (no sensor noise drawn, no clocking)."""
+def snapshot(
+    device: SimulatedDevice, injector: FaultInjector | None, now: tuple[float, float, float] | None = None
+) -> dict[str, object]:
+    """The report's fields, now (no sensor noise drawn, no clocking).
+
+    ``now``: the device's :meth:`~SimulatedDevice.true_state` taken by the caller
+    (outside any lock the device's listeners take), else taken here.
+    """
+    t_s, v, x = now if now is not None else device.true_state()
     state = device.state
     return {
         "state": state.value,
         "torque_off": state is not PowerState.ENABLED,
         "command": device.command,
-        "velocity": float(device.plant.state.v),
-        "position": float(device.plant.state.x),
-        "t_s": float(getattr(device, "_t_s", 0.0)),
+        "velocity": v,
+        "position": x,
+        "t_s": t_s,
         "cycles": injector.cycle if injector is not None else None,
         "fault_code": device.fault_code,
         "fault_reason": device.fault_reason,
@@ -108,13 +115,14 @@ class StateReporter(threading.Thread):
         self._changed.set()
 
     def _poll(self, final: bool) -> None:
+        dev = self.device
+        now = dev.true_state()  # not under the write lock: listeners take it under the device's
         with self._write_lock:
-            dev = self.device
             key = (dev.state, dev.fault_code, dev.watchdog_trips, len(self.history))
             if key == self._key and not final:
                 return
             self._key = key
-            data = snapshot(dev, self.injector)
+            data = snapshot(dev, self.injector, now)
             write_json_atomic(
                 self.path, {**data, "history": self.history, "final": final, "pid": os.getpid()}
             )

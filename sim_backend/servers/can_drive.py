@@ -37,8 +37,9 @@ answers SDOs; this module adds what it lacks:
   restarts at 0 and the command is dropped, as on every served transport.
 
 Simplifications: synchronous RPDOs act on receipt (the device latches the
-torque for the next SYNC anyway, but a controlword changes the state at
-once); event-driven TPDOs (types 254/255) are not produced; SDO is also
+torque for the next SYNC anyway -- a real-time device takes it at the next
+SYNC, :mod:`~servobench.sim_backend.servers.can_sync` -- but a controlword
+changes the state at once); event-driven TPDOs (types 254/255) are not produced; SDO is also
 answered in NMT STOPPED; 0x6007 takes 0 (no action) or 1 (fault) only; the
 quick stop (0x605A) keeps QUICK STOP ACTIVE; profile torque ignores torque
 slopes (the torque steps).
@@ -342,6 +343,9 @@ class ServedCiA402Drive:
             return  # in CSP the offset acts at the next SYNC
         other = 0x60B2 if index == 0x6071 else 0x6071
         rest = self._int(other, "h") if self.has(other) else 0
+        if self.sync.receiving_sync_rpdo:  # real time: takes force at the next SYNC (can_sync)
+            self.sync.pending_command = (value + rest) * self.lsb
+            return
         self.device.set_command((value + rest) * self.lsb)
 
     def _set_interpolation_period(self, subindex: int, value: int) -> None:

@@ -5,18 +5,25 @@ TPDOs nor applies received RPDOs. :class:`SyncEngine` compiles the maps the
 host wrote (:mod:`servobench.sim_backend.servers.can_pdo`) when the node enters
 OPERATIONAL or a PDO parameter changed, writes received RPDO payloads into
 the object dictionary (controlword, target torque, torque offset, target
-position -> the drive's callbacks; with the ``real`` clock a synchronous
-RPDO is kept until the next SYNC, as CiA 301 says, and applied at the
-instant that SYNC samples), and on each SYNC:
+position -> the drive's callbacks), and on each SYNC:
 
 1. counts the cycle with the fault injector (drive faults applied);
 2. in cyclic synchronous position, runs the drive's position loop on the
    feedback sampled at this SYNC and latches its torque;
 3. clocks the device once (``injector.step()``: feedback sampled at the SYNC,
-   then the latched command held for one cycle);
+   then the latched command held for one cycle; a ``clock="real"`` device
+   samples the axis as it stands in wall-clock time when the SYNC is handled);
 4. packs the synchronous TPDOs from that sample, 0x6077 being the command
    that acted over the cycle before this SYNC, and hands them to the CAN
    fault hook, which sends, drops, repeats or delays them.
+
+A ``clock="real"`` drive handles each SYNC at one instant
+(:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`), and the
+torque a synchronous RPDO (transmission type 0-240) carries takes force at
+the next SYNC, as CiA 301 has synchronous RPDOs actuated at the SYNC: so the
+command latched and the feedback sampled belong to the same instant, however
+late the simulator handles the RPDO before it. (A lock-step drive latches it
+on receipt, which is the same for it: it moves only at the SYNC.)
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from servobench.drivers.cia402 import CiA402State
 from servobench.sim_backend.device import DeviceSample
 from servobench.sim_backend.faults.can import BUSOFF_FAULT
 from servobench.sim_backend.servers import can_pdo
@@ -51,8 +59,10 @@ class SyncEngine:
         self._sync_count = 0
         self._acted = 0.0  # the command of the cycle that ended at this SYNC
         self._stepped = 0.0  # the command the last SYNC latched for its cycle
-        #: ``real`` clock: synchronous RPDOs received since the last SYNC, by COB-ID (the last wins)
-        self._pending: dict[int, tuple[can_pdo.PdoChannel, bytes]] = {}
+        #: True while a synchronous RPDO of a real-time drive is being written into the dictionary.
+        self.receiving_sync_rpdo = False
+        #: Torque [plant units] a synchronous RPDO carried, taking force at the next SYNC.
+        self.pending_command: float | None = None
 
     def torque_actual(self) -> float:
         """0x6077 [plant units]: at a SYNC the command of the cycle before, else the present one."""
@@ -84,8 +94,6 @@ class SyncEngine:
     def _rpdo_handler(self, channel: can_pdo.PdoChannel) -> Callable[[int, bytearray, float], None]:
         drive = self.drive
 
-        synchronous = channel.transmission_type <= 240
-
         def on_rpdo(can_id: int, data: bytearray, timestamp: float) -> None:
             with drive.lock:
                 if drive.nmt != NMT_OPERATIONAL:
@@ -93,17 +101,14 @@ class SyncEngine:
                 if len(data) < channel.length:
                     drive.node.emcy.send(EMCY_PDO_LENGTH, drive.error_register())
                     return
-                if synchronous and drive.device.realtime:
-                    # CiA 301: a synchronous RPDO is processed at the next SYNC
-                    self._pending[channel.cob_id] = (channel, bytes(data))
-                    return
-                self._apply(channel, data)
+                self.receiving_sync_rpdo = channel.synchronous and drive.device.realtime
+                try:
+                    for entry, chunk in channel.unpack(data):
+                        drive.node.set_data(entry.index, entry.subindex, chunk)
+                finally:
+                    self.receiving_sync_rpdo = False
 
         return on_rpdo
-
-    def _apply(self, channel: can_pdo.PdoChannel, data: bytes | bytearray) -> None:
-        for entry, chunk in channel.unpack(data):
-            self.drive.node.set_data(entry.index, entry.subindex, chunk)
 
     def _clock(self) -> None:
         """Run the drive's loop on this SYNC's feedback (in CSP), then clock the device."""
@@ -113,15 +118,18 @@ class SyncEngine:
         if drive.mode_is_csp():
             sample = injector.sample()
             torque = drive.csp_torque(sample.position, sample.velocity)
+        pending, self.pending_command = self.pending_command, None
         if torque is not None:
             device.set_command(torque)
+        elif pending is not None and drive.state is CiA402State.OPERATION_ENABLED:
+            device.set_command(pending)  # the synchronous RPDO's torque, from this SYNC on
         self._acted = self._stepped
         self._stepped = device.command  # what acts from this SYNC to the next
         self.frozen = injector.step()
 
     def on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         drive = self.drive
-        with drive.lock:
+        with drive.lock, drive.device.instant():
             if drive.nmt != NMT_OPERATIONAL:
                 return
             self.rebuild()
@@ -132,12 +140,8 @@ class SyncEngine:
                     drive.hook.bus_off(spec)
                     if drive.consumer.abort_option == 1:  # abort connection: fault
                         drive.device.fault(BUSOFF_FAULT, f"CAN bus-off (--fault {spec})")
-            with drive.device.one_instant():  # the RPDOs take force at the sampled instant
-                pending, self._pending = self._pending, {}
-                for channel, data in pending.values():
-                    self._apply(channel, data)
-                drive.sync_device()
-                self._clock()
+            drive.sync_device()
+            self._clock()
             try:
                 frames = [
                     (ch.cob_id, ch.pack(drive.node.get_data))

@@ -30,7 +30,13 @@ disable / quick stop / reset by the map's ``[control]`` values, to
 ``watchdog`` and ``cycle`` set them; a read that covers ``velocity`` clocks
 the drive one cycle (sample at ``t_k``, then the latched command acts),
 other feedback reads see the present state. FC23 writes before it reads, so
-one FC23 is one lock-step cycle.
+one FC23 is one lock-step cycle. A ``clock="real"`` device is not clocked:
+the read samples the axis as it stands in wall-clock time
+(:mod:`servobench.sim_backend.device`), and ``timestamp`` carries the
+drive's clock at that instant in whole ticks of the register's ``scale``;
+each request is handled at the instant it arrived
+(:meth:`~servobench.sim_backend.device.SimulatedDevice.instant`), so an FC23's
+command takes force exactly when its feedback is sampled.
 """
 
 from __future__ import annotations
@@ -274,7 +280,8 @@ class PduHandler:
         try:
             if handler is None:
                 raise ModbusException(ILLEGAL_FUNCTION)
-            out = handler(pdu)
+            with self.bridge.device.instant():  # one request, one instant (FC23: write, then read)
+                out = handler(pdu)
         except ModbusException as exc:
             return bytes([fc | 0x80, exc.code])
         self.bridge.device.feed()
@@ -316,9 +323,8 @@ class PduHandler:
             raise ModbusException(ILLEGAL_VALUE)
         self.bridge.check("holding", r_addr, r_count)
         self.bridge.check("holding", w_addr, w_count, write=True)
-        with self.bridge.device.one_instant():  # one control tick of the drive
-            self.bridge.write(w_addr, struct.unpack(f">{w_count}H", pdu[10:]))  # write first (§6.17)
-            return pdu[:1] + _registers(self.bridge.read("holding", r_addr, r_count))
+        self.bridge.write(w_addr, struct.unpack(f">{w_count}H", pdu[10:]))  # write first (§6.17)
+        return pdu[:1] + _registers(self.bridge.read("holding", r_addr, r_count))
 
     def _encapsulated(self, pdu: bytes) -> bytes:
         _need(pdu, 2)

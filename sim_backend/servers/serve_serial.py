@@ -9,7 +9,9 @@ path with pyserial like any serial port.
 Lock-step semantics: the torque command (``c``) latches; the feedback query
 (``f``) clocks the device one cycle -- the reply is the sample at ``t_k``, then
 the latched command acts over ``[t_k, t_{k+1})``. Property reads (``r``) never
-clock. Units: the plant's command unit is served as Nm, its position unit as
+clock. A ``clock="real"`` device (``serve-sim``'s default) samples the axis as
+it stands in wall-clock time when the query's last byte has arrived on the
+emulated line; the dialect carries no time stamp. Units: the plant's command unit is served as Nm, its position unit as
 turn and its velocity unit as turn/s, one to one.
 
 A dialect that names a ``firmware_model`` is answered as that firmware
