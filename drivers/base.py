@@ -42,6 +42,9 @@ from servobench.errors import (
 #: ``pace=fast``: as fast as the link answers, for lock-step simulated drives).
 COMMON_QUERY_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace"})
 
+#: Values of :meth:`Drive.clock_source` (the log's ``# clock_source`` line).
+CLOCK_SOURCES = ("drive", "kernel", "host")
+
 #: Drive-side watchdog used when the URL does not set one [s].
 DEFAULT_WATCHDOG_S = 0.5
 
@@ -115,6 +118,14 @@ class Feedback:
         [command units] (CiA 402 torque actual value 0x6077), NaN when the
         transport does not report one. Under a drive-side position hold it is
         the total of the drive's loop and the host's offset.
+    t_host_s, t_unc_s : float
+        The sample's instant on the host's ``time.monotonic()`` clock and the
+        half-width of the interval known to hold it [s], where the transport
+        narrows it to the one transaction that sampled (Modbus: the clocking
+        read; serial: query out to reply in; CANopen: SYNC out to TPDOs in,
+        or the kernel's SYNC timer on SocketCAN). NaN: not narrowed, and a
+        real-time runner brackets the whole exchange. Used where the drive
+        gives no time stamp of its own (:meth:`Drive.clock_source`).
     """
 
     t_s: float
@@ -122,6 +133,8 @@ class Feedback:
     position: float
     fault_code: int = 0
     applied: float = math.nan
+    t_host_s: float = math.nan
+    t_unc_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -159,7 +172,8 @@ class Drive(ABC):
     ``_reset_fault`` and ``_info``. Optional capabilities are declared here
     with their defaults (:attr:`realtime`, :attr:`supports_block`,
     :attr:`supports_drive_hold`, :meth:`max_rate_hz`, :meth:`log_metadata`, :meth:`link_recoveries`,
-    :meth:`record_traffic`), never probed.
+    :meth:`record_traffic`, :meth:`clock_source`, :meth:`io_threads`, :meth:`start_cycle_clock`),
+    never probed.
 
     Parameters
     ----------
@@ -422,6 +436,10 @@ class Drive(ABC):
         """
         return math.inf
 
+    def rate_limit_reason(self) -> str:
+        """What bounds :meth:`max_rate_hz`, in a few words for the terminal (``""``: nothing to add)."""
+        return ""
+
     def log_metadata(self) -> dict[str, str]:
         """``# key = value`` lines this drive contributes to every log streamed from it.
 
@@ -436,6 +454,61 @@ class Drive(ABC):
         if math.isfinite(rate_hz):
             meta["link_max_rate_hz"] = f"{rate_hz:.1f}"
         return meta
+
+    def clock_source(self) -> str:
+        """Where the instant of each sample comes from when streamed in real time.
+
+        One of :data:`CLOCK_SOURCES` (a log contract, ``# clock_source``):
+
+        * ``"drive"`` -- ``Feedback.t_s`` is the drive's own time stamp of the
+          sample (CiA 402 0x1013, a Modbus map's time-stamp register, a
+          lock-step drive's cycle count);
+        * ``"kernel"`` -- the kernel's time of a frame (SocketCAN receive
+          stamps, a SYNC the kernel sends on its own timer);
+        * ``"host"`` -- the host's clock bracketing the exchange.
+
+        Default: ``"drive"`` when :attr:`drive_clock`, else ``"host"``.
+        """
+        return "drive" if self.drive_clock else "host"
+
+    def command_lead_s(self) -> float:
+        """How long before its sample the command of the same exchange takes force [s].
+
+        0 (the default) where the drive samples and applies in one instant (a
+        SYNC with synchronous RPDOs, one FC23 request, a lock-step drive). A
+        transport that sends the command and the feedback query one after the
+        other on a free-running drive states the gap (the query's wire time):
+        the runner logs it as ``# command_lead_s`` and the identification moves
+        each sample back to its command's instant.
+        """
+        return 0.0
+
+    def io_threads(self) -> tuple[int, ...]:
+        """Native ids of the threads an exchange waits on (a CAN library's receive thread).
+
+        The runner's cyclic thread gives them real-time priority just below
+        its own for the run. Default: none (the exchange reads in the calling thread).
+        """
+        return ()
+
+    def start_cycle_clock(self, period_s: float) -> bool:
+        """Let the transport time the cycle itself, where it can, for a real-time run.
+
+        True when it does from now on (SocketCAN: the SYNC sent by the
+        kernel's broadcast manager every ``period_s``): :meth:`exchange` then
+        waits for the next cycle and the host holds no schedule of its own.
+        Default: False, the host paces. :meth:`stop_cycle_clock` ends it.
+        """
+        return False
+
+    def stop_cycle_clock(self) -> None:
+        """End what :meth:`start_cycle_clock` started; safe when nothing was started."""
+        return None
+
+    def cycle_counts(self) -> Mapping[str, int]:
+        """Cycle faults the transport counted during a :meth:`start_cycle_clock` run, by kind
+        (``{"late_rpdos": n, "missed_syncs": m}``); empty by default."""
+        return {}
 
     def link_recoveries(self) -> Mapping[str, int]:
         """Transport-level recoveries counted since the drive was created, by kind.

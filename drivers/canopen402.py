@@ -75,6 +75,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 import warnings
 
@@ -324,6 +325,36 @@ class CANopen402Drive(Drive):
         self.session.io.set_torque(0.0, holding=False)
         set_mode(self._sdo(), self.options.mode, self.options.mode_name)
         self.session.mode = self.options.mode
+
+    # ------------------------------------------------------------ real time
+    def clock_source(self) -> str:
+        """``drive`` with 0x1013 mapped; else ``kernel`` while the kernel sends the SYNC, else ``host``."""
+        if self.session is not None and self.session.layout is not None and self.session.layout.has_clock:
+            return "drive"
+        return "kernel" if self.options.interface == "socketcan" else "host"
+
+    def io_threads(self) -> tuple[int, ...]:
+        """The CAN receive threads of python-can's notifier (the TPDOs arrive there)."""
+        network = self.network
+        notifier = None if network is None else network.notifier
+        readers = [] if notifier is None else list(notifier._readers)
+        return tuple(r.native_id for r in readers if isinstance(r, threading.Thread) and r.native_id)
+
+    def start_cycle_clock(self, period_s: float) -> bool:
+        """On SocketCAN (``interface=socketcan``) the SYNC from the kernel's broadcast manager."""
+        if self.options.interface != "socketcan" or self.session is None:
+            return False
+        self.session.io.start_kernel_sync(period_s)
+        return True
+
+    def stop_cycle_clock(self) -> None:
+        if self.session is not None:
+            self.session.io.stop_kernel_sync()
+
+    def cycle_counts(self) -> dict[str, int]:
+        if self.session is None or self.options.interface != "socketcan":
+            return {}
+        return dict(self.session.io.counts)
 
     # ---------------------------------------------------------------- status
     def max_rate_hz(self) -> float:

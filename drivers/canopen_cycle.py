@@ -8,6 +8,19 @@ in the drive's SI units. It also keeps the drive clock: the time stamp
 roll-over), else the SYNC count times the cycle period. A pair whose time
 stamp was already consumed (a duplicate, or a late answer to an earlier SYNC)
 is dropped; without 0x1013 such a pair cannot be told from the answer.
+
+The host instant of each sample (``Feedback.t_host_s``, ``t_unc_s``): the
+midpoint and half-width of SYNC out (host clock just before the write) to
+the TPDO pair in (host clock in the receive thread). On SocketCAN in a
+real-time run (:meth:`CycleIO.start_kernel_sync`) the kernel's broadcast
+manager sends the SYNC every period on its own timer and the host sends
+only RPDOs: the TPDO pair's kernel receive stamp names the SYNC it answers
+(:func:`sync_index`), whose instant is the timer's, uncertain by one CAN
+frame (a frame already on the bus delays the SYNC). An RPDO sent later than
+the synchronous window after the previous SYNC (:data:`SYNC_WINDOW_SHARE`
+of the period, where the drive's 0x1007 is not known) reaches the drive
+after its SYNC and is counted late; SYNC slots without an answer taken are
+counted missed (:attr:`CycleIO.counts`).
 """
 
 from __future__ import annotations
@@ -15,7 +28,10 @@ from __future__ import annotations
 import math
 import struct
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
+
+import can
 
 from servobench.drivers.base import Feedback
 from servobench.drivers.canopen_link import CounterUnwrap, HeartbeatProducer, TappedNetwork
@@ -27,6 +43,19 @@ from servobench.errors import DriveTimeoutError
 
 #: Cycle period assumed for the SYNC-count clock until the host or 0x1006 tells one [s].
 DEFAULT_CYCLE_S = 1e-3
+#: Share of the period after a SYNC within which RPDOs must leave (the synchronous window).
+SYNC_WINDOW_SHARE = 0.5
+#: Bits of the longest CAN frame with stuffing (8 data bytes, 11-bit id).
+MAX_FRAME_BITS = 135
+
+
+def sync_index(rx_wall_s: float, first_sync_wall_s: float, period_s: float) -> int:
+    """Which kernel-timed SYNC a TPDO received at ``rx_wall_s`` answers [-].
+
+    The SYNCs leave at ``first_sync_wall_s + k period_s``; the drive answers
+    within the period, so the answer's SYNC is the last one before it.
+    """
+    return int(math.floor((rx_wall_s - first_sync_wall_s) / period_s))
 
 
 @dataclass(frozen=True)
@@ -63,6 +92,35 @@ class CycleIO:
         self._last_stamp: int | None = None  # 0x1013 of the last TPDO pair consumed
         self._position, self._clock = CounterUnwrap(32), CounterUnwrap(32)
         self._sync_time_s = 0.0  # SYNC count x cycle period, when the drive has no 0x1013
+        self._rx_host_s = math.nan  # host clock when the last TPDO pair was complete
+        self._rx_wall_s = math.nan  # its receive stamp (python-can: time.time() base)
+        self._kernel: can.ModifiableCyclicTaskABC | can.CyclicSendTaskABC | None = None
+        self._sync0_wall_s = 0.0  # first kernel SYNC (time.time() base)
+        self._wall_minus_host_s = 0.0
+        self._last_index = -1
+        self.counts = {"late_rpdos": 0, "missed_syncs": 0}  #: kernel-timed cycle faults
+
+    # -------------------------------------------------------- kernel SYNC
+    @property
+    def kernel_sync(self) -> bool:
+        """True while the kernel's broadcast manager sends the SYNC."""
+        return self._kernel is not None
+
+    def start_kernel_sync(self, period_s: float) -> None:
+        """The SYNC every ``period_s`` from the kernel (python-can ``send_periodic``, the
+        broadcast manager on SocketCAN); from now on :meth:`cycle` sends RPDOs only."""
+        msg = can.Message(arbitration_id=self.options.sync_cob, data=b"", is_extended_id=False)
+        self.period_s = period_s
+        self._wall_minus_host_s = time.time() - time.monotonic()
+        self._sync0_wall_s = time.time()
+        self._kernel = self.network.bus.send_periodic(msg, period_s)
+        self._last_index = -1
+        self.counts = {"late_rpdos": 0, "missed_syncs": 0}
+
+    def stop_kernel_sync(self) -> None:
+        task, self._kernel = self._kernel, None
+        if task is not None:
+            task.stop()
 
     # ------------------------------------------------------------- commands
     def _lsb(self, u: float) -> int:
@@ -103,12 +161,17 @@ class CycleIO:
         self._rx_event.clear()
         t_sync = self._sync_time_s
         self._sync_time_s += self.period_s or DEFAULT_CYCLE_S
+        sent = time.monotonic()
         with self.sdo.translated("RPDO + SYNC"):
-            self.network.send_messages(self._frames(holding, sync=True))
+            self.network.send_messages(self._frames(holding, sync=not self.kernel_sync))
         if not self._rx_event.wait(timeout_s):
             raise DriveTimeoutError(
                 f"no TPDO from node {n} within {timeout_s * 1e3:.0f} ms of SYNC"
             )
+        if self.kernel_sync:
+            t_host, t_unc, t_sync = self._kernel_instant(sent)
+        else:
+            t_host, t_unc = 0.5 * (sent + self._rx_host_s), 0.5 * (self._rx_host_s - sent)
         rx1, rx2 = self._rx1, self._rx2
         state = None if rx1 is None else self.layout.tpdo_state.unpack(rx1)
         motion = None if rx2 is None else self.layout.tpdo_motion.unpack(rx2)
@@ -122,7 +185,22 @@ class CycleIO:
         else:
             t_s = t_sync
         feedback = self._feedback(t_s, motion[0x606C], motion[0x6064], state.get(0x6077))
-        return Cycle(state[0x6041], feedback)
+        return Cycle(state[0x6041], replace(feedback, t_host_s=t_host, t_unc_s=t_unc))
+
+    def _kernel_instant(self, sent_host_s: float) -> tuple[float, float, float]:
+        """Host instant, uncertainty and SYNC-count time of the kernel SYNC the pair answers;
+        counts a late RPDO and skipped SYNC slots."""
+        period = self.period_s or DEFAULT_CYCLE_S
+        k = sync_index(self._rx_wall_s, self._sync0_wall_s, period)
+        sync_wall = self._sync0_wall_s + k * period
+        sent_wall = sent_host_s + self._wall_minus_host_s
+        if sent_wall - (sync_wall - period) > SYNC_WINDOW_SHARE * period:
+            self.counts["late_rpdos"] += 1
+        if self._last_index >= 0 and k > self._last_index + 1:
+            self.counts["missed_syncs"] += k - self._last_index - 1
+        self._last_index = k
+        frame_s = MAX_FRAME_BITS / self.options.bitrate
+        return sync_wall - self._wall_minus_host_s, frame_s, k * period
 
     def _feedback(self, t_s: float, velocity: int, position: int, torque: int | None) -> Feedback:
         s = self.scaling
@@ -151,6 +229,7 @@ class CycleIO:
                 self._rx1 = None  # a duplicate or a late pair of a SYNC already answered
                 return
         self._rx2 = bytes(data)
+        self._rx_host_s, self._rx_wall_s = time.monotonic(), timestamp
         self._rx_event.set()
 
     def on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:

@@ -198,3 +198,16 @@ def drive_rate_hz(
     """:func:`sample_rate_hz` on ``drive``'s link (:meth:`Drive.max_rate_hz`, named by its URL scheme)."""
     link = f"the {drive.url.scheme}:// link"
     return sample_rate_hz(requested_hz, drive.max_rate_hz(), ceiling_hz, link, option)
+
+
+def lowered_rate_note(requested_hz: float | None, chosen_hz: float, drive: Drive, ceiling_hz: float) -> str:
+    """One line for the terminal when the default cycle rate was lowered to fit ``drive``'s link
+    (``""`` when the rate was asked for or is the default): the rate, the link's limit and why."""
+    if requested_hz is not None or chosen_hz >= ceiling_hz:
+        return ""
+    why = drive.rate_limit_reason()
+    return (
+        f"cycle rate lowered to {chosen_hz:g} Hz (default {ceiling_hz:g} Hz): the {drive.url.scheme}:// "
+        f"link carries {drive.max_rate_hz():.0f} Hz" + (f" ({why})" if why else "")
+        + "; give --fs to choose"
+    )

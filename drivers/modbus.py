@@ -20,7 +20,11 @@ drive they too belong to ``t_k``. The link (:mod:`servobench.drivers.modbus_link
 retries nothing but a "busy" answer and turns every failure into a typed
 error that says what happened (no answer, a gateway's exception, a drive
 fault). Feedback carries the drive's clock when the map has a ``timestamp``
-register (unwrapped), else the host's ``time.monotonic()`` at reception.
+register (unwrapped), else the host's ``time.monotonic()`` midway through
+the clocking transaction (request out to answer in; on RTU the frames' wire
+time at ``baud`` off both ends). Either way that
+midpoint and half the transaction's length are ``Feedback.t_host_s`` and
+``Feedback.t_unc_s``.
 
 A map whose watchdog is fed by any request (``feed = "any_request"``) over
 TCP gets a one-line :class:`~servobench.errors.DriveWarning` at open: a
@@ -42,7 +46,7 @@ import warnings
 from collections.abc import Callable, Sequence
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.link_budget import modbus_max_rate_hz, modbus_rtu_frames
+from servobench.drivers.link_budget import modbus_max_rate_hz, modbus_rtu_frames, rtu_gap_s
 from servobench.drivers.modbus_link import (  # noqa: F401 (exception_error re-exported)
     EXCEPTION_ILLEGAL_FUNCTION,
     ModbusLink,
@@ -135,6 +139,7 @@ class ModbusDrive(Drive):
         self._t_offset_s = 0.0
         self._t_last_s: float | None = None
         self._feed_count = 0
+        self._sent = 0.0  # host clock as the clocking request went out [s]
 
     @property
     def retries(self) -> int:
@@ -159,6 +164,17 @@ class ModbusDrive(Drive):
         return modbus_max_rate_hz(
             transactions, rtu=self.rtu, baud=self.baud, turnaround_s=m.turnaround_s
         )
+
+    def rate_limit_reason(self) -> str:
+        """How many transactions one cycle takes, when the map spreads them."""
+        m = self.regmap
+        reads = len(m.blocks)
+        extra = [f"{reads} feedback reads per cycle (map {m.name!r}: its registers are not adjacent)"] if reads > 1 else []
+        if "timestamp" not in m:
+            extra.append("no time-stamp register")
+        if m.watchdog_feed == "register":
+            extra.append("a watchdog feed write per cycle")
+        return ", ".join(extra)
 
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
@@ -239,7 +255,27 @@ class ModbusDrive(Drive):
         """Feed, read the secondary feedback blocks, then ``primary()`` (the read that clocks)."""
         self._feed()
         rest = [self._read_block(b) for b in self.regmap.blocks[1:]]
-        return self._decode_feedback([primary(), *rest])
+        words = primary()
+        return self._decode_feedback([words, *rest], self._sample_window(self._sent, time.monotonic()))
+
+    def _sample_window(self, sent: float, received: float) -> tuple[float, float]:
+        """Host instants [s] between which the drive sampled during the clocking transaction.
+
+        On an RTU line the request cannot be handled before its last byte
+        arrived and t3.5 of silence ended it, nor the answer leave after its
+        first byte had to: the frames' wire time at ``baud`` comes off both ends (8 data bits, start, stop and
+        the parity bit where there is one). Over TCP, or a port faster than
+        its baud rate, the whole transaction.
+        """
+        if not self.rtu:
+            return sent, received
+        m = self.regmap
+        request, answer = modbus_rtu_frames(m["command"].count, m.feedback.count, self.fc23)[-2:]
+        # (FC23, or the read after the write: the clocking transaction alone is bracketed)
+        char_s = (10 if self.parity == "N" else 11) / self.baud
+        # the slave knows the request ended only after t3.5 of silence
+        lo, hi = sent + request * char_s + rtu_gap_s(self.baud), received - answer * char_s
+        return (lo, hi) if lo < hi else (sent, received)
 
     def _exchange(self, u: float) -> Feedback:
         m = self.regmap
@@ -248,11 +284,13 @@ class ModbusDrive(Drive):
 
         def primary() -> list[int]:
             if self.fc23:
+                self._sent = time.monotonic()
                 registers = self._fc23(words)
                 if registers is not None:
                     return registers
                 self.fc23 = False  # exception 1: not executed; write, then read, from now on
             self._write(cmd, words)
+            self._sent = time.monotonic()
             return self._read_block(fb)
 
         return self._cycle(primary)
@@ -280,9 +318,15 @@ class ModbusDrive(Drive):
         return rr.registers
 
     def _read_feedback(self) -> Feedback:
-        return self._cycle(lambda: self._read_block(self.regmap.feedback))
+        def primary() -> list[int]:
+            self._sent = time.monotonic()
+            return self._read_block(self.regmap.feedback)
 
-    def _decode_feedback(self, block_words: list[list[int]]) -> Feedback:
+        return self._cycle(primary)
+
+    def _decode_feedback(
+        self, block_words: list[list[int]], bracket: tuple[float, float]
+    ) -> Feedback:
         values: dict[str, list[int]] = {}
         for block, words in zip(self.regmap.blocks, block_words, strict=True):
             for name in block.names:
@@ -291,12 +335,15 @@ class ModbusDrive(Drive):
         fault = int(decode_raw(m["fault"], values["fault"]))
         if fault:
             raise DriveFaultError(f"drive at {self.where} reports fault 0x{fault:04X}", fault)
-        t_s = self._drive_time(values["timestamp"]) if "timestamp" in values else time.monotonic()
+        t_host_s, t_unc_s = 0.5 * (bracket[0] + bracket[1]), 0.5 * (bracket[1] - bracket[0])
+        t_s = self._drive_time(values["timestamp"]) if "timestamp" in values else t_host_s
         return Feedback(
             t_s,
             decode(m["velocity"], values["velocity"]),
             decode(m["position"], values["position"]),
             fault,
+            t_host_s=t_host_s,
+            t_unc_s=t_unc_s,
         )
 
     def _drive_time(self, words: list[int]) -> float:

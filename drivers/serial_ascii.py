@@ -28,8 +28,11 @@ then ``u_k`` acts), which is the :class:`~servobench.drivers.base.Drive` contrac
 ODrive runs its own loop; there the reply is the latest estimate. Every
 ``poll`` seconds the error register is read in the same write, and a fault
 raises :class:`~servobench.errors.DriveFaultError` with the drive's code.
-Feedback ``t_s`` is the host's ``time.monotonic()`` at reception (the
-protocol carries no drive clock), except on a lock-step drive (one that
+Feedback ``t_s`` is the host's ``time.monotonic()`` midway between the
+query's last byte reaching the drive and its reply's first byte leaving it
+(the wire time at ``baud`` taken off both ends; the whole exchange where
+the port is faster than that, as USB CDC ports are), with half that interval as
+``Feedback.t_unc_s`` (and the midpoint as ``Feedback.t_host_s``) (the protocol carries no drive clock), except on a lock-step drive (one that
 took the cycle extension): it integrates exactly one cycle per feedback
 query, so its clock is the count of them times the cycle, and
 :attr:`SerialAsciiDrive.drive_clock` is True.
@@ -79,6 +82,8 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Mapping
+from dataclasses import replace
 
 from servobench.drivers.ascii_link import AsciiLink
 from servobench.drivers.base import Drive, DriveInfo, Feedback
@@ -189,6 +194,18 @@ class SerialAsciiDrive(Drive):
             poll_bytes=poll_out + poll_in,
             poll_s=self.poll_s,
         )
+
+    def command_lead_s(self) -> float:
+        """A free-running drive latches the torque line before the feedback query arrives:
+        the query's wire time at ``baud`` (10 bits a character)."""
+        if self.lockstep or self.lockstep is None:
+            return 0.0
+        d, extra = self.dialect, (3 if self.use_checksum else 0)
+        return (len(d.request("feedback", axis=self.axis)) + len(d.terminator) + extra) * 10.0 / self.baud
+
+    def clock_source(self) -> str:
+        """``drive`` for a lock-step drive (its cycle count), else ``host`` (query to reply)."""
+        return "drive" if self.lockstep else "host"
 
     def log_metadata(self) -> dict[str, str]:
         meta = super().log_metadata()
@@ -373,14 +390,39 @@ class SerialAsciiDrive(Drive):
         if poll:
             lines.append(d.request("error", axis=self.axis))
             self._next_poll = now + self.poll_s
+        sent = time.monotonic()
         self.link.send(*lines)
         fb = self.link.read_reply("feedback").fields
-        t_s = self._now()
+        received = time.monotonic()
+        t_count = self._now()  # the lock-step clock of this sample, before it counts the cycle
         self._cycles += 1
         code = int(self.link.read_reply("error").fields["code"]) if poll else 0
         if code:
             self._raise_fault(code, "faulted while streaming")
-        return self._feedback(t_s, float(fb["v"]), float(fb["x"]), code)
+        if self.lockstep and self.cycle_s is not None:
+            return self._feedback(t_count, float(fb["v"]), float(fb["x"]), code)
+        lo, hi = self._sample_window(sent, received, lines[:2], fb)
+        mid = 0.5 * (lo + hi)
+        fb_ = self._feedback(mid, float(fb["v"]), float(fb["x"]), code)
+        return replace(fb_, t_host_s=mid, t_unc_s=0.5 * (hi - lo))
+
+    def _sample_window(
+        self, sent: float, received: float, requests: list[str], fb: Mapping[str, float]
+    ) -> tuple[float, float]:
+        """Host instants [s] between which a free-running drive sampled.
+
+        The query cannot be handled before its last byte arrived, nor the
+        reply leave after its first byte had to: on a UART at ``baud`` (10 bits
+        a character) the interval shrinks by the request's and the reply's
+        wire time. A link faster than that (a USB CDC port) leaves no interval
+        between them: then the whole exchange.
+        """
+        d, extra = self.dialect, (3 if self.use_checksum else 0)
+        char_s = 10.0 / self.baud
+        out = sum(len(r) + len(d.terminator) + extra for r in requests)
+        back = len(d.reply("feedback", x=float(fb["x"]), v=float(fb["v"]))) + len(d.reply_terminator) + extra
+        lo, hi = sent + out * char_s, received - back * char_s
+        return (lo, hi) if lo < hi else (sent, received)
 
     def _now(self) -> float:
         """Sample time [s]: the lock-step drive's cycle count times the cycle, else host time."""

@@ -30,6 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
+    from servobench.bench.commands.sidbe import note_lowered_rate
     from servobench.bench.procedure.excitation import design_excitation
     from servobench.bench.procedure.sidbe import SidbeOptions
     from servobench.bench.report.summary import print_json
@@ -38,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     drive = open_drive(args.drive)
     fs_hz = link_rate_hz(args.fs, drive)  # refused before the port is opened
+    note_lowered_rate(args.fs, drive)
     design = design_from_args(args, fs_hz)
     options = SidbeOptions(
         amplitude=args.amplitude, ratio=args.ratio, fs_hz=fs_hz, periods=args.periods,
@@ -60,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         extra = {"loop": "open"} if hold is None else {"loop": "closed", "hold": hold}
         print_json({"log": str(res.log_path), "samples": res.samples, "complete": True,
-                    "fs_achieved": res.fs_achieved_hz, **design.metadata(), **extra})  # fmt: skip
+                    "fs_achieved": res.fs_achieved_hz, **design.metadata(), **extra,
+                    **cycle_json(res)})  # fmt: skip
     else:
         where = "" if hold is None else (
             f", closed loop ({hold['where']}-side hold, {hold['travel_share']:.0%} of the room used)"
@@ -69,7 +72,34 @@ def run(args: argparse.Namespace) -> int:
             f"wrote {res.log_path} ({res.samples} samples, runs 1 and 2, amplitude ±{design.amplitude:g}, "
             f"{design.fs_hz:g} Hz, achieved {res.fs_achieved_hz:.6g} Hz{where})"
         )
+        c = res.cycle_timing
+        if c is not None:
+            print(
+                f"timing: clock_source {res.clock_source}, host jitter p50/p99/max "
+                f"{c.jitter_p50_s * 1e3:.3g}/{c.jitter_p99_s * 1e3:.3g}/{c.jitter_max_s * 1e3:.3g} ms, "
+                f"{c.missed_cycles} missed cycles, instants uncertain by {c.t_unc_p99_s * 1e3:.3g} ms (p99)"
+            )
     return 0
+
+
+def cycle_json(res) -> dict[str, object]:
+    """``clock_source`` and ``timing`` (the host's cycle) of a real-time run; None in fast pace."""
+    import math
+
+    c = res.cycle_timing
+    if c is None:
+        return {"clock_source": None, "timing": None}
+    fin = lambda x: x if math.isfinite(x) else None  # noqa: E731
+    return {
+        "clock_source": res.clock_source,
+        "timing": {
+            "clock_source": res.clock_source, "jitter_p50_s": fin(c.jitter_p50_s),
+            "jitter_p99_s": fin(c.jitter_p99_s), "jitter_max_s": fin(c.jitter_max_s),
+            "missed_cycles": c.missed_cycles, "late_cycles": c.late_cycles,
+            "t_unc_p50_s": fin(c.t_unc_p50_s), "t_unc_p99_s": fin(c.t_unc_p99_s),
+            "t_unc_max_s": fin(c.t_unc_max_s),
+        },
+    }  # fmt: skip
 
 
 def _closed(drive, options, out: Path, tick):

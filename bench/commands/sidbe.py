@@ -81,6 +81,20 @@ def default_out_dir(base: Path | None = None) -> Path:
     return path
 
 
+def note_lowered_rate(requested_hz: float | None, drive) -> None:
+    """Say on stderr when the default cycle rate was lowered to fit the drive's link."""
+    import sys
+
+    from servobench.bench.procedure.excitation import DEFAULT_FS_HZ
+    from servobench.drivers.link_budget import drive_rate_hz, lowered_rate_note
+
+    if requested_hz is None:
+        chosen = drive_rate_hz(None, drive, DEFAULT_FS_HZ)
+        note = lowered_rate_note(None, chosen, drive, DEFAULT_FS_HZ)
+        if note:
+            print(f"servobench: note: {note}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
     from servobench.bench.procedure.sidbe import SidbeOptions, check_run_folder, run_sidbe
@@ -110,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     check_run_folder(out_dir)  # before the drive is even opened
     drive = open_drive(args.drive)
     options.validate(drive)
+    note_lowered_rate(args.fs, drive)
     with drive, stream_progress() as progress:
         try:
             result = run_sidbe(drive, options, out_dir, progress=progress)

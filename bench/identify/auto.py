@@ -16,16 +16,23 @@ Methods
     in-sample. On a single-run log ``auto`` is ``joint``, and says so.
 
 Every result is verified by simulation on the whole log
-(:func:`servobench.bench.identify.verify.verify`).
+(:func:`servobench.bench.identify.verify.verify`). A real-time log (one that
+states its ``clock_source``) also gets its timing figure
+(:func:`servobench.bench.identify.timing.timing_figure`): the host's jitter,
+missed cycles and the model error its timing predicts.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+from servobench.bench.identify.command_lead import PASSES, back_to_commands, lead_note
 from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.motion import require_motion
 from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
+from servobench.bench.identify.timing import timing_figure
 from servobench.bench.identify.verify import verify
 from servobench.bench.log.io import ExperimentLog
 from servobench.bench.model.servo import IdentificationResult
@@ -73,7 +80,25 @@ def identify(
     if method not in METHODS:
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
-    return identify_data(data, method, resonance=resonance)
+    result = identify_data(data, method, resonance=resonance)
+    lead_s = _number(log.metadata.get("command_lead_s"))
+    if lead_s > 0 and not data.derived:
+        moved = data
+        for _ in range(PASSES):
+            moved = back_to_commands(data, result.model, lead_s)
+            result = identify_data(moved, method, resonance=resonance)
+        data = moved
+        result = replace(result, notes=(*result.notes, lead_note(lead_s)))
+    estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
+    timing = timing_figure(log.metadata, data, estimate)
+    return result if timing is None else replace(result, timing=timing)
+
+
+def _number(text: str | None) -> float:
+    try:
+        return float(text) if text else 0.0
+    except ValueError:
+        return 0.0
 
 
 def identify_data(

@@ -67,6 +67,10 @@ class Segment:
         command, the hold loop's included); the closed-loop estimators' instrument.
     x_ref : ndarray or None
         Closed loop: the position the hold loop held [units].
+    t_unc : ndarray or None
+        Timing uncertainty of each sample [s]: the half-width of the interval
+        known to hold its instant (the log's ``t_unc`` column of a real-time
+        run without drive time stamps); None when the log has none.
     """
 
     run: int
@@ -79,6 +83,7 @@ class Segment:
     x: np.ndarray | None = None
     u_exc: np.ndarray | None = None
     x_ref: np.ndarray | None = None
+    t_unc: np.ndarray | None = None
 
     @property
     def derived(self) -> bool:
@@ -110,10 +115,13 @@ class Segment:
                 motion.x[:n], motion.v[:n], motion.a[:n], motion.cutoff_hz, motion.method
             )
         dt = None if self.dt_s is None else self.dt_s[: max(0, n - 1)]
-        x, u_exc, x_ref = (None if a is None else a[:n] for a in (self.x, self.u_exc, self.x_ref))
-        return Segment(
-            self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x, u_exc, x_ref
+        x, u_exc, x_ref, t_unc = (
+            None if a is None else a[:n] for a in (self.x, self.u_exc, self.x_ref, self.t_unc)
         )
+        return Segment(
+            self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x, u_exc, x_ref,
+            t_unc,
+        )  # fmt: skip
 
 
 def initial_velocity(segment: Segment, noise_std: float, k: int = 0) -> float:
@@ -192,6 +200,11 @@ class Dataset:
     @property
     def jittered(self) -> bool:
         return any(s.dt_s is not None for s in self.segments)
+
+    @property
+    def timing_uncertain(self) -> bool:
+        """True when some sample instant is known only within an interval (``t_unc``)."""
+        return any(s.t_unc is not None for s in self.segments)
 
     @property
     def has_excitation(self) -> bool:
@@ -316,7 +329,11 @@ def _segment(
         )
     x, u_exc, x_ref = (None if a is None else np.asarray(a, dtype=float) for a in (r.x, r.u_exc, r.x_ref))
     u = np.asarray(r.u, dtype=float)
-    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref), notes
+    t_unc = r.extra.get("t_unc")
+    if t_unc is not None:
+        t_unc = np.asarray(t_unc, dtype=float)
+        t_unc = t_unc if np.any(t_unc > 0) else None
+    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref, t_unc), notes
 
 
 def _moves(s: Segment) -> bool:

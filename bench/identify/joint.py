@@ -28,6 +28,16 @@ it stays unbiased in closed loop.
 
 Logs with position only go to the inverse-dynamic estimator
 (:mod:`servobench.bench.identify.idim`).
+
+Uncertain instants (a real-time log without drive time stamps: the column
+``t_unc``, each instant known within ``t +- t_unc``): an interval known to
+``sigma_dt`` puts the acceleration times its error into the pair's equation
+error, so once a first estimate gives the acceleration the pairs are
+weighted by ``1 / (sigma_v^2 (1 + a^2) + (acc sigma_dt)^2)``
+(:func:`~servobench.bench.identify.regression.timing_weights`), and pairs
+whose interval is uncertain by more than :data:`TIMING_REJECT_SHARE` of the
+nominal cycle are set aside. The output-error refinement sets aside the
+same samples and weights the others equally (:func:`_sample_weights` says why).
 """
 
 from __future__ import annotations
@@ -47,8 +57,10 @@ from servobench.bench.identify.regression import (
     ZohFit,
     fit_pairs,
     fit_pairs_irregular,
+    interval_sigma,
     noise_std_from_residual,
     select_pairs,
+    timing_weights,
 )
 from servobench.bench.identify.simulation import simulate_run
 from servobench.bench.model.servo import ServoModel
@@ -68,6 +80,11 @@ MANY_PERIODS = 8
 #: Most sample pairs in one regression of noisy data (evenly thinned beyond; the
 #: regressions only start the output-error refinement, which sees all the data).
 MAX_PAIRS = 100_000
+#: Pairs (and output-error samples) whose interval is uncertain by more than this share
+#: of the nominal cycle (1 sigma) are set aside.
+TIMING_REJECT_SHARE = 0.25
+#: Setting aside stops short of leaving fewer than this share of the pairs (weights only then).
+MIN_KEPT_SHARE = 0.5
 
 
 def identify_joint(
@@ -89,6 +106,13 @@ def identify_joint(
         return identify_idim(data, refine_oe=refine_oe)
     dt = data.dt_s
     notes: list[str] = list(data.notes)
+    if data.timing_uncertain:
+        aside = timing_set_aside(data)
+        notes.append(
+            "sample instants known within t_unc: pairs and samples weighted by their timing "
+            "uncertainty times the acceleration"
+            + (f"; {aside} intervals uncertain by more than {TIMING_REJECT_SHARE:g} cycle set aside" if aside else "")
+        )
     v_all = data.cat("v")
 
     if start is not None and start.estimator.endswith("output-error") and refine_oe:
@@ -115,13 +139,19 @@ def identify_joint(
     return _refine(data, model, sigma, threshold, v_all, notes)
 
 
+def pair_regression(data: Dataset) -> ServoModel:
+    """The exact pair regression alone (step 1, timing-weighted where the log gives ``t_unc``):
+    the cheap estimate :mod:`servobench.bench.identify.timing` re-runs on perturbed instants."""
+    return _model(_solve(_pairs(data), data, None))
+
+
 def _pairs(
     data: Dataset, threshold: float = 0.0, references: list[np.ndarray] | None = None
 ) -> Pairs:
     """The regression's sample pairs of every run (see :func:`select_pairs`); in closed loop
     with the excitation as the instrument of ``u`` once there are references."""
     closed = references is not None and _closed(data)
-    return select_pairs(
+    pairs = select_pairs(
         [s.v for s in data.segments],
         [s.u for s in data.segments],
         [np.full(len(s) - 1, data.dt_s) if s.dt_s is None else s.dt_s for s in data.segments],
@@ -129,7 +159,31 @@ def _pairs(
         threshold=threshold,
         max_pairs=MAX_PAIRS,
         excitations=[s.u_exc for s in data.segments] if closed else None,
+        interval_sigmas=_interval_sigmas(data),
     )
+    if pairs.sigma_dt is None:
+        return pairs
+    keep = pairs.sigma_dt <= TIMING_REJECT_SHARE * data.dt_s
+    if keep.all() or np.count_nonzero(keep) < MIN_KEPT_SHARE * len(pairs):
+        return pairs  # nothing to set aside, or too much: the weights alone then
+    return Pairs(*(None if a is None else a[keep] for a in (
+        pairs.v0, pairs.v1, pairs.u, pairs.pos, pairs.neg, pairs.dt, pairs.z0, pairs.zu, pairs.sigma_dt)))  # fmt: skip
+
+
+def _interval_sigmas(data: Dataset) -> list[np.ndarray] | None:
+    """Each run's interval uncertainties [s] when the log gives ``t_unc``, else None."""
+    if not data.timing_uncertain:
+        return None
+    return [np.zeros(len(s) - 1) if s.t_unc is None else interval_sigma(s.t_unc) for s in data.segments]
+
+
+def timing_set_aside(data: Dataset) -> int:
+    """Intervals set aside because their length is known worse than :data:`TIMING_REJECT_SHARE`."""
+    sig = _interval_sigmas(data)
+    if sig is None:
+        return 0
+    bad = int(sum(np.count_nonzero(s > TIMING_REJECT_SHARE * data.dt_s) for s in sig))
+    return bad if bad <= (1.0 - MIN_KEPT_SHARE) * sum(s.size for s in sig) else 0
 
 
 def _closed(data: Dataset) -> bool:
@@ -210,9 +264,27 @@ def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = F
         return fit_pairs(pairs, data.dt_s, instrumental=instrumental)
     if previous is None:
         previous = fit_pairs(pairs, float(np.mean(pairs.dt)))
-    return fit_pairs_irregular(
-        pairs, (previous.M, previous.B, previous.coulomb_pos, previous.coulomb_neg)
-    )
+    start = (previous.M, previous.B, previous.coulomb_pos, previous.coulomb_neg)
+    if pairs.sigma_dt is None:
+        return fit_pairs_irregular(pairs, start)
+    fit = fit_pairs_irregular(pairs, start)  # unweighted: the accelerations for the weights
+    for _ in range(2):
+        model = (fit.M, fit.B, fit.coulomb_pos, fit.coulomb_neg)
+        sigma_v = _velocity_noise(pairs, fit)
+        fit = fit_pairs_irregular(pairs, model, timing_weights(pairs, model, sigma_v))
+    return fit
+
+
+def _velocity_noise(pairs: Pairs, fit: ZohFit) -> float:
+    """Velocity noise [units/s] from the residual of the pairs least touched by timing (the
+    quarter with the smallest acceleration times interval uncertainty)."""
+    force = np.where(pairs.pos, fit.coulomb_pos, 0.0) - np.where(pairs.neg, fit.coulomb_neg, 0.0)
+    exposure = np.abs((pairs.u - force - fit.B * pairs.v1) / fit.M * pairs.sigma_dt)
+    calm = exposure <= np.quantile(exposure, 0.25)
+    a = math.exp(-fit.B * float(np.mean(pairs.dt)) / fit.M)
+    b = (1.0 - np.exp(-fit.B * pairs.dt / fit.M)) / fit.B
+    e = pairs.v1 - np.exp(-fit.B * pairs.dt / fit.M) * pairs.v0 - b * (pairs.u - force)
+    return noise_std_from_residual(e[calm], a)
 
 
 def _model(fit: ZohFit) -> ServoModel:
@@ -253,5 +325,23 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
         if len(s) > per_run:
             note = f"output-error refinement on the first {per_run} samples of each run"
         v0 = initial_velocity(seg, sigma)
-        chunks.append(Chunk(seg.u, seg.v, data.dt_s if seg.dt_s is None else seg.dt_s, v0))
+        dt = data.dt_s if seg.dt_s is None else seg.dt_s
+        chunks.append(Chunk(seg.u, seg.v, dt, v0, weight=_sample_weights(seg, sigma, data.dt_s)))
     return chunks, note
+
+
+def _sample_weights(seg, sigma: float, dt_s: float) -> float | np.ndarray:
+    """Output-error weight of each raw sample whose instant is uncertain (``t_unc``): 0 for
+    samples known worse than :data:`TIMING_REJECT_SHARE` of the cycle (set aside), else 1.
+
+    Not ``1 / (sigma^2 + (acc sigma_t)^2)`` as in the pair regression: a simulated
+    sample carries the timing errors of every interval before it, not its own alone,
+    so a per-sample weight from the local acceleration misstates it (measured on
+    host-bracketed logs: no gain, at times a loss, against equal weights).
+    """
+    if seg.t_unc is None:
+        return 1.0
+    bad = seg.t_unc / math.sqrt(3.0) > TIMING_REJECT_SHARE * dt_s
+    if not bad.any() or np.count_nonzero(~bad) < MIN_KEPT_SHARE * len(bad):
+        return 1.0
+    return np.where(bad, 0.0, 1.0)

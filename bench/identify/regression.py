@@ -53,6 +53,8 @@ class Pairs:
         Instrument for ``v0`` (the reference velocity at ``k``; ``v0`` itself for plain LS).
     zu : ndarray or None
         Instrument for ``u`` (the excitation of a closed-loop log); None: ``u`` itself.
+    sigma_dt : ndarray or None
+        1-sigma uncertainty of each interval [s] (from the instants' ``t_unc``); None: exact.
     """
 
     v0: np.ndarray
@@ -63,6 +65,7 @@ class Pairs:
     dt: np.ndarray
     z0: np.ndarray
     zu: np.ndarray | None = None
+    sigma_dt: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.v0.size)
@@ -76,6 +79,7 @@ def select_pairs(
     threshold: float = 0.0,
     max_pairs: int | None = None,
     excitations: Sequence[np.ndarray] | None = None,
+    interval_sigmas: Sequence[np.ndarray] | None = None,
 ) -> Pairs:
     """Pairs whose reference velocity keeps one strict sign with ``|v| > threshold`` at both ends.
 
@@ -93,23 +97,59 @@ def select_pairs(
         Consider only every ``ceil(n / max_pairs)``-th interval (even thinning).
     excitations : sequence of ndarray, optional
         Closed loop: the excitation of each run [command units], the instrument of ``u``.
+    interval_sigmas : sequence of ndarray, shape ``(n - 1,)`` each, optional
+        1-sigma uncertainty of each interval [s] (:func:`interval_sigma`).
     """
     refs = velocities if references is None else references
     exc = commands if excitations is None else excitations
     total = sum(len(v) - 1 for v in velocities)
     step = 1 if max_pairs is None or total <= max_pairs else -(-total // max_pairs)
-    parts: list[list[np.ndarray]] = [[] for _ in range(8)]
-    for v, u, dt, r, e in zip(velocities, commands, intervals, refs, exc, strict=True):
+    sig = intervals if interval_sigmas is None else interval_sigmas
+    parts: list[list[np.ndarray]] = [[] for _ in range(9)]
+    for v, u, dt, r, e, sd in zip(velocities, commands, intervals, refs, exc, sig, strict=True):
         k = np.arange(0, len(v) - 1, step) if step > 1 else slice(0, len(v) - 1)
         k1 = k + 1 if step > 1 else slice(1, len(v))
         r0, r1 = r[k], r[k1]
         pos = (r0 > threshold) & (r1 > threshold)
         neg = (r0 < -threshold) & (r1 < -threshold)
         keep = pos | neg
-        for i, arr in enumerate((v[k], v[k1], u[k], pos, neg, dt[k], r0, e[k])):
+        for i, arr in enumerate((v[k], v[k1], u[k], pos, neg, dt[k], r0, e[k], sd[k])):
             parts[i].append(arr[keep])
-    v0, v1, u, pos, neg, dt, z0, zu = (np.concatenate(p) for p in parts)
-    return Pairs(v0, v1, u, pos, neg, dt, z0, None if excitations is None else zu)
+    v0, v1, u, pos, neg, dt, z0, zu, sd = (np.concatenate(p) for p in parts)
+    return Pairs(v0, v1, u, pos, neg, dt, z0, None if excitations is None else zu,
+                 None if interval_sigmas is None else sd)  # fmt: skip
+
+
+def interval_sigma(t_unc: np.ndarray) -> np.ndarray:
+    """1-sigma uncertainty [s] of each interval ``t[k+1] - t[k]``, shape ``(n - 1,)``, from the
+    half-widths ``t_unc`` [s] of the intervals holding each instant (uniform within them)."""
+    var = np.asarray(t_unc, dtype=float) ** 2 / 3.0
+    return np.sqrt(var[:-1] + var[1:])
+
+
+def timing_weights(
+    pairs: Pairs, model: tuple[float, float, float, float], sigma_v: float
+) -> np.ndarray:
+    """Weights of the pairs for an interval known only to ``pairs.sigma_dt``.
+
+    A pair's equation error from an interval off by ``d`` is the velocity's
+    change over ``d``, the acceleration ``acc = (u - F - B v1) / M`` times
+    ``d``; with velocity noise ``sigma_v`` the error's variance is
+    ``sigma_v^2 (1 + a^2) + (acc sigma_dt)^2``. The weights are its inverse,
+    scaled to mean 1 (ones without ``sigma_dt``).
+    """
+    if pairs.sigma_dt is None:
+        return np.ones(len(pairs))
+    M, B, fp, fn = model
+    force = np.where(pairs.pos, fp, 0.0) - np.where(pairs.neg, fn, 0.0)
+    acc = (pairs.u - force - B * pairs.v1) / M
+    timing_var = (acc * pairs.sigma_dt) ** 2
+    a = np.exp(-B * pairs.dt / M)
+    # a floor keeps pairs at zero acceleration from outweighing all the others
+    floor = 1e-2 * float(np.median(timing_var)) if timing_var.size else 0.0
+    var = np.maximum(sigma_v**2 * (1.0 + a * a) + timing_var, max(floor, 1e-300))
+    w = 1.0 / var
+    return w / float(np.mean(w))
 
 
 @dataclass(frozen=True)
@@ -234,11 +274,14 @@ def noise_std_from_residual(residual: np.ndarray, a: float) -> float:
     return float(MAD_TO_STD * np.median(np.abs(r)) / math.sqrt(1.0 + a * a))
 
 
-def fit_pairs_irregular(pairs: Pairs, start: tuple[float, float, float, float]) -> ZohFit:
+def fit_pairs_irregular(
+    pairs: Pairs, start: tuple[float, float, float, float], weights: np.ndarray | None = None
+) -> ZohFit:
     """The regression with a different interval per pair, by nonlinear least squares.
 
     Unknowns ``(M, B, coulomb_pos, coulomb_neg)``; ``a_k = exp(-B dt_k/M)``,
-    ``b_k = (1 - a_k)/B``; exact for noise-free data.
+    ``b_k = (1 - a_k)/B``; exact for noise-free data. ``weights`` (one per
+    pair, e.g. :func:`timing_weights`) weight the squared equation errors.
     """
     from scipy.optimize import least_squares
 
@@ -247,12 +290,13 @@ def fit_pairs_irregular(pairs: Pairs, start: tuple[float, float, float, float]) 
             f"only {len(pairs)} sample pairs with clear motion (raise the amplitude)"
         )
     pos, neg = pairs.pos.astype(float), pairs.neg.astype(float)
+    root_w = 1.0 if weights is None else np.sqrt(weights)
 
     def residual(p: np.ndarray) -> np.ndarray:
         M, B = math.exp(p[0]), math.exp(p[1])
         a = np.exp(-B * pairs.dt / M)
         b = (1.0 - a) / B
-        return pairs.v1 - a * pairs.v0 - b * (pairs.u - p[2] * pos + p[3] * neg)
+        return root_w * (pairs.v1 - a * pairs.v0 - b * (pairs.u - p[2] * pos + p[3] * neg))
 
     M0, B0, fp0, fn0 = start
     sol = least_squares(

@@ -54,6 +54,12 @@ def sidbe_applicable(data: Dataset) -> str:
     if data.design is None:
         return "the log metadata describe no periodic excitation: samples_per_period, freqs"
     if data.jittered:
+        # The lines of a periodic excitation need its periods on one grid. A real axis
+        # sampled at irregular instants held each command over its own interval:
+        # resampling would invent a different input (a zero-order hold is not
+        # band-limited) and interpolated velocity is biased at the excited lines, while
+        # the joint estimator is exact at the instants as logged and weights them by
+        # their uncertainty. So SIDBE leaves irregular logs to it.
         return "the time stamps are irregular; the FFT needs a fixed sample rate"
     return ""
 

@@ -216,6 +216,11 @@ class IdentificationResult:
         Measured and simulated velocity per run (for plots).
     units : SignalUnits
         Units of the log's signals; :meth:`to_json` gives every parameter's unit.
+    timing : object or None
+        The timing figure of a real-time log
+        (:class:`~servobench.bench.identify.timing.TimingFigure`); None for
+        logs streamed lock-step or written by other tools. :meth:`to_json`
+        gives it as ``timing`` and its source as ``clock_source`` (both None without one).
     """
 
     model: ServoModel
@@ -230,6 +235,7 @@ class IdentificationResult:
     frf: Any = None
     verification: Any = None
     units: SignalUnits = SignalUnits()
+    timing: Any = None
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON dict with the contract keys (``M``, ``B``, ``pole``, ``dc_gain``,
@@ -247,6 +253,8 @@ class IdentificationResult:
                 "validation": {k: _finite(v) for k, v in self.validation.items()},
                 "notes": list(self.notes),
                 "units": self.units.parameters(),
+                "clock_source": None if self.timing is None else self.timing.clock_source,
+                "timing": None if self.timing is None else self.timing.to_json(),
             }
         )
         return out

@@ -88,6 +88,35 @@ def units_sentence(units: SignalUnits) -> str:
     return f"units: u in {units.of('u')}, v in {units.of('v')}, x in {units.of('x')}"
 
 
+def timing_warning(result: IdentificationResult) -> list[str]:
+    """The lines a summary starts with when the run's timing takes the model outside its
+    stated accuracy (:meth:`~servobench.bench.identify.timing.TimingFigure.warning_lines`)."""
+    return [] if result.timing is None else list(result.timing.warning_lines())
+
+
+def print_timing_warning(result: IdentificationResult) -> None:
+    """:func:`timing_warning`, first on stdout, unstyled."""
+    for line in timing_warning(result):
+        sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
+def timing_row(result: IdentificationResult) -> dict[str, str]:
+    """``{"timing": "clock_source host, jitter p50/p99/max ..., model error ..."}`` for a summary
+    table, empty for a log without a timing figure."""
+    t = result.timing
+    if t is None:
+        return {}
+    c = t.cycle
+    ms = [f"{c.get(k, math.nan) * 1e3:.3g}" for k in ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s")]
+    return {
+        "timing": f"clock_source {t.clock_source}; host jitter p50/p99/max {'/'.join(ms)} ms; "
+        f"{int(c.get('missed_cycles', 0) or 0)} missed cycles; predicted model error "
+        f"{t.model_error_max_pct:.2g} % ({'within' if t.within_accuracy else 'OUTSIDE'} the stated "
+        f"{t.accuracy_pct:g} %)"
+    }
+
+
 def print_result(
     result: IdentificationResult,
     title: str = "Identified model",
@@ -97,6 +126,7 @@ def print_result(
     from rich.console import Console
     from rich.table import Table
 
+    print_timing_warning(result)
     table = Table(title=title, show_header=True, header_style="bold")
     table.add_column("quantity")
     table.add_column("value ± 1 sigma", justify="right")
@@ -105,7 +135,7 @@ def print_result(
         table.add_row(name, value, unit)
     table.add_row("fit (simulation)", f"{result.fit_percent:.2f}", "%")
     table.add_row("method", f"{result.method} ({result.estimator})", "")
-    for key, value in (extra or {}).items():
+    for key, value in {**(extra or {}), **timing_row(result)}.items():
         table.add_row(key, value, "")
     console = Console()
     console.print(table)

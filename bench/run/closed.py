@@ -22,6 +22,12 @@ command applied over ``[t_k, t_{k+1})``: the drive's read-back
 row is written one cycle late) where the drive reports one, else the command
 the host sent (after the Drive layer's clamping).
 
+Real time (``pace = "real"``): as in open loop, the calling thread takes the
+OS's best footing (:func:`servobench.realtime.realtime_thread`, the ``rt_*``
+lines), rows go through the ring to a writer thread, each sample gets its
+best instant (``# clock_source``) and its uncertainty in the extra last
+column ``t_unc``, and the trailer carries the cycle's timing.
+
 A guard stops the axis as soon as it leaves :data:`~servobench.bench.run.travel.MARGIN`
 of the room around the held position (an unstable loop, or an excitation
 the window cannot hold): the axis is stopped and disabled, the log is kept,
@@ -30,6 +36,7 @@ marked incomplete, and named in the one-line error.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -41,11 +48,13 @@ import numpy as np
 from servobench.bench.log.io import LogWriter
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
 from servobench.bench.run.hold import HoldLoop
+from servobench.bench.run.ring_writer import RingLogWriter
 from servobench.bench.run.runner import (
     DEFAULT_SETTLE_S,
     LOG_COLUMNS,
     REST_SAMPLES,
     ProgressCallback,
+    _drain,
     _Plan,
     _reason,
     _sigterm_as_interrupt,
@@ -55,11 +64,12 @@ from servobench.bench.run.runner import (
     achieved_rate_hz,
     note_partial_log,
 )
-from servobench.bench.run.timing_stats import PeriodStats, TimingStats
+from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodStats, TimingStats
 from servobench.bench.run.travel import MARGIN, ClosedLoopPlan
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive, Feedback
 from servobench.errors import LimitExceededError
+from servobench.realtime import realtime_thread
 
 #: Columns of a closed-loop log.
 CLOSED_LOG_COLUMNS = (*LOG_COLUMNS, "u_exc", "x_ref")
@@ -91,6 +101,8 @@ class ClosedRunResult:
     timing: tuple[TimingStats, ...]
     excursion: float
     room: float
+    cycle_timing: CycleTiming | None = None  #: real pace: the host's cycle, all runs
+    clock_source: str = ""  #: real pace: ``drive``, ``kernel`` or ``host``
 
     @property
     def share(self) -> float:
@@ -132,23 +144,36 @@ def stream_closed_runs(
         "fs": fs_hz, "drive": drive.url.raw, "pace": checked.pace,
         **drive.log_metadata(), **(metadata or {}), **plan.metadata(),
     }  # fmt: skip
-    writer = LogWriter(log_path, meta, CLOSED_LOG_COLUMNS, flush_every=1)
-    cycler = _Cycler(drive, plan, checked, writer)
-    timing: list[TimingStats] = []
-    try:
-        with _sigterm_as_interrupt():
-            cycler.session(runs, timing)
-    except BaseException as err:
+    realtime = checked.pace == "real"
+    rt = realtime_thread(helper_threads=drive.io_threads()) if realtime else contextlib.nullcontext()
+    with rt as grant:
+        columns = CLOSED_LOG_COLUMNS
+        if grant is not None:
+            meta = {"clock_source": drive.clock_source(), **grant.as_metadata(), **meta}
+            columns = (*CLOSED_LOG_COLUMNS, "t_unc")
+        writer = LogWriter(log_path, meta, columns, flush_every=1)
+        sink = RingLogWriter(writer) if realtime else writer
+        cycler = _Cycler(drive, plan, checked, sink)
+        timing: list[TimingStats] = []
         try:
-            _stop_quietly(drive)
-        finally:
-            writer.finish("incomplete", reason=_reason(err), samples=writer.rows,
-                          **_trailer(drive, timing))  # fmt: skip
-            note_partial_log(err, writer)
-        raise
-    writer.finish("complete", samples=writer.rows, travel_excursion=cycler.excursion,
-                  travel_share=cycler.excursion / plan.room, **_trailer(drive, timing))  # fmt: skip
-    return ClosedRunResult(Path(log_path), writer.rows, tuple(timing), cycler.excursion, plan.room)
+            with _sigterm_as_interrupt():
+                cycler.session(runs, timing)
+        except BaseException as err:
+            try:
+                _stop_quietly(drive)
+            finally:
+                _drain(sink)
+                writer.finish("incomplete", reason=_reason(err), samples=writer.rows,
+                              **_trailer(drive, timing, cycler.clocks, checked.dt))  # fmt: skip
+                note_partial_log(err, writer)
+            raise
+        _drain(sink)
+        writer.finish("complete", samples=writer.rows, travel_excursion=cycler.excursion,
+                      travel_share=cycler.excursion / plan.room,
+                      **_trailer(drive, timing, cycler.clocks, checked.dt))  # fmt: skip
+    cycle = CycleTiming.of(cycler.clocks, checked.dt) if realtime else None
+    return ClosedRunResult(Path(log_path), writer.rows, tuple(timing), cycler.excursion, plan.room,
+                           cycle, drive.clock_source() if realtime else "")  # fmt: skip
 
 
 @dataclass
@@ -163,13 +188,20 @@ class _Row:
     u_exc: float
     x_ref: float
     sent: float
+    t_unc: float = 0.0
 
 
 class _Cycler:
     """Cycles the drive under the hold: paces, runs the host's loop, guards the margin, logs."""
 
-    def __init__(self, drive: Drive, plan: ClosedLoopPlan, checked: _Plan, writer: LogWriter) -> None:
+    def __init__(
+        self, drive: Drive, plan: ClosedLoopPlan, checked: _Plan, writer: LogWriter | RingLogWriter
+    ) -> None:
         self.drive, self.plan, self.checked, self.writer = drive, plan, checked, writer
+        self.realtime = checked.pace == "real"
+        self.by_drive = drive.clock_source() == "drive"
+        self.clocks: list[CycleClock] = []
+        self.bracket = (0.0, 0.0)  # host clock before the request and after the answer [s]
         self.host = plan.host_controller()
         self.loop = HoldLoop(self.host)
         self.x_ref = plan.controller.x_ref
@@ -248,6 +280,9 @@ class _Cycler:
         check = FeedbackCheck(self.checked.frozen_cycles, None, self.drive.drive_clock, self.checked.dt)
         nominal = self.checked.pace == "fast" and not self.drive.drive_clock
         every = max(1, len(u_exc) // 200)
+        cycle_clock = CycleClock(len(u_exc)) if self.realtime else None
+        if cycle_clock is not None:
+            self.clocks.append(cycle_clock)
         t0_host = time.monotonic()
         t0_drive = None
         acted = 0.0
@@ -255,10 +290,14 @@ class _Cycler:
             fb = self.cycle(uk)
             check.check(fb.t_s, acted, fb.velocity, fb.position)  # acted: the cycle before's
             acted = self.sent
-            t0_drive = fb.t_s if t0_drive is None else t0_drive
+            t_abs, t_unc = self.instant(fb)
+            t0_drive = t_abs if t0_drive is None else t0_drive
             t_host = time.monotonic() - t0_host
-            t = k * self.checked.dt if nominal else fb.t_s - t0_drive
-            self.pending = _Row(number, t, fb.velocity, fb.position, t_host, uk, self.x_ref, acted)
+            t = k * self.checked.dt if nominal else t_abs - t0_drive
+            if cycle_clock is not None:
+                start, end = self.bracket
+                cycle_clock.mark(k, self.t0 + (self.k - 1) * self.checked.dt, start, end, t_unc)
+            self.pending = _Row(number, t, fb.velocity, fb.position, t_host, uk, self.x_ref, acted, t_unc)
             self._guard(fb)
             host.add(t_host)
             clock.add(t)
@@ -266,6 +305,15 @@ class _Cycler:
                 self.checked.progress(done + k + 1, self.checked.total)
         if self.checked.progress is not None:
             self.checked.progress(done + len(u_exc), self.checked.total)
+
+    def instant(self, fb: Feedback) -> tuple[float, float]:
+        """The sample's best instant and its uncertainty [s] (see the runner's module docstring)."""
+        if not self.realtime or self.by_drive:
+            return fb.t_s, 0.0
+        if fb.t_host_s == fb.t_host_s:
+            return fb.t_host_s, fb.t_unc_s
+        start, end = self.bracket
+        return 0.5 * (start + end), 0.5 * (end - start)
 
     # ------------------------------------------------------------------ cycle
     def cycle(self, u_exc: float) -> Feedback:
@@ -279,7 +327,9 @@ class _Cycler:
         else:
             u = u_exc
         try:
+            start = time.monotonic()
             fb, self.sent = self.drive.exchange(u)
+            self.bracket = (start, time.monotonic())
         except BaseException:
             self._write_pending(math.nan)  # no sample taken is lost
             raise
@@ -292,7 +342,10 @@ class _Cycler:
         if row is None:
             return
         u = applied if math.isfinite(applied) else row.sent
-        self.writer.append(row.run, row.t, u, row.v, row.x, row.t_host, row.u_exc, row.x_ref)
+        if self.realtime:
+            self.writer.append(row.run, row.t, u, row.v, row.x, row.t_host, row.u_exc, row.x_ref, row.t_unc)
+        else:
+            self.writer.append(row.run, row.t, u, row.v, row.x, row.t_host, row.u_exc, row.x_ref)
         self.excursion = max(self.excursion, abs(row.x - row.x_ref))
 
     def _guard(self, fb: Feedback) -> None:

@@ -22,8 +22,32 @@ command stays at or above ``breakaway`` when the caller knows it (see
 :class:`FeedbackCheck`). Any of them ends the run with
 :class:`~servobench.errors.DriveError`.
 
-Memory is O(1) in the run length: timing statistics are streamed
-(Welford), samples go straight to the file.
+Real time (``pace="real"``): the calling thread becomes the cyclic thread
+and takes the best footing the OS grants (:func:`servobench.realtime.realtime_thread`:
+``SCHED_FIFO``, one CPU, locked memory, the garbage collector frozen, a short
+GIL switch interval; the drive's receive threads just below it), logged as
+``rt_*`` lines. It does nothing but the exchange and its own measurement:
+rows go through a preallocated ring to a writer thread
+(:mod:`servobench.bench.run.ring_writer`), which writes them as they arrive.
+Each sample gets its best instant and its uncertainty, ``t`` and the extra
+column ``t_unc`` [s] (the log's ``# clock_source`` says which):
+``drive`` -- the drive's time stamp, ``t_unc`` 0; ``kernel`` or ``host`` --
+the interval the transport knows holds the sample (``Feedback.t_host_s``,
+``Feedback.t_unc_s``), else
+the host clock just before the request and just after the answer, ``t`` its
+midpoint and ``t_unc`` its half-width. Where the transport times the cycle
+itself (:meth:`~servobench.drivers.base.Drive.start_cycle_clock`, the SYNC of
+the kernel's broadcast manager on SocketCAN) the host holds no schedule.
+The trailer carries the cycle's timing (:class:`~servobench.bench.run.timing_stats.CycleTiming`:
+``host_jitter_p50_s``, ``host_jitter_p99_s``, ``host_jitter_max_s``,
+``missed_cycles``, ``late_cycles``, ``t_unc_p50_s`` ... overall and per run).
+
+Lock-step drives streamed fast (``pace="fast"``) keep the exact nominal or
+drive clock, block exchange and no ``t_unc`` column, as fast as before.
+
+Memory is O(1) in the run length in fast pace: timing statistics are
+streamed (Welford), samples go straight to the file; in real pace the
+per-cycle instants are kept in arrays allocated before each run.
 """
 
 from __future__ import annotations
@@ -34,21 +58,27 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from servobench.bench.log.identity import run_identity
 from servobench.bench.log.io import LogWriter
+from servobench.bench.run.cyclic import Run as _Run
+from servobench.bench.run.cyclic import stream_realtime as _stream_realtime
 from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
-from servobench.bench.run.timing_stats import PeriodStats, TimingStats
+from servobench.bench.run.ring_writer import RingLogWriter
+from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodStats, TimingStats
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError, LimitExceededError, UsageError, add_note
+from servobench.realtime import realtime_thread
 
 #: Columns of a runner log.
 LOG_COLUMNS = ("run", "t", "u", "v", "x", "t_host")
+#: Columns of a real-time runner log: the sample's timing uncertainty [s] added at the end.
+REALTIME_COLUMNS = (*LOG_COLUMNS, "t_unc")
 #: Cycles streamed per block to drives that support block exchange.
 BLOCK_CYCLES = 2000
 #: Longest rest between runs [s].
@@ -67,6 +97,8 @@ class RunResult:
     samples: int
     timing: tuple[TimingStats, ...]
     complete: bool
+    cycle_timing: CycleTiming | None = None  #: real pace: the host's cycle, all runs
+    clock_source: str = ""  #: real pace: ``drive``, ``kernel`` or ``host``
 
     @property
     def fs_achieved_hz(self) -> float:
@@ -170,22 +202,43 @@ def stream_runs(
         "fs": fs_hz, "drive": drive.url.raw, "pace": plan.pace, **run_identity(drive),
         **drive.log_metadata(), **(metadata or {}),
     }  # fmt: skip
-    writer = LogWriter(log_path, meta, LOG_COLUMNS, flush_every=1)
-    timing: list[TimingStats] = []
-    try:
-        with _sigterm_as_interrupt():
-            _stream_all(drive, runs, plan, writer, timing)
-    except BaseException as err:
+    realtime = plan.pace == "real"
+    rt = realtime_thread(helper_threads=drive.io_threads()) if realtime else contextlib.nullcontext()
+    with rt as grant:
+        columns = LOG_COLUMNS
+        if grant is not None:
+            lead = {"command_lead_s": drive.command_lead_s()} if drive.command_lead_s() > 0 else {}
+            meta = {"clock_source": drive.clock_source(), **lead, **grant.as_metadata(), **meta}
+            columns = REALTIME_COLUMNS
+        writer = LogWriter(log_path, meta, columns, flush_every=1)
+        sink = RingLogWriter(writer) if realtime else writer
+        timing: list[TimingStats] = []
+        clocks: list[CycleClock] = []
         try:
-            _stop_quietly(drive)
-        finally:
-            writer.finish(
-                "incomplete", reason=_reason(err), samples=writer.rows, **_trailer(drive, timing)
-            )
-            note_partial_log(err, writer)
-        raise
-    writer.finish("complete", samples=writer.rows, **_trailer(drive, timing))
-    return RunResult(Path(log_path), writer.rows, tuple(timing), True)
+            with _sigterm_as_interrupt():
+                _stream_all(drive, runs, plan, sink, timing, clocks)
+        except BaseException as err:
+            try:
+                _stop_quietly(drive)
+            finally:
+                _drain(sink)
+                writer.finish(
+                    "incomplete", reason=_reason(err), samples=writer.rows,
+                    **_trailer(drive, timing, clocks, plan.dt),
+                )  # fmt: skip
+                note_partial_log(err, writer)
+            raise
+        _drain(sink)
+        writer.finish("complete", samples=writer.rows, **_trailer(drive, timing, clocks, plan.dt))
+    cycle = CycleTiming.of(clocks, plan.dt) if realtime else None
+    source = drive.clock_source() if realtime else ""
+    return RunResult(Path(log_path), writer.rows, tuple(timing), True, cycle, source)
+
+
+def _drain(sink: LogWriter | RingLogWriter) -> None:
+    """Every row the ring still holds written (nothing to do for a plain writer)."""
+    if isinstance(sink, RingLogWriter):
+        sink.close()
 
 
 def note_partial_log(err: BaseException, writer: LogWriter) -> None:
@@ -224,27 +277,37 @@ def _stream_all(
     drive: Drive,
     runs: Sequence[tuple[int, np.ndarray]],
     plan: _Plan,
-    writer: LogWriter,
+    writer: LogWriter | RingLogWriter,
     timing: list[TimingStats],
+    clocks: list[CycleClock],
 ) -> None:
     """Enable, stream every run (resting between them), then stop and disable."""
     drive.set_cycle(plan.dt)
     drive.enable()
-    done = 0
-    for index, (number, u) in enumerate(runs):
-        u = np.asarray(u, dtype=float)
-        if index:
-            _settle(drive, plan.dt, plan.settle_s, plan.pace)
-        check = FeedbackCheck(plan.frozen_cycles, plan.breakaway, drive.drive_clock, plan.dt)
-        run = _Run(number, writer, check, plan.progress, done, plan.total)
-        try:
-            if plan.pace == "fast" and drive.supports_block:
-                _stream_blocks(drive, u, run)
-            else:
-                _stream_samples(drive, u, plan.dt, plan.pace, run)
-        finally:
-            timing.append(_stats(number, run.host, run.clock))
-        done += len(u)
+    source = drive.clock_source()
+    paced_by_drive = plan.pace == "real" and drive.start_cycle_clock(plan.dt)
+    try:
+        done = 0
+        for index, (number, u) in enumerate(runs):
+            u = np.asarray(u, dtype=float)
+            if index:
+                _settle(drive, plan.dt, plan.settle_s, "fast" if paced_by_drive else plan.pace)
+            check = FeedbackCheck(plan.frozen_cycles, plan.breakaway, drive.drive_clock, plan.dt)
+            run = _Run(number, writer, check, plan.progress, done, plan.total)
+            try:
+                if plan.pace == "fast" and drive.supports_block:
+                    _stream_blocks(drive, u, run)
+                elif plan.pace == "fast":
+                    _stream_samples(drive, u, plan.dt, plan.pace, run)
+                else:
+                    clock = CycleClock(len(u))
+                    clocks.append(clock)
+                    _stream_realtime(drive, u, plan.dt, paced_by_drive, run, clock, source)
+            finally:
+                timing.append(_stats(number, run.host, run.clock))
+            done += len(u)
+    finally:
+        drive.stop_cycle_clock()
     drive.stop()
     drive.disable()
 
@@ -264,8 +327,16 @@ def _stop_quietly(drive: Drive) -> None:
         drive.disable()
 
 
-def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
+def _trailer(
+    drive: Drive, timing: list[TimingStats], clocks: list[CycleClock], dt: float
+) -> dict[str, object]:
     extra: dict[str, object] = {k: v for s in timing for k, v in s.as_metadata().items()}
+    if clocks:
+        for s, clock in zip(timing, clocks, strict=False):
+            extra.update(CycleTiming.of([clock], dt).as_metadata(f"run{s.run}_"))
+        extra.update(CycleTiming.of(clocks, dt).as_metadata())
+        for name, count in drive.cycle_counts().items():
+            extra[name] = count
     achieved = achieved_rate_hz(timing)
     if math.isfinite(achieved):
         extra["fs_achieved"] = round(achieved, 4)
@@ -274,23 +345,6 @@ def _trailer(drive: Drive, timing: list[TimingStats]) -> dict[str, object]:
             extra[f"link_{name}"] = count
     return extra
 
-
-@dataclass
-class _Run:
-    """One run being streamed: where its samples go and what watches them."""
-
-    number: int
-    writer: LogWriter
-    check: FeedbackCheck
-    progress: ProgressCallback | None
-    done: int  # samples of earlier runs
-    total: int  # samples of all runs
-    host: PeriodStats = field(default_factory=PeriodStats)
-    clock: PeriodStats = field(default_factory=PeriodStats)
-
-    def report(self, done_here: int) -> None:
-        if self.progress is not None:
-            self.progress(self.done + done_here, self.total)
 
 
 def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run) -> None:
@@ -319,6 +373,7 @@ def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run
         if k % every == 0:
             run.report(k + 1)
     run.report(n)
+
 
 
 def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:

@@ -61,6 +61,7 @@ from servobench.sim_backend.servers.modbus_framing import (
     RTU_MIN_BYTES,
     TcpFrame,
     decode_tcp,
+    request_length,
     rtu_crc_ok,
     rtu_frame,
     split_rtu,
@@ -119,17 +120,40 @@ def answer_rtu(handler: PduHandler, unit: int, frame: bytes) -> bytes | None:
         return None
 
 
-def _serve_rtu(handler: PduHandler, unit: int, fd: int, stop: threading.Event) -> None:
-    """Answer RTU frames arriving on ``fd`` until ``stop`` is set."""
+def _incomplete(chunk: bytes) -> bool:
+    """True when ``chunk`` ends inside a request: too short to tell its length, or shorter than it."""
+    if len(chunk) < 2:
+        return True
+    short_header = {0x0F: 7, 0x10: 7, 0x17: 11}.get(chunk[1])
+    if short_header is not None and len(chunk) < short_header:
+        return True
+    n = request_length(chunk)
+    return n is not None and len(chunk) < n
+
+
+def _serve_rtu(handler: PduHandler, unit: int, fd: int, stop: threading.Event, gap_s: float = 0.0) -> None:
+    """Answer RTU frames arriving on ``fd`` until ``stop`` is set.
+
+    A burst that ends inside a request whose length its function code gives
+    (the line delivered it in two reads, as a loaded machine does) waits up
+    to a frame gap ``gap_s`` for the rest, as a slave's receiver does: a
+    frame cut in two would otherwise fail its CRC and go unanswered.
+    """
+    chunk = b""
     while not stop.is_set():
-        ready, _, _ = select.select([fd], [], [], STOP_POLL_S)
-        if not ready:
+        wait_s = STOP_POLL_S if not chunk else max(gap_s, 1e-3)
+        ready, _, _ = select.select([fd], [], [], wait_s)
+        if ready:
+            try:
+                chunk += os.read(fd, 4096)
+            except (BlockingIOError, InterruptedError):
+                continue
+            if _incomplete(chunk):
+                continue  # the rest of this request is on its way
+        if not chunk:
             continue
-        try:
-            chunk = os.read(fd, 4096)
-        except (BlockingIOError, InterruptedError):
-            continue
-        for frame in split_rtu(chunk):
+        chunk, burst = b"", chunk
+        for frame in split_rtu(burst):
             reply = answer_rtu(handler, unit, frame)
             if reply is not None:
                 with contextlib.suppress(BlockingIOError):
@@ -254,7 +278,7 @@ def serve(
     fd = os.open(link.b_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     try:
         announce(f"modbus+rtu://{link.a_path}?baud={baud}&{_url_tail(unit, map_name)}")
-        _serve_rtu(handler, unit, fd, stop)
+        _serve_rtu(handler, unit, fd, stop, rtu_frame_gap_s(baud))
     finally:
         os.close(fd)
         link.close()

@@ -127,9 +127,9 @@ class AsciiDriveServer:
         self.firmware: OdriveFirmware | None = None
         if dialect.firmware_model == "odrive-0.5":
             try:
-                self.firmware = OdriveFirmware(
-                    device, firmware or DEFAULT_VERSION, "set_cycle" in dialect.extensions
-                )
+                # a real-time axis runs its own loop, as a stock ODrive: no lock-step extension
+                lockstep = "set_cycle" in dialect.extensions and not device.realtime
+                self.firmware = OdriveFirmware(device, firmware or DEFAULT_VERSION, lockstep)
             except ValueError as err:
                 raise DriveConfigError(str(err)) from None
         elif firmware is not None:

@@ -1,0 +1,100 @@
+"""The real-time cyclic loop of one run: deadlines, the exchange, each sample's instant.
+
+:func:`stream_realtime` is the body of :func:`servobench.bench.run.runner.stream_runs`
+with ``pace="real"``, run by the thread :func:`servobench.realtime.realtime_thread`
+prepared: absolute deadlines ``t0 + k/fs`` (sleep, then spin), or none where
+the transport times the cycle itself; one exchange; the host clock just
+before the request and just after the answer; the sample's best instant and
+its uncertainty (the drive's time stamp with 0, else the transport's
+narrowed interval, else the exchange's bracket, midpoint and half-width);
+the row handed to the log ring, the instants to the run's
+:class:`~servobench.bench.run.timing_stats.CycleClock`. Nothing in it
+formats, writes a file or allocates beyond the row itself.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from servobench.bench.log.io import LogWriter
+from servobench.bench.run.feedback_check import FeedbackCheck
+from servobench.bench.run.ring_writer import RingLogWriter
+from servobench.bench.run.timing_stats import CycleClock, PeriodStats
+from servobench.clock import SPIN_S, sleep_until
+from servobench.drivers.base import Drive
+
+#: The spin before each deadline at ``SCHED_FIFO`` [s]: a real-time thread wakes within
+#: tens of microseconds, so it need not spin the half cycle a time-shared one does
+#: (which, at real-time priority, would take half a CPU from every other process).
+RT_SPIN_S = 2e-4
+
+
+@dataclass
+class Run:
+    """One run being streamed: where its samples go and what watches them."""
+
+    number: int
+    writer: LogWriter | RingLogWriter
+    check: FeedbackCheck
+    progress: Callable[[int, int], None] | None
+    done: int  # samples of earlier runs
+    total: int  # samples of all runs
+    host: PeriodStats = field(default_factory=PeriodStats)
+    clock: PeriodStats = field(default_factory=PeriodStats)
+
+    def report(self, done_here: int) -> None:
+        if self.progress is not None:
+            self.progress(self.done + done_here, self.total)
+
+
+def stream_realtime(
+    drive: Drive, u: np.ndarray, dt: float, paced_by_drive: bool, run: Run, clock: CycleClock,
+    source: str,
+) -> None:
+    """The cyclic loop: absolute deadlines (sleep, then spin), the exchange, its instants.
+
+    Every sample's best instant and uncertainty (see the module docstring);
+    ``t`` counts from the run's first sample.
+    """
+    n = len(u)
+    by_drive = source == "drive"
+    append, mark, check = run.writer.append, clock.mark, run.check.check
+    monotonic = time.monotonic
+    every = max(1, n // 200)
+    acted = 0.0
+    spin_s = RT_SPIN_S if os.sched_getscheduler(0) == os.SCHED_FIFO else SPIN_S
+    t0_host = monotonic()
+    t_first = math.nan
+    for k in range(n):
+        deadline = t0_host + k * dt
+        if not paced_by_drive:
+            sleep_until(deadline, spin_s)
+        start = monotonic()
+        fb, applied = drive.exchange(u[k])
+        end = monotonic()
+        if by_drive:
+            t_abs, t_unc = fb.t_s, 0.0
+        elif fb.t_host_s == fb.t_host_s:  # the transport narrowed it
+            t_abs, t_unc = fb.t_host_s, fb.t_unc_s
+        else:
+            t_abs, t_unc = 0.5 * (start + end), 0.5 * (end - start)
+        check(fb.t_s, acted, fb.velocity, fb.position)
+        acted = applied
+        if k == 0:
+            t_first = t_abs
+        t = t_abs - t_first
+        t_host = end - t0_host
+        append(run.number, t, applied, fb.velocity, fb.position, t_host, t_unc)
+        mark(k, start if paced_by_drive else deadline, start, end, t_unc)
+        run.host.add(t_host)
+        run.clock.add(t)
+        if k % every == 0:
+            run.report(k + 1)
+    run.report(n)
+

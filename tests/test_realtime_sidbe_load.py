@@ -1,0 +1,84 @@
+"""A default ``sidbe`` through every served transport in real time, under CPU load (issue 22).
+
+The served drive runs in its own process with ``serve-sim --clock real``
+(its axis moves in wall-clock time) at real-time priority (``--rt-priority``:
+a real drive has a processor of its own), with and without its time stamp, while
+two busy processes (one per core) load the machine. Each run streams a few
+seconds (two periods of 0.5 s per run) at the rate the link carries; the
+model must come out within 3 % of the plant, and the log and the JSON must
+carry ``clock_source`` and the timing figures.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+
+from servobench.bench.log.io import read_log
+from servobench.bench.testing.served import ServedSim
+
+pytestmark = pytest.mark.slow
+
+PLANT = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
+SIM = "sim://?M=0.01&B=1&fc_pos=0.5&fc_neg=0.4"
+#: (transport, served with its time stamp); the ODrive protocol carries none.
+CASES = [
+    ("modbus-tcp", True), ("modbus-tcp", False), ("canopen", True), ("canopen", False),
+    ("modbus-rtu", True), ("modbus-rtu", False), ("serial", False),
+]  # fmt: skip
+SHORT = ["--periods", "2", "--period", "0.5", "--no-plots", "--max-iterations", "1"]
+
+
+@contextmanager
+def two_busy_processes() -> Iterator[None]:
+    """One spinning process per core (at most two), killed whatever happens."""
+    procs = []
+    try:
+        for cpu in sorted(os.sched_getaffinity(0))[:2]:
+            procs.append(subprocess.Popen(
+                [sys.executable, "-c", f"import os\nos.sched_setaffinity(0, {{{cpu}}})\nwhile True: pass"]
+            ))  # fmt: skip
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+        for p in procs:
+            p.wait()
+
+
+@pytest.mark.parametrize(("transport", "stamped"), CASES, ids=[f"{t}-{'stamp' if s else 'nostamp'}" for t, s in CASES])
+def test_default_sidbe_in_real_time_under_load(transport, stamped, tmp_path):
+    # the drive has its own processor, as a real one: real-time priority in its process
+    args = ["--clock", "real", "--rt-priority", "70"]
+    args += [] if stamped or transport == "serial" else ["--no-timestamp"]
+    with two_busy_processes(), ServedSim(transport, SIM, args) as served:
+        proc = subprocess.run(
+            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url, "--json",
+             "--out", str(tmp_path / "run"), *SHORT],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    model = json.loads(proc.stdout)
+    for key, true in PLANT.items():
+        assert model[key] == pytest.approx(true, rel=0.03), (key, model[key], model["timing"])
+    source = "drive" if stamped else "host"
+    assert model["clock_source"] == source
+    timing = model["timing"]
+    for key in ("jitter_p50_s", "jitter_p99_s", "jitter_max_s", "missed_cycles",
+                "model_error_pct", "model_error_max_pct", "within_accuracy"):  # fmt: skip
+        assert key in timing
+    assert timing["jitter_p99_s"] is not None and timing["jitter_p99_s"] >= 0
+    log = read_log(tmp_path / "run" / "log.csv")
+    assert log.complete
+    assert log.metadata["clock_source"] == source
+    assert log.metadata["rt_gc"] == "frozen/disabled"
+    for key in ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s", "missed_cycles"):
+        assert key in log.metadata
+    t_unc = log.runs[0].extra["t_unc"]
+    assert (t_unc == 0).all() if stamped else (t_unc > 0).all()
