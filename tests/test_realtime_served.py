@@ -83,7 +83,7 @@ def check_wall_clock_motion(rows, tol: float) -> None:
         assert low - tol <= fb.velocity <= high + tol, (before - b0, fb.velocity, low, high)
 
 
-@pytest.mark.parametrize(("transport", "args"), CASES, ids=lambda c: "-".join(c) or "stamped")
+@pytest.mark.parametrize(("transport", "args"), CASES, ids=[t if t == "serial" else f"{t}-{'no-timestamp' if a else 'stamped'}" for t, a in CASES])
 def test_feedback_is_the_plant_integrated_in_wall_clock_time(transport, args):
     with ServedSim(transport, PLANT, args, clock="real") as sim:
         if args:  # the printed URL reaches the drive without a time stamp
