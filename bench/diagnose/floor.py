@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData
-from servobench.bench.identify.derivative import differentiate_position, lowpass, settle_samples
+from servobench.bench.identify.derivative import differentiate_position, settle_samples
 from servobench.bench.identify.resolution import grid_step, step_noise_std
 
 #: A residual whose places together predict less than this share is noise-like ...
@@ -179,7 +179,7 @@ def derived_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[Floo
         est = differentiate_position(x, fs, cutoff, method).v
         lag.append((est - w)[edge:-edge])
         xq = _on_grid(x, step, r.x)
-        own.append((xq - lowpass(xq, fs, cutoff))[edge:-edge])
+        own.append((xq - differentiate_position(xq, fs, cutoff, method).x)[edge:-edge])
     expected = _mad_sigma(np.concatenate(own)) / math.sqrt(share) if own else 0.0
     noise_x = math.sqrt(max(0.0, measured**2 - expected**2))
     pct = 100.0 / spread if spread > 0 else 0.0
