@@ -81,8 +81,10 @@ def screen_all(
 class QuickScore:
     """Held-out gap [%] of the best screening guess, and where refits should start.
 
-    ``starts`` holds the best candidate built on the screening's main guess and, when the
-    screening offered alternatives, the best of those (rugged surfaces: both are refitted).
+    ``starts`` holds the best candidate built on the screening's main guess; the main guess
+    on the other base too when the two bases are far apart (:func:`unsettled`: the quick
+    simulation cannot tell which basin the refit will reach); and, when the screening offered
+    alternatives, the best of those (rugged surfaces: each is refitted).
     """
 
     name: str
@@ -90,10 +92,29 @@ class QuickScore:
     starts: tuple[Candidate, ...]
 
 
+#: Two bases are far apart when B or a Coulomb level differs by more than this factor.
+BASE_SPREAD = 2.0
+
+
+def unsettled(a: dict[str, float], b: dict[str, float]) -> bool:
+    """Whether bases ``a`` and ``b`` differ by more than :data:`BASE_SPREAD` in ``B`` or in
+    the mean Coulomb level: a current base whose best linear-plus-Coulomb fit wanted ``B < 0``
+    (a strong Stribeck curve) against the screening's joint fit with ``B`` held positive."""
+    for pair in (
+        (a["B"], b["B"]),
+        (a["coulomb_pos"] + a["coulomb_neg"], b["coulomb_pos"] + b["coulomb_neg"]),
+    ):
+        lo, hi = sorted(abs(float(x)) for x in pair)
+        if hi > BASE_SPREAD * lo:
+            return True
+    return False
+
+
 def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening) -> QuickScore:
     """Simulate the guesses with the current base, and the main guess with the jointly fitted
-    base too; keep the best main-guess and the best alternative candidate."""
-    trials = [(dict(current.base), dict(s.guess), True)]
+    base too; keep the best main-guess candidate, the other main one when the bases are far
+    apart, and the best alternative."""
+    trials = [(dict(current.base), dict(s.guess), "main")]
     if s.base is not None and all(np.isfinite(list(s.base.values()))):
         b = dict(s.base)
         if b["M"] > 0 and b["B"] > 0:
@@ -102,21 +123,26 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
                 "coulomb_pos": max(b["coulomb_pos"], 0.0),
                 "coulomb_neg": max(b["coulomb_neg"], 0.0),
             }
-            trials.append((b, dict(s.guess), True))
-    trials += [(dict(current.base), dict(g), False) for g in s.alternatives]
+            trials.append((b, dict(s.guess), "joint"))
+    trials += [(dict(current.base), dict(g), "alternative") for g in s.alternatives]
     which = held_out_windows(data)
-    best: dict[bool, tuple[float, Candidate]] = {}
-    for base, guess, main in trials:
+    best: dict[str, tuple[float, Candidate]] = {}
+    for base, guess, kind in trials:
         guess = library.project(name, guess, base)
         cand = Candidate(base, {**current.effects, name: guess})
         try:
             gap = gap_percent(data, simulate(data, cand, which), "held_out")
         except UsageError:
             continue
-        if np.isfinite(gap) and (main not in best or gap < best[main][0]):
-            best[main] = (gap, cand)
+        if np.isfinite(gap) and (kind not in best or gap < best[kind][0]):
+            best[kind] = (gap, cand)
     if not best:
         fallback = Candidate(dict(current.base), {**current.effects, name: dict(s.guess)})
         return QuickScore(name, float("inf"), (fallback,))
-    ranked = sorted(best.values(), key=lambda item: item[0])
+    mains = sorted((best[k] for k in ("main", "joint") if k in best), key=lambda item: item[0])
+    kept = mains[:1]
+    if len(mains) == 2 and unsettled(dict(mains[0][1].base), dict(mains[1][1].base)):
+        kept.append(mains[1])
+    kept += [best["alternative"]] if "alternative" in best else []
+    ranked = sorted(kept, key=lambda item: item[0])
     return QuickScore(name, ranked[0][0], tuple(c for _, c in ranked))

@@ -9,8 +9,11 @@ below the reference's and the gain is one the noise cannot produce
 singles so that two wrong terms that together mimic one missing effect
 (viscous plus drag for a Stribeck curve) do not win by greed: a pair is taken
 only when it pays against the best single, a single when it pays against the
-current model. Every candidate refitted carries the reason it was chosen or
-rejected (:class:`Tried`). The loop stops when nothing pays, or when the
+current model. A term that joins a model already holding effects (or comes
+in a pair) must also pay against the model without it refitted from the joint
+fit's values: otherwise a first effect stuck in a poor optimum lets a second
+soak up its residual. Every candidate refitted carries the reason it was
+chosen or rejected (:class:`Tried`). The loop stops when nothing pays, or when the
 model reaches the sensor-noise floor.
 """
 
@@ -142,6 +145,32 @@ class _Fitter:
         self.fixed.update({n: tuple(self.screens[n].fixed) for n in names})
 
 
+def _refit_ablate(
+    fitter: _Fitter, current: FitResult, chosen: tuple[str, ...], fit: FitResult
+) -> tuple[tuple[str, ...], FitResult, list[str]]:
+    """Drop new terms that pay only against a poorer fit of the others.
+
+    When the model already holds effects, or a pair comes in together, each new term must
+    pay against the model without it *refitted* from the joint fit's values: a first effect
+    fitted into a poor optimum (a Stribeck curve whose velocity got stuck) leaves a residual
+    a second effect soaks up, and the joint fit of the two moves the first one's parameters
+    to where it explains that residual alone.
+    """
+    if not (current.candidate.effects or len(chosen) > 1):
+        return chosen, fit, []
+    kept, dropped = list(chosen), []
+    for name in chosen:
+        cand = fit.candidate
+        rest = {k: v for k, v in cand.effects.items() if k != name}
+        others = tuple(n for n in kept if n != name)
+        trial = fitter.fit(Candidate(dict(cand.base), rest), others, scan=False)
+        if not payoff(fitter.data, trial, fit).pays:
+            kept.remove(name)
+            dropped.append(name)
+            fit = trial
+    return tuple(kept), fit, dropped
+
+
 def _pool(
     current: FitResult, screens: dict[str, Screening], quick: dict[str, QuickScore]
 ) -> list[str]:
@@ -256,8 +285,16 @@ def _round(
     return chosen, best, Round(current.gap_held_out, tuple(tried), skipped)
 
 
+#: Why ablation dropped terms (see :func:`_ablate` and :func:`_refit_ablate`).
+DROPPED = "the refitted model does as well without"
+DROPPED_REFIT = (
+    "the model without, refitted from the joint fit, does as well (the term only made up for "
+    "a poorer fit of the others)"
+)
+
+
 def _with_ablation(
-    rnd: Round, chosen: tuple[str, ...], dropped: list[str], fit: FitResult
+    rnd: Round, chosen: tuple[str, ...], dropped: list[str], fit: FitResult, why: str
 ) -> Round:
     """The round with the chosen candidate's reason saying which terms ablation dropped."""
     if not dropped:
@@ -267,8 +304,8 @@ def _with_ablation(
             t.effects,
             t.gap_held_out,
             t.chosen,
-            f"{t.reason}; then {', '.join(dropped)} dropped: the refitted model does as well "
-            f"without (held-out gap {fit.gap_held_out:.3g}%)"
+            f"{t.reason}; then {', '.join(dropped)} dropped: {why} (held-out gap "
+            f"{fit.gap_held_out:.3g}%)"
             if t.chosen
             else t.reason,
         )
@@ -322,15 +359,20 @@ def search(
             stop = "nothing in the library pays on held-out data"
             break
         chosen, best, dropped = _ablate(data, chosen, best)
-        rounds.append(_with_ablation(rnd, chosen, dropped, best))
+        rnd = _with_ablation(rnd, chosen, dropped, best, DROPPED)
+        chosen, best, dropped = _refit_ablate(fitter, current, chosen, best)
+        rounds.append(_with_ablation(rnd, chosen, dropped, best, DROPPED_REFIT))
         if not chosen:
-            # The refit only found a better optimum of the terms already there: keep it, name nothing.
-            if best.gap_held_out > (1 - MIN_GAIN) * current.gap_held_out:
-                stop = "nothing in the library pays on held-out data"
-                break
-            steps[-1] = Step(steps[-1].added, best, steps[-1].evidence)
-            current = best
-            continue
+            # The refit only found a better optimum of the terms already there: keep it, name
+            # nothing, and look again from there while it gains.
+            if best.gap_held_out < current.gap_held_out:
+                steps[-1] = Step(steps[-1].added, best, steps[-1].evidence)
+                gained = best.gap_held_out <= (1 - MIN_GAIN) * current.gap_held_out
+                current = best
+                if gained:
+                    continue
+            stop = "nothing in the library pays on held-out data"
+            break
         evidence = {
             n: f"{fitter.screens[n].evidence}; held-out gap {current.gap_held_out:.3g}% -> "
             f"{best.gap_held_out:.3g}%"

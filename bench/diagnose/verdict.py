@@ -1,27 +1,13 @@
 """Step 6: does the final model explain the data? The noise floor, the verdict, where the residual lives.
 
 Noise floor [% of the measured velocity's standard deviation, like the gap]:
-
-* *sensor noise*: white velocity-sensor noise from the high-frequency part of
-  the measured velocity (robust second differences,
-  :func:`~servobench.bench.diagnose.data.noise_std`); for velocity derived
-  from position, the position's high-frequency part (what the position filter
-  removes) carried through the same differentiating filter. A lower bound
-  when the noise is coloured;
-* *repeated periods*: on a periodic excitation (SIDBE's design in the log's
-  metadata, three periods or more), the scatter of the velocity from period to
-  period after the first -- all noise, white or coloured, and anything else
-  that does not repeat;
-* *unpredictable part*: of the final residual, what no function of the log's
-  signals predicts on held-out samples (below). Noise is independent of the
-  signals, so this too bounds it from above.
-
-The floor is the sensor noise. When the residual is noise-like -- all places
-together predict less than :data:`STRUCTURED` of it on held-out samples --
-the smaller of the two upper bounds raises it (coloured noise); a residual
-the signals do predict keeps the sensor-noise floor, so a structure cannot
-be mistaken for noise. The verdict is ``explained`` when the final gap is
-within :data:`VERDICT_FACTOR` of the floor, ``unexplained`` otherwise.
+:mod:`.floor` -- the measurement's parts (sensor noise, the resolution of
+every signal, the velocity estimate of a derived velocity), and the held-out
+residual's unpredictable part, which raises the floor only when the residual
+is noise-like (all places together predict less than
+:data:`~servobench.bench.diagnose.floor.STRUCTURED` of it on held-out samples).
+The verdict is ``explained`` when the final gap is within
+:data:`VERDICT_FACTOR` of the floor, ``unexplained`` otherwise.
 
 Where the residual lives: each *place* is a set of force-like regressors built
 from the log and the final model's own simulated motion -- velocity
@@ -47,7 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.floor import NoiseFloor, noise_floor
 from servobench.bench.diagnose.simulate import Candidate
 
 #: ``explained`` when the final gap is at most this multiple of the noise floor ...
@@ -68,10 +55,6 @@ LAGS = (0, 1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45)
 RIDGE = 1e-4
 #: A place predicting this share of the held-out residual energy is where it lives.
 STRONG = 0.25
-#: A residual whose places together predict less than this share is noise-like ...
-STRUCTURED = 0.3
-#: ... and its unpredictable part raises the floor when it exceeds the sensor noise this much.
-COLOURED = 1.2
 #: Time constants [s, samples] the linear block of the place regressors is held within.
 TAU_MAX_S = 1.0
 TAU_MIN_SAMPLES = 2
@@ -89,17 +72,6 @@ LABELS = {
     "the model lacks)",
     "command": "the command's level",
 }
-
-
-@dataclass(frozen=True)
-class NoiseFloor:
-    """The noise floor [%] and its estimates; ``repeat_percent`` is None without periods."""
-
-    percent: float
-    sensor_percent: float
-    repeat_percent: float | None
-    unpredictable_percent: float
-    source: str
 
 
 @dataclass(frozen=True)
@@ -274,24 +246,6 @@ def _held_out_share(X: np.ndarray, e: np.ndarray, train: np.ndarray, test: np.nd
 
 
 # ------------------------------------------------------------------ floor and verdict
-def repeat_percent(data: DiagnosisData) -> float | None:
-    """Period-to-period scatter [%] of the velocity after the first period; None without three
-    periods of a periodic design."""
-    design = data.prepared.design
-    periods = data.prepared.periodic_periods()
-    if design is None or periods < 3:
-        return None
-    n = design.samples_per_period
-    sq, count = 0.0, 0
-    for r in data.segments:
-        V = r.v[n : periods * n].reshape(periods - 1, n)
-        dev = V - V.mean(axis=0)
-        sq += float(np.sum(dev * dev))
-        count += (periods - 2) * n
-    spread = float(np.std(data.cat("v")))
-    return 100.0 * math.sqrt(sq / count) / spread if spread > 0 and count else None
-
-
 def _spectrum(data: DiagnosisData, e: np.ndarray) -> str:
     """Where the residual's energy lies in frequency, in words."""
     from scipy.signal import welch
@@ -343,58 +297,6 @@ def shares(
     return best, max(together, *best.values())
 
 
-def derived_noise_percent(data: DiagnosisData) -> float:
-    """Noise floor [%] of velocity derived from position: the position's high-frequency part
-    (what the position filter removes) through the same differentiating filter."""
-    from servobench.bench.identify.derivative import differentiate_position, settle_samples
-
-    segments = [s for s in data.segments if s.motion is not None and s.x is not None]
-    if not segments:
-        return 0.0
-    cutoff = segments[0].motion.cutoff_hz
-    hf = np.concatenate([s.x - s.motion.x for s in segments])
-    share = max(1e-3, 1.0 - cutoff / (0.5 * data.fs_hz))  # of white noise above the cut-off
-    sigma_x = 1.4826 * float(np.median(np.abs(hf - np.median(hf)))) / math.sqrt(share)
-    white = np.random.default_rng(0).normal(0.0, 1.0, 8192)
-    edge = settle_samples(data.fs_hz, cutoff)
-    gain = float(np.std(differentiate_position(white, data.fs_hz, cutoff).v[edge:-edge]))
-    spread = float(np.std(data.cat("v")))
-    return 100.0 * sigma_x * gain / spread if spread > 0 else 0.0
-
-
-def noise_floor(data: DiagnosisData, gap: float, together: float) -> NoiseFloor:
-    """The noise floor of a final model with ``gap`` [%] whose residual the places predict
-    ``together`` of on held-out samples; see the module docstring."""
-    sensor = derived_noise_percent(data) if data.derived else noise_floor_percent(data)
-    repeat = repeat_percent(data)
-    unpredictable = gap * math.sqrt(max(0.0, 1.0 - together))
-    floor, source = (
-        sensor,
-        "white sensor noise, from the high-frequency part of the "
-        + (
-            "position carried through the differentiating filter"
-            if data.derived
-            else "measured velocity"
-        ),
-    )
-    if data.v_step > 0:
-        source += (
-            f" and the rounding of a velocity reported in steps of {data.v_step:.4g} "
-            f"{data.units.of('v')} (step / sqrt 12)"
-        )
-    if together < STRUCTURED:
-        upper = min([unpredictable] + ([repeat] if repeat is not None else []))
-        if upper > COLOURED * sensor:
-            floor = upper
-            source = (
-                "the scatter of the velocity from one excitation period to the next"
-                if repeat is not None and repeat <= unpredictable
-                else "the part of the residual no signal of the log predicts on held-out "
-                "samples (coloured noise)"
-            )
-    return NoiseFloor(floor, sensor, repeat, unpredictable, source)
-
-
 def judge(
     data: DiagnosisData, final: Candidate, v_sim: Sequence[np.ndarray], gap: float
 ) -> Verdict:
@@ -405,7 +307,7 @@ def judge(
     e = np.where(ok, e, 0.0)
     by_place, together = shares(data, final, v_sim, e, ok & ~held, ok & held)
     places = tuple(sorted((Place(k, s) for k, s in by_place.items()), key=lambda p: -p.share))
-    floor = noise_floor(data, gap, together)
+    floor = noise_floor(data, gap, together, v_sim, final.base)
     spectrum = _spectrum(data, e[ok])
     explained = gap <= EXACT_GAP_PERCENT or gap <= VERDICT_FACTOR * floor.percent
     signature = ""

@@ -1,0 +1,323 @@
+"""The noise floor of the velocity gap: what the data allow a perfect model to reach, part by part.
+
+Every figure is a gap [% of the measured velocity's standard deviation], as the
+gap itself. The *measurement floor* is the root sum of squares of independent
+parts, each found from the log:
+
+* measured velocity -- ``velocity noise``: white sensor noise from its second
+  differences (:func:`~servobench.bench.diagnose.data.noise_std`);
+  ``velocity step``: the rounding of a velocity the drive reports in whole
+  steps, ``step / sqrt 12``;
+* velocity derived from position -- ``position step``: the encoder's step,
+  found from the differences of ``x``
+  (:func:`~servobench.bench.identify.resolution.grid_step`), its rounding
+  ``step / sqrt 12`` carried through the differentiating filter (its gain for
+  white noise, from its frequency response); ``position noise``: the
+  high-frequency part of the position (what the position filter removes),
+  beyond what the step and the final model's own motion put there, through the
+  same filter; ``velocity estimate``: the filter's smoothing of motion -- the
+  final model's simulated velocity against the same estimate made from its own
+  position, inside each comparison window away from its edges (a perfect
+  model differs from a filtered derivative by this much);
+* every log -- ``command step``: a command logged in whole steps, its rounding
+  through the model's linear block ``1/(M s + B)``.
+
+On top of it the held-out residual: of the final residual, the part no signal
+of the log predicts on held-out samples (:mod:`.verdict`). Noise is independent
+of the signals, so this bounds the noise from above; on a periodic excitation
+so does the scatter of the velocity from period to period. When the residual
+is noise-like (the signals predict less than ``STRUCTURED`` of it), the smaller
+of the two raises the floor where it exceeds the measurement floor (coloured
+noise); a residual the signals do predict keeps the measurement floor, so a
+structure is not mistaken for noise. :attr:`NoiseFloor.source` says which, with
+every part and its value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.identify.derivative import differentiate_position, settle_samples
+from servobench.bench.identify.resolution import grid_step, step_noise_std
+
+#: A residual whose places together predict less than this share is noise-like ...
+STRUCTURED = 0.3
+#: ... and its unpredictable part raises the floor when it exceeds the measurement floor this much.
+COLOURED = 1.2
+#: Time constants [s, samples] the linear block is held within (a fit with B near zero would
+#: integrate the command's rounding into a drift).
+TAU_MAX_S = 1.0
+TAU_MIN_SAMPLES = 2
+#: Normal consistency of the median absolute deviation.
+MAD_NORMAL = 1.4826
+
+
+@dataclass(frozen=True)
+class FloorPart:
+    """One independent part of the measurement floor: its name, its gap [%], how it was found."""
+
+    name: str
+    percent: float
+    detail: str
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "percent": self.percent, "detail": self.detail}
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """The noise floor [%] and its estimates; ``repeat_percent`` is None without periods.
+
+    Attributes
+    ----------
+    percent : float
+        The floor the verdict uses.
+    sensor_percent : float
+        The measurement floor: root sum of squares of ``parts``.
+    repeat_percent : float or None
+        Period-to-period scatter of the velocity.
+    unpredictable_percent : float
+        The final residual's part no signal predicts on held-out samples.
+    source : str
+        Where ``percent`` comes from, with every part and its value, in words.
+    parts : tuple of FloorPart
+    """
+
+    percent: float
+    sensor_percent: float
+    repeat_percent: float | None
+    unpredictable_percent: float
+    source: str
+    parts: tuple[FloorPart, ...] = ()
+
+
+# ------------------------------------------------------------------ the filter's gains
+def derivative_gain(fs_hz: float, cutoff_hz: float, method: str = "butter") -> float:
+    """Standard deviation [1/s] of the derived velocity per unit of white position noise: the
+    rms gain of the zero-phase filter and central difference over the band, from their
+    frequency response (Savitzky-Golay: its derivative taps)."""
+    dt = 1.0 / fs_hz
+    if method == "savgol":
+        from scipy.signal import savgol_coeffs
+
+        window = max(5, int(round(fs_hz / cutoff_hz)) | 1)
+        taps = savgol_coeffs(window, 3, deriv=1, delta=dt)
+        return float(np.sqrt(np.sum(taps * taps)))
+    from scipy.signal import butter, freqz
+
+    b, a = butter(4, cutoff_hz / (0.5 * fs_hz))
+    w, h = freqz(b, a, worN=8192)
+    power = np.abs(h) ** 4 * (np.sin(w) / dt) ** 2  # forward-backward, then central difference
+    return float(math.sqrt(np.trapezoid(power, w) / math.pi))
+
+
+def block_gain(M: float, B: float, dt_s: float) -> float:
+    """Standard deviation of velocity per unit of white force noise through ``1/(M s + B)``
+    under zero-order hold (stationary); ``M/B`` held within [TAU_MIN_SAMPLES dt, TAU_MAX_S]."""
+    B = min(max(B, M / TAU_MAX_S), M / (TAU_MIN_SAMPLES * dt_s))
+    a = math.exp(-dt_s * B / M)
+    b = (1.0 - a) / B
+    return b / math.sqrt(1.0 - a * a)
+
+
+# ------------------------------------------------------------------ parts
+def _mad_sigma(y: np.ndarray) -> float:
+    return MAD_NORMAL * float(np.median(np.abs(y - np.median(y))))
+
+
+def _windows(data: DiagnosisData, i: int) -> list[tuple[int, int]]:
+    starts = data.starts[i]
+    ends = np.append(starts[1:], len(data.segments[i]))
+    return [(int(s), int(e)) for s, e in zip(starts, ends, strict=True)]
+
+
+def _model_positions(data: DiagnosisData, v_sim: Sequence[np.ndarray], edge: int):
+    """Per comparison window: the model's simulated velocity and the position it integrates to
+    from the measured position at the window's start (trapezoids). Windows shorter than
+    ``edge`` samples at each end and some between, or that the simulation did not reach, are
+    left out: the filter's edge transient (its padding) is not the estimate's smoothing."""
+    for i, (r, vs) in enumerate(zip(data.segments, v_sim, strict=True)):
+        if r.motion is None:
+            continue
+        for s, e in _windows(data, i):
+            w = np.asarray(vs[s:e], dtype=float)
+            if w.size < 2 * edge + 10 or not np.all(np.isfinite(w)):
+                continue
+            steps = 0.5 * (w[1:] + w[:-1]) * data.dt_s
+            yield r, w, float(r.position[s]) + np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def _on_grid(x: np.ndarray, step: float, like: np.ndarray) -> np.ndarray:
+    """``x`` rounded to the grid of ``step`` that ``like``'s values lie on."""
+    if step <= 0:
+        return x
+    origin = float(like[0]) - step * round(float(like[0]) / step)
+    return origin + step * np.round((x - origin) / step)
+
+
+def derived_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[FloorPart]:
+    """Parts of a velocity derived from position (see the module docstring)."""
+    segments = [s for s in data.segments if s.motion is not None and s.x is not None]
+    if not segments:
+        return []
+    fs, spread = data.fs_hz, float(np.std(data.cat("v")))
+    cutoff, method = segments[0].motion.cutoff_hz, segments[0].motion.method
+    unit_x, unit_v = data.units.of("x"), data.units.of("v")
+    gain = derivative_gain(fs, cutoff, method)
+    step = grid_step(np.concatenate([s.x for s in segments]))
+    share = max(1e-3, 1.0 - cutoff / (0.5 * fs))  # of white noise above the cut-off
+    measured = _mad_sigma(np.concatenate([s.x - s.motion.x for s in segments])) / math.sqrt(share)
+    # What the step and the model's own motion alone put in the high-frequency part.
+    lag, own = [], []
+    edge = settle_samples(fs, cutoff)
+    for r, w, x in _model_positions(data, v_sim, edge):
+        est = differentiate_position(x, fs, cutoff, method).v
+        lag.append((est - w)[edge:-edge])
+        xq = _on_grid(x, step, r.x)
+        own.append((xq - differentiate_position(xq, fs, cutoff, method).x)[edge:-edge])
+    expected = _mad_sigma(np.concatenate(own)) / math.sqrt(share) if own else 0.0
+    noise_x = math.sqrt(max(0.0, measured**2 - expected**2))
+    pct = 100.0 / spread if spread > 0 else 0.0
+    parts = [
+        FloorPart(
+            "position noise",
+            pct * noise_x * gain,
+            f"the position's high-frequency part beyond its step and the model's own motion, "
+            f"{noise_x:.3g} {unit_x} rms, through the differentiating filter ({gain:.4g} 1/s "
+            f"for white noise, cut-off {cutoff:.4g} Hz)",
+        )
+    ]
+    if step > 0:
+        parts.append(
+            FloorPart(
+                "position step",
+                pct * step_noise_std(step) * gain,
+                f"the encoder's step of {step:.4g} {unit_x} in the differences of x (step / "
+                f"sqrt 12 = {step_noise_std(step):.3g} {unit_x}) through the same filter",
+            )
+        )
+    if lag:
+        e = np.concatenate(lag)
+        parts.append(
+            FloorPart(
+                "velocity estimate",
+                pct * float(np.sqrt(np.mean(e * e))),
+                f"the filter's smoothing of motion: the final model's velocity against the same "
+                f"estimate from its own position, {float(np.sqrt(np.mean(e * e))):.3g} {unit_v} "
+                "rms",
+            )
+        )
+    return parts
+
+
+def measured_parts(data: DiagnosisData) -> list[FloorPart]:
+    """Parts of a measured velocity: white noise and the rounding of a stepped velocity."""
+    spread = float(np.std(data.cat("v")))
+    pct = 100.0 / spread if spread > 0 else 0.0
+    rounding = step_noise_std(data.v_step)
+    white = math.sqrt(max(0.0, data.sigma_v**2 - rounding**2))
+    unit_v = data.units.of("v")
+    parts = [
+        FloorPart(
+            "velocity noise",
+            pct * white,
+            f"white sensor noise from the second differences of the measured velocity, "
+            f"{white:.3g} {unit_v} rms",
+        )
+    ]
+    if data.v_step > 0:
+        parts.append(
+            FloorPart(
+                "velocity step",
+                pct * rounding,
+                f"the rounding of a velocity reported in steps of {data.v_step:.4g} {unit_v} "
+                f"(step / sqrt 12 = {rounding:.3g} {unit_v})",
+            )
+        )
+    return parts
+
+
+def command_part(data: DiagnosisData, base: Mapping[str, float]) -> FloorPart | None:
+    """The rounding of a command logged in steps, through the model's linear block."""
+    step = grid_step(data.cat("u"))
+    spread = float(np.std(data.cat("v")))
+    if step <= 0 or spread <= 0:
+        return None
+    sigma = step_noise_std(step) * block_gain(float(base["M"]), float(base["B"]), data.dt_s)
+    unit_u = data.units.of("u")
+    return FloorPart(
+        "command step",
+        100.0 * sigma / spread,
+        f"a command logged in steps of {step:.4g} {unit_u} (step / sqrt 12 = "
+        f"{step_noise_std(step):.3g} {unit_u}) through the model's linear block 1/(M s + B)",
+    )
+
+
+def repeat_percent(data: DiagnosisData) -> float | None:
+    """Period-to-period scatter [%] of the velocity after the first period; None without three
+    periods of a periodic design."""
+    design = data.prepared.design
+    periods = data.prepared.periodic_periods()
+    if design is None or periods < 3:
+        return None
+    n = design.samples_per_period
+    sq, count = 0.0, 0
+    for r in data.segments:
+        V = r.v[n : periods * n].reshape(periods - 1, n)
+        dev = V - V.mean(axis=0)
+        sq += float(np.sum(dev * dev))
+        count += (periods - 2) * n
+    spread = float(np.std(data.cat("v")))
+    return 100.0 * math.sqrt(sq / count) / spread if spread > 0 and count else None
+
+
+def _listed(parts: Sequence[FloorPart]) -> str:
+    return "; ".join(f"{p.name} {p.percent:.3g}% ({p.detail})" for p in parts)
+
+
+def noise_floor(
+    data: DiagnosisData,
+    gap: float,
+    together: float,
+    v_sim: Sequence[np.ndarray],
+    base: Mapping[str, float],
+) -> NoiseFloor:
+    """The noise floor of a final model (``base``, simulated velocity ``v_sim`` per run) with
+    ``gap`` [%] whose residual the places predict ``together`` of on held-out samples; see the
+    module docstring."""
+    parts = derived_parts(data, v_sim) if data.derived else measured_parts(data)
+    command = command_part(data, base)
+    parts += [command] if command is not None else []
+    sensor = math.sqrt(sum(p.percent**2 for p in parts))
+    repeat = repeat_percent(data)
+    unpredictable = gap * math.sqrt(max(0.0, 1.0 - together))
+    floor = sensor
+    source = f"the measurement, {sensor:.3g}% (root sum of squares of: {_listed(parts)})"
+    if together < STRUCTURED:
+        upper = min([unpredictable] + ([repeat] if repeat is not None else []))
+        if upper > COLOURED * sensor:
+            floor = upper
+            source = (
+                f"the scatter of the velocity from one excitation period to the next, "
+                f"{repeat:.3g}%"
+                if repeat is not None and repeat <= unpredictable
+                else f"the part of the residual no signal of the log predicts on held-out "
+                f"samples (coloured noise), {unpredictable:.3g}%"
+            ) + f", above the measurement's {sensor:.3g}% ({_listed(parts)})"
+        else:
+            source += (
+                f"; the residual's part no signal predicts on held-out samples, "
+                f"{unpredictable:.3g}%, does not exceed it"
+            )
+    else:
+        source += (
+            f"; the held-out residual's unpredictable part, {unpredictable:.3g}%, is not "
+            f"counted: the log's signals predict {100 * together:.0f}% of the residual on "
+            "held-out samples (a structure, not noise)"
+        )
+    return NoiseFloor(floor, sensor, repeat, unpredictable, source, tuple(parts))
