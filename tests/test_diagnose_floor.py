@@ -22,10 +22,10 @@ from servobench.bench.diagnose.data import prepare
 from servobench.bench.diagnose.simulate import Candidate, gap_percent, simulate
 from servobench.bench.diagnose.verdict import judge
 from servobench.bench.diagnose.workflow import diagnose
-from servobench.bench.excitation import make_design
 from servobench.bench.identify.derivative import differentiate_position, settle_samples
 from servobench.bench.identify.resolution import grid_step
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
+from servobench.bench.procedure.excitation import make_design
 from servobench.bench.report.diagnose import summary_lines, to_json, write_report
 from servobench.bench.testing.synthetic import simulate_experiment
 from servobench.sim_backend.physics.plant import PlantParams

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from servobench.bench.diagnose.workflow import diagnose
-from servobench.bench.logio import read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.testing.hidden_effects import HiddenCase, write_case_log
 from servobench.sim_backend.physics.plant import PlantParams
 
