@@ -47,7 +47,7 @@ def test_commission_verdict_agrees_everywhere_and_programs_the_diagnosed_model(t
     config = tmp_path / "bench.toml"
     config.write_text(CONFIG)
     out = tmp_path / "record"
-    with ServedSim("modbus-tcp", PLANT) as served:
+    with ServedSim("modbus-tcp", PLANT, clock="lockstep") as served:  # streamed fast: lock-step
         url = fast(served.url)
         rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(out)])
         terminal = capsys.readouterr().out

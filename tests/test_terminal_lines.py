@@ -56,8 +56,8 @@ def test_a_lost_link_is_one_line_naming_the_drive_and_the_state_of_the_axis(tmp_
         served.stop()
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("servobench: error")]
     assert rc == 1 and len(err) == 1, err
-    where = url.split("?")[0]
-    assert f"lost the link to the drive {where}" in err[0]
+    where = url.split("?")[0].split("//")[1]  # host:port, named by the Drive layer or the driver
+    assert where in err[0] and "lost" in err[0]
     assert "watchdog" in err[0] and "stops it within 0.5 s" in err[0]
     assert "partial log kept" in err[0]
     assert not err[0].startswith("servobench: error: Connection reset by peer")

@@ -100,7 +100,7 @@ class EthercatDrive(Drive):
         self.bus: EthercatMaster | None = None
         self.scaling: Scaling | None = None
         self.supports_drive_hold = False
-        self.clock_source = ""
+        self._clock_description = ""
         self._cycle_s = DEFAULT_CYCLE_S
         self._values: dict[int, int] = {}
         self._x_unwrap = CounterUnwrap(32)
@@ -152,7 +152,7 @@ class EthercatDrive(Drive):
         self._hold_reason = self._hold_check(bus, modes)
         self.supports_drive_hold = self._hold_reason is None
         bus.go_op(self._cycle_s)
-        self.clock_source = (
+        self._clock_description = (
             "0x10F8 DC system time of each sample [ns]" if bus.tx.has(0x10F8)
             else "0x1013 time stamp of each sample [µs]" if bus.tx.has(0x1013)
             else "DC system time of each sample (the SYNC0 event before each frame)"
@@ -416,7 +416,7 @@ class EthercatDrive(Drive):
             meta[f"scale_{key}"] = f"{factor.scale:.12g}"
             meta[f"scale_{key}_source"] = factor.source
         meta.update(
-            drive_clock=self.clock_source,
+            drive_clock=self._clock_description,
             distributed_clocks=(f"SYNC0 every {self._cycle_s * 1e6:.0f} µs"
                                 + (", DC-synchronous (0x1C32:01 = 2)" if self.bus.dc_synchronous
                                    else "")) if self.bus.has_dc else "none",
