@@ -43,10 +43,10 @@ from servobench.bench.testing.fault_scenarios import (  # noqa: E402
     wait_for_state,
 )
 from servobench.bench.testing.served import ServedSim  # noqa: E402
-from servobench.drivers.ascii_line import decode_reply  # noqa: E402
-from servobench.drivers.dialect import dialect_path, load_dialect, parse_dialect  # noqa: E402
+from servobench.drivers.modbus.regmap import parse_map, resolve_map  # noqa: E402
 from servobench.drivers.registry import BACKENDS, open_drive, resolve  # noqa: E402
-from servobench.drivers.regmap import parse_map, resolve_map  # noqa: E402
+from servobench.drivers.serial.ascii_line import decode_reply  # noqa: E402
+from servobench.drivers.serial.dialect import dialect_path, load_dialect, parse_dialect  # noqa: E402
 from servobench.errors import ServobenchError  # noqa: E402
 from servobench.sim_backend.faults.spec import TRANSPORTS  # noqa: E402
 

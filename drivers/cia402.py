@@ -1,8 +1,8 @@
 """The CiA 402 power state machine as data, shared by host and drive.
 
-Pure: no I/O. The host side (:mod:`servobench.drivers.canopen402`) decodes statuswords
+Pure: no I/O. The host side (:mod:`servobench.drivers.canopen.drive`) decodes statuswords
 with :func:`decode_statusword` and walks :func:`plan`; the simulated drive
-(:mod:`servobench.sim_backend.servers.can_drive`) steps :func:`next_state` on every controlword
+(:mod:`servobench.sim_backend.servers.canopen.drive`) steps :func:`next_state` on every controlword
 it receives. Both read the same :data:`SW_MASK` and :data:`TRANSITIONTABLE`,
 so they agree by construction.
 

@@ -1,8 +1,8 @@
 """CiA 402 factor group -> SI scale factors of the command, velocity and position.
 
-Pure: no I/O. The host (:mod:`servobench.drivers.canopen402`) reads the objects
+Pure: no I/O. The host (:mod:`servobench.drivers.canopen.drive`) reads the objects
 below where the drive has them and calls :func:`derive_scaling`; the served
-drive (:mod:`servobench.sim_backend.servers.can_factor`) decodes its own unit
+drive (:mod:`servobench.sim_backend.servers.canopen.factor`) decodes its own unit
 codes with :func:`decode_si_unit`.
 
 Objects (CiA 402-2; absent ones are ``None`` in :class:`FactorObjects`)::

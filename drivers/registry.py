@@ -21,10 +21,10 @@ if TYPE_CHECKING:
 #: Built-in backends: URL scheme -> (module, class name).
 BACKENDS: dict[str, tuple[str, str]] = {
     "sim": ("servobench.drivers.sim", "SimDrive"),
-    "canopen": ("servobench.drivers.canopen402", "CANopen402Drive"),
-    "modbus+tcp": ("servobench.drivers.modbus", "ModbusDrive"),
-    "modbus+rtu": ("servobench.drivers.modbus", "ModbusDrive"),
-    "serial": ("servobench.drivers.serial_ascii", "SerialAsciiDrive"),
+    "canopen": ("servobench.drivers.canopen.drive", "CANopen402Drive"),
+    "modbus+tcp": ("servobench.drivers.modbus.drive", "ModbusDrive"),
+    "modbus+rtu": ("servobench.drivers.modbus.drive", "ModbusDrive"),
+    "serial": ("servobench.drivers.serial.drive", "SerialAsciiDrive"),
     "ethercat": ("servobench.drivers.ethercat.drive", "EthercatDrive"),
 }
 

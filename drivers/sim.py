@@ -18,7 +18,7 @@ the runner paces it; there is no block exchange.
 
 Drive-side position hold: with ``pos_kp``, ``pos_ki`` or ``pos_kd`` in the
 URL the simulated drive has its own position loop -- the served CiA 402
-drive's (:mod:`servobench.sim_backend.servers.can_position_loop`), the keys
+drive's (:mod:`servobench.sim_backend.servers.canopen.position_loop`), the keys
 not given from the plant as there -- and
 :attr:`~servobench.drivers.base.Drive.supports_drive_hold` is true. While it
 holds ``x_ref`` (:meth:`~servobench.drivers.base.Drive.hold_position`), each
@@ -43,7 +43,11 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import REAL, PowerState, SimulatedDevice, clock_mode_from_url
-from servobench.sim_backend.servers.can_position_loop import Gains, PositionLoop, gains_from_keys
+from servobench.sim_backend.servers.canopen.position_loop import (
+    Gains,
+    PositionLoop,
+    gains_from_keys,
+)
 from servobench.sim_backend.simurl import plant_from_url, sim_query_keys, units_from_url
 
 #: Keys of the simulated drive's own position loop (those of the served CiA 402 drive).

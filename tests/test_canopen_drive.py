@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from servobench.bench.testing.served_canopen import served, station
-from servobench.drivers.canopen402 import CANopen402Drive
+from servobench.drivers.canopen.drive import CANopen402Drive
 from servobench.drivers.registry import open_drive
 from servobench.drivers.url import parse_drive_url
 from servobench.errors import (
@@ -26,7 +26,7 @@ from servobench.errors import (
 )
 from servobench.sim_backend.device import PowerState
 from servobench.sim_backend.physics.plant import PlantParams, simulate
-from servobench.sim_backend.servers import serve_canopen
+from servobench.sim_backend.servers.canopen import serve_canopen
 
 
 def square(n: int, period: int = 100, amp: float = 1.0) -> np.ndarray:

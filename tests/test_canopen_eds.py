@@ -22,7 +22,7 @@ import pytest
 from canopen.objectdictionary import ODVariable
 
 from servobench.bench.testing.served_canopen import raw_bus, request, served
-from servobench.drivers.canopen_link import load_eds, shipped_eds
+from servobench.drivers.canopen.link import load_eds, shipped_eds
 from servobench.drivers.cia402 import MODE_CSP, MODE_CST, MODE_PROFILE_TORQUE, supports_mode
 
 NODE = 2

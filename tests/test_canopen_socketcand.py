@@ -14,7 +14,8 @@ from can.interfaces.socketcand.socketcand import (
     convert_can_message_to_ascii_message,
 )
 
-from servobench.sim_backend.servers.can_wire import (
+from servobench.sim_backend.servers.canopen.socketcand_server import SocketcandHub
+from servobench.sim_backend.servers.canopen.wire import (
     CanFrame,
     WireError,
     encode_frame,
@@ -23,7 +24,6 @@ from servobench.sim_backend.servers.can_wire import (
     parse_send,
     split_commands,
 )
-from servobench.sim_backend.servers.socketcand_server import SocketcandHub
 
 FRAMES = [
     CanFrame(0x000, b""),

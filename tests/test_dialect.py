@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from servobench.drivers.ascii_line import (
+from servobench.drivers.serial.ascii_line import (
     MalformedReplyError,
     decode_reply,
     decode_request,
     encode_line,
     xor_checksum,
 )
-from servobench.drivers.dialect import (
+from servobench.drivers.serial.dialect import (
     COMMAND_SPECS,
     DIALECT_DIR,
     CommandRejectedError,

@@ -12,8 +12,8 @@ import copy
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from servobench.drivers.dialect import dialect_path, load_dialect, parse_dialect
-from servobench.drivers.regmap import load_map, parse_map, resolve_map
+from servobench.drivers.modbus.regmap import load_map, parse_map, resolve_map
+from servobench.drivers.serial.dialect import dialect_path, load_dialect, parse_dialect
 from servobench.errors import DriveConfigError
 
 try:

@@ -1,8 +1,8 @@
 """Fuzz the serial line parser on both sides: any bytes give a value or one typed error.
 
-Host side: :func:`servobench.drivers.ascii_line.decode_reply` and
-:meth:`servobench.drivers.dialect.Dialect.parse_reply` (a reply line is parsed, or
-:class:`~servobench.drivers.ascii_line.MalformedReplyError` in one line; parsed floats
+Host side: :func:`servobench.drivers.serial.ascii_line.decode_reply` and
+:meth:`servobench.drivers.serial.dialect.Dialect.parse_reply` (a reply line is parsed, or
+:class:`~servobench.drivers.serial.ascii_line.MalformedReplyError` in one line; parsed floats
 are finite). Drive side: the served dialect's request handler answers any
 line with bytes (possibly none) and never raises.
 """
@@ -14,16 +14,16 @@ import math
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from servobench.drivers.ascii_line import (
+from servobench.drivers.serial.ascii_line import (
     MalformedReplyError,
     decode_reply,
     decode_request,
     xor_checksum,
 )
-from servobench.drivers.dialect import REPLY_FIELDS, load_dialect
+from servobench.drivers.serial.dialect import REPLY_FIELDS, load_dialect
 from servobench.sim_backend.device import SimulatedDevice
 from servobench.sim_backend.physics.plant import PlantParams
-from servobench.sim_backend.servers.serve_serial import AsciiDriveServer
+from servobench.sim_backend.servers.serial.serve_serial import AsciiDriveServer
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 ODRIVE = load_dialect("odrive")

@@ -84,7 +84,7 @@ def test_a_subcommand_imports_only_its_own_module():
     commands = {m for m in loaded if m.startswith("servobench.bench.commands.")}
     assert "servobench.bench.commands.identify" in commands
     assert "servobench.bench.commands.sidbe" not in commands
-    assert "servobench.drivers.canopen402" not in loaded
+    assert "servobench.drivers.canopen.drive" not in loaded
 
 
 def test_cli_loads_where_grp_does_not_exist():
@@ -216,3 +216,41 @@ def test_installed_wheel_runs_outside_the_checkout(wheel, tmp_path):
     assert '"pole"' in sidbe.stdout
     rules = run("-c", "from servobench.udev.rules import shipped_rules; print(len(shipped_rules()))")
     assert rules.stdout.strip() == "3", rules.stderr
+
+
+def test_transport_folders_do_not_shadow_the_libraries_of_the_same_name():
+    """``servobench.drivers.canopen`` and ``.serial`` sit beside the canopen and pyserial libraries.
+
+    Every import is absolute, so a module inside ``drivers/canopen/`` that says ``import canopen``
+    gets the library, not its own package; the same for ``serial``. Both orders of import are
+    checked in fresh interpreters, and the library found is the one installed outside the folders.
+    """
+    code = (
+        "import importlib, sys\n"
+        "order = sys.argv[1:]\n"
+        "for name in order:\n"
+        "    importlib.import_module(name)\n"
+        "import canopen, serial\n"
+        "from servobench.drivers.canopen import link, sdo, session\n"
+        "from servobench.drivers.serial import link as serial_link\n"
+        "from servobench.sim_backend.servers.canopen import drive as served\n"
+        "assert link.canopen is canopen and sdo.canopen is canopen and session.canopen is canopen\n"
+        "assert served.canopen is canopen and serial_link.serial is serial\n"
+        "assert canopen.BaseNode402 and canopen.Network, canopen\n"
+        "assert serial.Serial and serial.SerialException, serial\n"
+        "import servobench.drivers.canopen as ours_c, servobench.drivers.serial as ours_s\n"
+        "assert ours_c is not canopen and ours_s is not serial\n"
+        "print(canopen.__file__)\nprint(serial.__file__)\n"
+    )
+    for order in (
+        ["canopen", "serial", "servobench.drivers.canopen.drive", "servobench.drivers.serial.drive"],
+        ["servobench.drivers.canopen.drive", "servobench.drivers.serial.drive", "canopen", "serial"],
+    ):
+        out = subprocess.run(
+            [sys.executable, "-c", code, *order], capture_output=True, text=True, timeout=120
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        for path in out.stdout.split():
+            where = Path(path).resolve()
+            assert not where.is_relative_to(REPO / "drivers"), where
+            assert not where.is_relative_to(REPO / "sim_backend"), where

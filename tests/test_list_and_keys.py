@@ -31,8 +31,8 @@ def listed(what: str, tmp_path) -> object:
 
 
 def test_maps_and_dialects_load_by_the_names_listed(tmp_path):
-    from servobench.drivers.dialect import load_dialect
-    from servobench.drivers.regmap import load_map
+    from servobench.drivers.modbus.regmap import load_map
+    from servobench.drivers.serial.dialect import load_dialect
 
     maps = listed("maps", tmp_path)
     assert {"servobench-sim", "zlac8015d"} <= {m["name"] for m in maps}

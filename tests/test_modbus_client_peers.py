@@ -32,8 +32,8 @@ from umodbus.server.serial.rtu import RTUServer
 from umodbus.server.tcp import RequestHandler, get_server
 
 from servobench.bench.testing.served_modbus import host_port, rtu_path, served_modbus
+from servobench.drivers.modbus.regmap import resolve_map
 from servobench.drivers.registry import open_drive
-from servobench.drivers.regmap import resolve_map
 from servobench.errors import DriveConfigError, DriveTimeoutError, DriveWarning
 from servobench.sim_backend.device import PowerState, SimulatedDevice
 from servobench.sim_backend.physics.plant import PlantParams, simulate

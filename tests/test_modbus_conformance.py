@@ -27,7 +27,7 @@ from pyModbusTCP.client import ModbusClient
 from servobench import __version__
 from servobench.bench.testing.served_modbus import host_port, rtu_path, served_modbus
 from servobench.sim_backend.device import PowerState, SimulatedDevice
-from servobench.sim_backend.servers.modbus_framing import crc16
+from servobench.sim_backend.servers.modbus.framing import crc16
 
 #: servobench-sim.toml addresses (0-based PDU addresses).
 CONTROL, WATCHDOG, COMMAND, STATUS, FAULT, VELOCITY = 0x00, 0x01, 0x10, 0x20, 0x21, 0x24

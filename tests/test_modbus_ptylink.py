@@ -7,8 +7,8 @@ import time
 import pytest
 import serial
 
+from servobench.sim_backend.servers.modbus.serve_modbus import rtu_frame_gap_s
 from servobench.sim_backend.servers.pty_link import PtyLink
-from servobench.sim_backend.servers.serve_modbus import rtu_frame_gap_s
 
 
 def test_passes_bytes_both_ways_and_survives_reopen():

@@ -16,8 +16,8 @@ import pytest
 
 from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.drivers.link_budget import modbus_rtu_cycle_s, modbus_rtu_frames
+from servobench.drivers.modbus.regmap import RegisterMap, load_map, resolve_map
 from servobench.drivers.registry import open_drive
-from servobench.drivers.regmap import RegisterMap, load_map, resolve_map
 
 BAUD = 115200
 

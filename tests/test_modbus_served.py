@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from servobench.bench.testing.served_modbus import served_modbus
-from servobench.drivers.modbus import ModbusDrive, exception_error
+from servobench.drivers.modbus.drive import ModbusDrive, exception_error
+from servobench.drivers.modbus.regmap import resolve_map
 from servobench.drivers.registry import open_drive
-from servobench.drivers.regmap import resolve_map
 from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
@@ -29,7 +29,7 @@ from servobench.sim_backend.device import (
     SimulatedDevice,
 )
 from servobench.sim_backend.physics.plant import PlantParams, simulate
-from servobench.sim_backend.servers.serve_modbus import parse_faults
+from servobench.sim_backend.servers.modbus.serve_modbus import parse_faults
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)

@@ -17,12 +17,12 @@ import pytest
 import serial
 
 from servobench.bench.testing.served import ServedSim
-from servobench.drivers.dialect import load_dialect
 from servobench.drivers.registry import open_drive
+from servobench.drivers.serial.dialect import load_dialect
 from servobench.errors import DriveConfigError, DriveWarning
 from servobench.sim_backend.device import PowerState, SimulatedDevice
 from servobench.sim_backend.physics.plant import PlantParams
-from servobench.sim_backend.servers.serve_serial import AsciiDriveServer
+from servobench.sim_backend.servers.serial.serve_serial import AsciiDriveServer
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 WATCHDOG_TIMER_EXPIRED = 0x800

@@ -298,7 +298,7 @@ def test_a_run_with_bad_timing_says_so_in_its_first_lines(tmp_path):
 def test_kernel_sync_names_the_sync_of_each_answer_and_counts_late_rpdos_and_missed_syncs():
     from types import SimpleNamespace
 
-    from servobench.drivers.canopen_cycle import MAX_FRAME_BITS, CycleIO, sync_index
+    from servobench.drivers.canopen.cycle import MAX_FRAME_BITS, CycleIO, sync_index
 
     assert sync_index(100.0032, 100.0, 1e-3) == 3
     io = CycleIO(SimpleNamespace(bitrate=1_000_000, sync_cob=0x80), None, None)
@@ -318,7 +318,7 @@ def test_the_kernel_sync_is_python_cans_periodic_send():
 
     import can
 
-    from servobench.drivers.canopen_cycle import CycleIO
+    from servobench.drivers.canopen.cycle import CycleIO
 
     with can.Bus(interface="virtual", channel="rt-sync") as host, \
             can.Bus(interface="virtual", channel="rt-sync") as drive:  # fmt: skip

@@ -35,7 +35,7 @@ from pyModbusTCP.client import ModbusClient
 from servobench.bench.testing.served import ServedSim
 from servobench.bench.testing.served_canopen import served, station
 from servobench.bench.testing.served_modbus import host_port, served_modbus
-from servobench.drivers.canopen_link import load_eds
+from servobench.drivers.canopen.link import load_eds
 from servobench.drivers.registry import open_drive
 from servobench.errors import DriveConfigError
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from servobench.drivers.regmap import (
+from servobench.drivers.modbus.regmap import (
     Register,
     decode,
     decode_raw,
@@ -29,7 +29,7 @@ from servobench.tomlfile import read_toml
 def reg(
     fmt: str, scale: float = 1.0, word_order: str = "big", byte_order: str = "big", count: int = 0
 ) -> Register:
-    from servobench.drivers.regmap import FORMATS
+    from servobench.drivers.modbus.regmap import FORMATS
 
     return Register("r", 0, fmt, count or FORMATS[fmt][1], scale, word_order, byte_order)
 

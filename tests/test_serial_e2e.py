@@ -17,9 +17,9 @@ import pytest
 from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import ServedSim
-from servobench.drivers.ascii_line import MalformedReplyError
-from servobench.drivers.dialect import DIALECT_DIR, CommandRejectedError
 from servobench.drivers.registry import open_drive
+from servobench.drivers.serial.ascii_line import MalformedReplyError
+from servobench.drivers.serial.dialect import DIALECT_DIR, CommandRejectedError
 from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
@@ -29,7 +29,7 @@ from servobench.errors import (
     StateTransitionError,
 )
 from servobench.sim_backend.physics.plant import PlantParams, simulate
-from servobench.sim_backend.servers.serve_serial import PtyPort
+from servobench.sim_backend.servers.serial.serve_serial import PtyPort
 
 SIM = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)

@@ -8,12 +8,12 @@ import time
 import pytest
 import serial
 
-from servobench.drivers.ascii_line import encode_line, xor_checksum
-from servobench.drivers.dialect import load_dialect
+from servobench.drivers.serial.ascii_line import encode_line, xor_checksum
+from servobench.drivers.serial.dialect import load_dialect
 from servobench.errors import DriveConfigError
 from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
 from servobench.sim_backend.physics.plant import PlantParams
-from servobench.sim_backend.servers.serve_serial import (
+from servobench.sim_backend.servers.serial.serve_serial import (
     AsciiDriveServer,
     PtyPort,
     UartClock,

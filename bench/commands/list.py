@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------ the tables
 def maps() -> list[dict[str, Any]]:
     """Every shipped register map: name, description, units, source."""
-    from servobench.drivers.regmap import load_map, shipped_maps
+    from servobench.drivers.modbus.regmap import load_map, shipped_maps
 
     out = []
     for name in shipped_maps():
@@ -54,7 +54,7 @@ def maps() -> list[dict[str, Any]]:
 
 def dialects() -> list[dict[str, Any]]:
     """Every shipped serial dialect: name, protocol, firmware, units, reference."""
-    from servobench.drivers.dialect import load_dialect, shipped_dialects
+    from servobench.drivers.serial.dialect import load_dialect, shipped_dialects
 
     out = []
     for name in shipped_dialects():

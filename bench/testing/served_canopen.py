@@ -1,6 +1,6 @@
 """The served CiA 402 drive in a thread of the test process, and a second station on its bus.
 
-:func:`served` runs :func:`servobench.sim_backend.servers.serve_canopen.serve` in a
+:func:`served` runs :func:`servobench.sim_backend.servers.canopen.serve_canopen.serve` in a
 thread, on the real socketcand hub over TCP, so that a test can look at the
 simulated device while the host driver talks to it through python-can and
 canopen, as across processes. :func:`station` is a plain canopen
@@ -19,10 +19,10 @@ from contextlib import contextmanager
 import can
 import canopen
 
-from servobench.drivers.canopen_link import load_eds
+from servobench.drivers.canopen.link import load_eds
 from servobench.drivers.url import parse_drive_url
 from servobench.sim_backend.device import LOCKSTEP, SimulatedDevice, WatchdogThread, device_from_url
-from servobench.sim_backend.servers import serve_canopen
+from servobench.sim_backend.servers.canopen import serve_canopen
 from servobench.sim_backend.servers.serve import split_served_keys
 
 #: The plant most CANopen tests serve.

@@ -14,7 +14,7 @@ import threading
 from collections.abc import Iterator
 
 from servobench.sim_backend.device import LOCKSTEP, SimulatedDevice, WatchdogThread, device_from_url
-from servobench.sim_backend.servers import serve_modbus
+from servobench.sim_backend.servers.modbus import serve_modbus
 
 SIM_URL = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4"
 

@@ -53,7 +53,7 @@ import time
 from collections.abc import Mapping
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.canopen_link import CounterUnwrap
+from servobench.drivers.canopen.link import CounterUnwrap
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
     CW_QUICK_STOP,

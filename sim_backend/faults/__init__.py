@@ -40,7 +40,7 @@ CANopen
 ``emcy``           ends: DriveFaultError "sent EMCY": any error EMCY stops a run
 Modbus
 ``exception`` 6    rides through: "busy" means not executed; retried once
-``exception`` *    ends: the typed error of :func:`servobench.drivers.modbus.exception_error`
+``exception`` *    ends: the typed error of :func:`servobench.drivers.modbus.drive.exception_error`
 ``timeout``, ``crc``  ends: DriveTimeoutError (the FC23 may have been executed)
 ``delay``          rides through below ``timeout=`` (0.25 s), else ends
 ``fault``          ends: DriveFaultError from the fault register

@@ -1,6 +1,6 @@
 """CAN wire faults of the served CiA 402 drive (``serve-sim --transport canopen``).
 
-At each SYNC the served drive (:mod:`servobench.sim_backend.servers.can_drive`) builds its TPDO
+At each SYNC the served drive (:mod:`servobench.sim_backend.servers.canopen.drive`) builds its TPDO
 frames and asks :meth:`CanFaultHook.transmissions` what actually goes on the
 bus:
 
@@ -10,7 +10,7 @@ bus:
 ``emcy``    an EMCY frame, then the TPDOs (the drive stays enabled)
 ``busoff``  nothing, and the drive's controller goes bus-off for ``MS`` ms:
             :meth:`CanFaultHook.muted` is true, and the network classes of
-            :mod:`servobench.sim_backend.servers.serve_canopen` drop every frame in and out
+            :mod:`servobench.sim_backend.servers.canopen.serve_canopen` drop every frame in and out
             (SDO answers, heartbeats and EMCYs included). The drive reacts as
             its abort connection option 0x6007 says (1: fault 0x8140) and
             sends the EMCY once :meth:`CanFaultHook.poll` sees it recovered.

@@ -1,6 +1,6 @@
 """Modbus wire faults of the served drive (``serve-sim --transport modbus-tcp|modbus-rtu``).
 
-The register bridge of :mod:`servobench.sim_backend.servers.modbus_pdu` calls
+The register bridge of :mod:`servobench.sim_backend.servers.modbus.pdu` calls
 :meth:`ModbusFaultHook.before_clock` on every clocking read (a read that
 covers the velocity register, FC3/FC4 or the read half of FC23), after
 :meth:`~servobench.sim_backend.faults.injector.FaultInjector.next_cycle`:

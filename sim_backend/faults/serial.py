@@ -1,6 +1,6 @@
 """Serial wire faults of the served drive (``serve-sim --transport serial``).
 
-The served dialect (:mod:`servobench.sim_backend.servers.serve_serial`) clocks the drive for
+The served dialect (:mod:`servobench.sim_backend.servers.serial.serve_serial`) clocks the drive for
 each feedback query, formats the reply and hands it to
 :meth:`SerialFaultHook.reply`, which returns what goes on the wire and when:
 

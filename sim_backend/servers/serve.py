@@ -37,10 +37,10 @@ from servobench.sim_backend.faults.state import StateReporter
 
 #: ``--transport`` value -> module implementing ``serve``.
 TRANSPORTS: dict[str, str] = {
-    "canopen": "servobench.sim_backend.servers.serve_canopen",
-    "modbus-tcp": "servobench.sim_backend.servers.serve_modbus",
-    "modbus-rtu": "servobench.sim_backend.servers.serve_modbus",
-    "serial": "servobench.sim_backend.servers.serve_serial",
+    "canopen": "servobench.sim_backend.servers.canopen.serve_canopen",
+    "modbus-tcp": "servobench.sim_backend.servers.modbus.serve_modbus",
+    "modbus-rtu": "servobench.sim_backend.servers.modbus.serve_modbus",
+    "serial": "servobench.sim_backend.servers.serial.serve_serial",
     "ethercat": "servobench.sim_backend.servers.ethercat.serve_ethercat",
 }
 
@@ -84,10 +84,10 @@ def no_timestamp_options(transport: str, options: Mapping[str, str]) -> dict[str
 
 def _serves_timestamp(key: str, given: str) -> bool:
     if key == "map":
-        from servobench.drivers.regmap import load_map
+        from servobench.drivers.modbus.regmap import load_map
 
         return "timestamp" in load_map(given)
-    from servobench.drivers.canopen_link import load_eds
+    from servobench.drivers.canopen.link import load_eds
 
     return 0x1013 in load_eds(1, given)
 

@@ -2,7 +2,7 @@
 
 :class:`CoeSlave` is the :class:`~.esc.Application` of the slave. It keeps the
 CANopen served drive's object logic
-(:class:`~servobench.sim_backend.servers.can_drive.ServedCiA402Drive`: the
+(:class:`~servobench.sim_backend.servers.canopen.drive.ServedCiA402Drive`: the
 CiA 402 power state machine stepped with :mod:`servobench.drivers.cia402`'s
 tables, CST and CSP with torque offset, the factor group) and adds what
 EtherCAT changes:
@@ -65,9 +65,9 @@ from servobench.sim_backend.device import (
     SimulatedDevice,
 )
 from servobench.sim_backend.faults.injector import FaultInjector
-from servobench.sim_backend.servers import can_pdo
-from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
-from servobench.sim_backend.servers.can_sync import SyncEngine
+from servobench.sim_backend.servers.canopen import pdo as can_pdo
+from servobench.sim_backend.servers.canopen.drive import ServedCiA402Drive
+from servobench.sim_backend.servers.canopen.sync import SyncEngine
 from servobench.sim_backend.servers.ethercat import al
 from servobench.sim_backend.servers.ethercat import objects as O
 from servobench.sim_backend.servers.ethercat.coe_sdo import SdoServer

@@ -2,7 +2,7 @@
 
 :class:`SdoServer` answers SDO requests from the mailbox on a canopen
 :class:`~canopen.LocalNode` (whose read/write callbacks are the drive's object
-logic, :mod:`servobench.sim_backend.servers.can_drive`). Command bytes::
+logic, :mod:`servobench.sim_backend.servers.canopen.drive`). Command bytes::
 
     upload request        0x40 (0x50 complete access)
     upload response       expedited 0x43 | (4 - n) << 2; normal 0x41 + size (4) + data

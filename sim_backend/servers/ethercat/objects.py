@@ -2,7 +2,7 @@
 
 The CiA 402 objects are those of the generic EDS the CANopen served drive
 serves (``drivers/data/cia402.eds``), so both fieldbuses answer the same
-object logic (:mod:`servobench.sim_backend.servers.can_drive`). CANopen's
+object logic (:mod:`servobench.sim_backend.servers.canopen.drive`). CANopen's
 communication objects that CoE has no use for are left out (SYNC and EMCY
 COB-IDs 0x1005/0x1014, heartbeat 0x1016/0x1017, the PDO communication
 parameters 0x1400/0x1800, the cycle 0x1006: on EtherCAT it is 0x1C32:02),
@@ -33,7 +33,7 @@ import canopen
 from canopen import objectdictionary as od_types
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
-from servobench.drivers.canopen_link import load_eds
+from servobench.drivers.canopen.link import load_eds
 from servobench.sim_backend.servers.ethercat import sii
 
 #: Objects of the CANopen EDS that CoE has no use for.

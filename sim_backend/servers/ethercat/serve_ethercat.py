@@ -40,7 +40,7 @@ from servobench.errors import DriveConfigError, DriveConnectionError
 from servobench.sim_backend.device import SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import parse_plan
-from servobench.sim_backend.servers.can_factor import SIM_KEYS
+from servobench.sim_backend.servers.canopen.factor import SIM_KEYS
 from servobench.sim_backend.servers.ethercat.coe_drive import CoeSlave
 from servobench.sim_backend.servers.ethercat.frame import (
     ETHERTYPE_ECAT,

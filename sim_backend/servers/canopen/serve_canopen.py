@@ -3,7 +3,7 @@
 The CAN link comes from ``options["can"]``:
 
 ``socketcand`` (default)
-    Start a :class:`~servobench.sim_backend.servers.socketcand_server.SocketcandHub` on
+    Start a :class:`~servobench.sim_backend.servers.canopen.socketcand_server.SocketcandHub` on
     ``options["host"]`` (127.0.0.1) and ``options["port"]`` (0: a free port).
     The served node sits on the hub *in-process* (a :class:`HubNetwork`), which
     saves a TCP hop and a thread hand-off per frame; hosts connect with
@@ -39,15 +39,15 @@ from urllib.parse import parse_qsl, quote
 import can
 import canopen
 
-from servobench.drivers.canopen402 import load_eds
+from servobench.drivers.canopen.drive import load_eds
 from servobench.errors import DriveConfigError, DriveConnectionError
 from servobench.sim_backend.device import SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import parse_plan
-from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
-from servobench.sim_backend.servers.can_factor import SIM_KEYS
-from servobench.sim_backend.servers.can_wire import CanFrame
-from servobench.sim_backend.servers.socketcand_server import DEFAULT_CHANNEL, SocketcandHub
+from servobench.sim_backend.servers.canopen.drive import ServedCiA402Drive
+from servobench.sim_backend.servers.canopen.factor import SIM_KEYS
+from servobench.sim_backend.servers.canopen.socketcand_server import DEFAULT_CHANNEL, SocketcandHub
+from servobench.sim_backend.servers.canopen.wire import CanFrame
 
 #: Housekeeping period of the served drive (fault -> EMCY latency) [s].
 POLL_S = 0.005

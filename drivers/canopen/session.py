@@ -1,8 +1,8 @@
 """One open ``canopen://`` link to a CiA 402 node: bring-up, cyclic frames, clock, watchdog.
 
-:class:`CanopenSession` is the part of :class:`~servobench.drivers.canopen402.CANopen402Drive`
+:class:`CanopenSession` is the part of :class:`~servobench.drivers.canopen.drive.CANopen402Drive`
 that talks CANopen: it connects the bus, finds out what the drive has,
-brings it up (:mod:`servobench.drivers.canopen_bringup`), keeps the RPDO
+brings it up (:mod:`servobench.drivers.canopen.bringup`), keeps the RPDO
 contents, sends RPDOs + SYNC and decodes the TPDOs into scaled feedback,
 keeps the drive clock, and produces the host heartbeat. The drive class keeps
 the CiA 402 power states and the :class:`~servobench.drivers.base.Drive` semantics.
@@ -18,7 +18,7 @@ import can
 import canopen
 
 from servobench.drivers.base import Limits
-from servobench.drivers.canopen_bringup import (
+from servobench.drivers.canopen.bringup import (
     DRIVE_HEARTBEAT_MS,
     NMT_OPERATIONAL,
     NMT_PRE_OPERATIONAL,
@@ -29,17 +29,17 @@ from servobench.drivers.canopen_bringup import (
     set_mode,
     write_cycle,
 )
-from servobench.drivers.canopen_cycle import CycleIO
-from servobench.drivers.canopen_link import (
+from servobench.drivers.canopen.cycle import CycleIO
+from servobench.drivers.canopen.link import (
     HeartbeatProducer,
     TappedNetwork,
     TrafficRecorder,
     load_eds,
     probe_socketcand,
 )
-from servobench.drivers.canopen_mapping import Layout, plan_layout
-from servobench.drivers.canopen_sdo import ABSENT, DriveObjects, SdoAccess, aborted_with
-from servobench.drivers.canopen_url import SYNC_COB_ID, CanopenOptions
+from servobench.drivers.canopen.mapping import Layout, plan_layout
+from servobench.drivers.canopen.options import SYNC_COB_ID, CanopenOptions
+from servobench.drivers.canopen.sdo import ABSENT, DriveObjects, SdoAccess, aborted_with
 from servobench.drivers.cia402 import MODE_CSP, supports_mode
 from servobench.drivers.cia402_units import derive_scaling
 from servobench.errors import (

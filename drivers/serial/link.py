@@ -1,9 +1,9 @@
 """The line link of ``serial://`` drives: request lines out, reply lines in, in step.
 
-:class:`AsciiLink` owns the serial port of a :class:`~servobench.drivers.serial_ascii.SerialAsciiDrive`:
+:class:`AsciiLink` owns the serial port of a :class:`~servobench.drivers.serial.drive.SerialAsciiDrive`:
 it writes request lines (with the dialect's terminator and, when asked, its
 checksum), reads reply lines within a deadline, turns the drive's rejection
-texts into :class:`~servobench.drivers.dialect.CommandRejectedError`, and
+texts into :class:`~servobench.drivers.serial.dialect.CommandRejectedError`, and
 keeps requests and replies in step.
 
 Before each request the link looks for bytes nobody asked for: an exact
@@ -22,8 +22,13 @@ from collections import deque
 
 import serial
 
-from servobench.drivers.ascii_line import MalformedReplyError, decode_reply, encode_line
-from servobench.drivers.dialect import COMMAND_SPECS, CommandRejectedError, Dialect, ParsedLine
+from servobench.drivers.serial.ascii_line import MalformedReplyError, decode_reply, encode_line
+from servobench.drivers.serial.dialect import (
+    COMMAND_SPECS,
+    CommandRejectedError,
+    Dialect,
+    ParsedLine,
+)
 from servobench.errors import DriveConfigError, DriveConnectionError, DriveTimeoutError
 
 #: Deadline for a blocked write [s].

@@ -14,11 +14,11 @@ answers SDOs; this module adds what it lacks:
 * the modes of operation it implements and its 0x6502 announces: profile
   torque (4), cyclic synchronous torque (10) (target torque 0x6071 plus the
   torque offset 0x60B2), and cyclic synchronous position (8), where its own
-  position loop (:mod:`servobench.sim_backend.servers.can_position_loop`)
+  position loop (:mod:`servobench.sim_backend.servers.canopen.position_loop`)
   holds the target position 0x607A at every SYNC;
-* PDOs and the SYNC (:mod:`servobench.sim_backend.servers.can_sync`);
+* PDOs and the SYNC (:mod:`servobench.sim_backend.servers.canopen.sync`);
 * units: the plant is in SI, the objects speak the drive's factor group
-  (:mod:`servobench.sim_backend.servers.can_factor`); 0x1013 is the device
+  (:mod:`servobench.sim_backend.servers.canopen.factor`); 0x1013 is the device
   clock (UNSIGNED32 µs, wrapping; in ``clock=real`` the drive's free-running
   clock at the instant the SYNC's sample was taken, in lockstep the cycle
   count times the cycle); 0x6077 reports the torque applied over the cycle before the
@@ -39,7 +39,7 @@ answers SDOs; this module adds what it lacks:
 
 Simplifications: synchronous RPDOs act on receipt (the device latches the
 torque for the next SYNC anyway -- a real-time device takes it at the next
-SYNC, :mod:`~servobench.sim_backend.servers.can_sync` -- but a controlword
+SYNC, :mod:`~servobench.sim_backend.servers.canopen.sync` -- but a controlword
 changes the state at once); event-driven TPDOs (types 254/255) are not produced;
 0x6007 takes 0 (no action) or 1 (fault) only; the quick stop (0x605A) keeps
 QUICK STOP ACTIVE; profile torque ignores torque slopes (the torque steps).
@@ -69,11 +69,11 @@ from servobench.sim_backend.device import PowerState, SimulatedDevice, clock_cou
 from servobench.sim_backend.faults.can import CanFaultHook
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.spec import FaultPlan
-from servobench.sim_backend.servers import can_pdo
-from servobench.sim_backend.servers.can_factor import ServedFactors
-from servobench.sim_backend.servers.can_heartbeat import HeartbeatConsumer
-from servobench.sim_backend.servers.can_position_loop import PositionLoop, gains_from_keys
-from servobench.sim_backend.servers.can_sync import SyncEngine
+from servobench.sim_backend.servers.canopen import pdo as can_pdo
+from servobench.sim_backend.servers.canopen.factor import ServedFactors
+from servobench.sim_backend.servers.canopen.heartbeat import HeartbeatConsumer
+from servobench.sim_backend.servers.canopen.position_loop import PositionLoop, gains_from_keys
+from servobench.sim_backend.servers.canopen.sync import SyncEngine
 
 S = CiA402State
 
@@ -118,7 +118,7 @@ class ServedCiA402Drive:
     injector : FaultInjector, optional
         Faults to inject (:mod:`servobench.sim_backend.faults`); SYNCs are its cycles.
     keys : mapping, optional
-        The served drive's ``sim://`` keys (:data:`~servobench.sim_backend.servers.can_factor.SIM_KEYS`).
+        The served drive's ``sim://`` keys (:data:`~servobench.sim_backend.servers.canopen.factor.SIM_KEYS`).
     """
 
     def __init__(
@@ -345,7 +345,7 @@ class ServedCiA402Drive:
             return  # in CSP the offset acts at the next SYNC
         other = 0x60B2 if index == 0x6071 else 0x6071
         rest = self._int(other, "h") if self.has(other) else 0
-        if self.sync.receiving_sync_rpdo:  # real time: takes force at the next SYNC (can_sync)
+        if self.sync.receiving_sync_rpdo:  # real time: takes force at the next SYNC (sync.py)
             self.sync.pending_command = (value + rest) * self.lsb
             return
         self.device.set_command((value + rest) * self.lsb)

@@ -4,14 +4,14 @@ A dialect names, for one family of drives, the text of every request the
 serial backend sends (torque command, feedback query, enable, state and
 error reads, watchdog set-up and feed, clear errors ...), the shape of the
 replies, the line terminators and the checksum rule. Both sides use it: the
-host (:mod:`servobench.drivers.serial_ascii`) formats requests and parses replies, the
-served simulator (:mod:`servobench.sim_backend.servers.serve_serial`) parses requests and
+host (:mod:`servobench.drivers.serial.drive`) formats requests and parses replies, the
+served simulator (:mod:`servobench.sim_backend.servers.serial.serve_serial`) parses requests and
 formats replies, so the two agree by construction.
 
 Everything here is pure: text in, text or frozen dataclasses out, no I/O.
 
-Templates (``"c {axis} {u}"``) are :class:`servobench.drivers.line_template.Template`;
-line framing and checksums are in :mod:`servobench.drivers.ascii_line`.
+Templates (``"c {axis} {u}"``) are :class:`servobench.drivers.serial.line_template.Template`;
+line framing and checksums are in :mod:`servobench.drivers.serial.ascii_line`.
 
 Firmware versions: ``[firmware] version`` lists the property reads that
 give the drive's major, minor and revision numbers, and each
@@ -29,13 +29,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from servobench.drivers.ascii_line import MalformedReplyError
-from servobench.drivers.line_template import Template
+from servobench.drivers.serial.ascii_line import MalformedReplyError
+from servobench.drivers.serial.line_template import Template
 from servobench.errors import DriveConfigError, DriveError
 from servobench.tomlfile import SENTENCE, TomlTable, read_toml
 
 #: Folder of the shipped dialects (``dialect=NAME`` means ``NAME.toml`` here).
-DIALECT_DIR = Path(__file__).parent / "data" / "dialects"
+DIALECT_DIR = Path(__file__).parents[1] / "data" / "dialects"
 #: Dialect used when the URL names none.
 DEFAULT_DIALECT = "odrive"
 

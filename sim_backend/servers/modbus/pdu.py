@@ -24,7 +24,7 @@ access). FC17 Report Server ID (§6.17, serial line only) answers the
 product name and the run indicator.
 
 :class:`RegisterBridge` turns register access into device calls, as the
-served map (:mod:`servobench.drivers.regmap`) says: every answered request
+served map (:mod:`servobench.drivers.modbus.regmap`) says: every answered request
 feeds the watchdog; writes to ``command`` latch it, to ``control`` enable /
 disable / quick stop / reset by the map's ``[control]`` values, to
 ``watchdog`` and ``cycle`` set them; a read that covers ``velocity`` clocks
@@ -45,7 +45,7 @@ import struct
 from collections.abc import Callable, Sequence
 
 from servobench import __version__
-from servobench.drivers.regmap import (
+from servobench.drivers.modbus.regmap import (
     FEEDBACK,
     Register,
     RegisterMap,

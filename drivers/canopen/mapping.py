@@ -1,7 +1,7 @@
 """The PDO mapping of ``canopen://``, planned from the objects the drive has.
 
 Pure: no I/O. :func:`plan_layout` chooses what each PDO carries; the drive
-writes it over SDO (:mod:`servobench.drivers.canopen_bringup`) and packs and
+writes it over SDO (:mod:`servobench.drivers.canopen.bringup`) and packs and
 unpacks the cyclic frames with :meth:`Pdo.pack` / :meth:`Pdo.unpack`::
 
     RPDO1  0x200+n  controlword 0x6040, target torque 0x6071 [, torque offset 0x60B2]

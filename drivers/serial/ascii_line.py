@@ -1,6 +1,6 @@
 """Line framing of ASCII drive protocols: terminators, comments and XOR checksums.
 
-Pure bytes <-> text, no I/O; :mod:`servobench.drivers.dialect` says what the lines mean.
+Pure bytes <-> text, no I/O; :mod:`servobench.drivers.serial.dialect` says what the lines mean.
 
 ::
 

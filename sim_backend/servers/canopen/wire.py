@@ -2,7 +2,7 @@
 
 socketcand (https://github.com/linux-can/socketcand) carries CAN over TCP as
 ASCII commands in angle brackets. The subset spoken by python-can's
-``socketcand`` client and served by :mod:`servobench.sim_backend.servers.socketcand_server`::
+``socketcand`` client and served by :mod:`servobench.sim_backend.servers.canopen.socketcand_server`::
 
     server -> client   < hi >                         on connect
     client -> server   < open vcan0 >                 pick the bus

@@ -6,7 +6,7 @@ URLs::
     modbus+rtu:///dev/ttyUSB0?baud=115200&unit=1&map=NAME
 
 ``map`` is a shipped register map (``servobench-sim``, ``zlac8015d``) or a
-path to a TOML file (:mod:`servobench.drivers.regmap`). Further keys: ``timeout``
+path to a TOML file (:mod:`servobench.drivers.modbus.regmap`). Further keys: ``timeout``
 (response timeout [s]) and, for RTU, ``parity`` (N, E, O). The units of
 command, velocity and position are the map's (each register's ``unit``).
 
@@ -16,7 +16,7 @@ a write followed by a read. With ``fc23 = "auto"`` FC23 is tried, and a drive
 that answers it with exception 1 (illegal function, so nothing was executed)
 gets the same cycle as write-then-read, from then on. Feedback registers the
 map scatters over further blocks are read first, so that against a lock-step
-drive they too belong to ``t_k``. The link (:mod:`servobench.drivers.modbus_link`)
+drive they too belong to ``t_k``. The link (:mod:`servobench.drivers.modbus.link`)
 retries nothing but a "busy" answer and turns every failure into a typed
 error that says what happened (no answer, a gateway's exception, a drive
 fault). Feedback carries the drive's clock when the map has a ``timestamp``
@@ -47,12 +47,12 @@ from collections.abc import Callable, Sequence
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
 from servobench.drivers.link_budget import modbus_max_rate_hz, modbus_rtu_frames, rtu_gap_s
-from servobench.drivers.modbus_link import (  # noqa: F401 (exception_error re-exported)
+from servobench.drivers.modbus.link import (  # noqa: F401 (exception_error re-exported)
     EXCEPTION_ILLEGAL_FUNCTION,
     ModbusLink,
     exception_error,
 )
-from servobench.drivers.regmap import (
+from servobench.drivers.modbus.regmap import (
     Block,
     Register,
     decode,

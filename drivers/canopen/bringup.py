@@ -1,6 +1,6 @@
 """Bringing a CiA 402 drive up over SDO: NMT states, PDO mapping, mode, cycle, factor group.
 
-Every step writes only objects the drive has (:class:`~servobench.drivers.canopen_sdo.DriveObjects`)
+Every step writes only objects the drive has (:class:`~servobench.drivers.canopen.sdo.DriveObjects`)
 and raises a typed error when the drive refuses, never logs and carries on.
 The PDO procedure is CiA 301's: invalidate the PDO (COB-ID bit 31), set the
 transmission type, clear the map (sub-index 0), write the entries, set their
@@ -13,8 +13,8 @@ from __future__ import annotations
 import threading
 import time
 
-from servobench.drivers.canopen_mapping import SYNCHRONOUS, Layout, Pdo
-from servobench.drivers.canopen_sdo import DriveObjects, SdoAccess, aborted_with
+from servobench.drivers.canopen.mapping import SYNCHRONOUS, Layout, Pdo
+from servobench.drivers.canopen.sdo import DriveObjects, SdoAccess, aborted_with
 from servobench.drivers.cia402 import interpolation_period
 from servobench.drivers.cia402_units import FactorObjects
 from servobench.errors import DriveConfigError, StateTransitionError, UsageError

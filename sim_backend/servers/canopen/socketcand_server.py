@@ -1,7 +1,7 @@
 """A virtual CAN bus served over TCP with the socketcand protocol.
 
 :class:`SocketcandHub` is a small socketcand server of our own (raw mode
-only, see :mod:`servobench.sim_backend.servers.can_wire` for the protocol) that acts as a CAN
+only, see :mod:`servobench.sim_backend.servers.canopen.wire` for the protocol) that acts as a CAN
 bus: every frame one station sends reaches every *other* station, as on a
 wire. Stations are TCP clients (python-can's ``socketcand`` interface, from
 any process) and in-process :class:`LocalPort` s, which save the served drive
@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from servobench.errors import DriveConnectionError
-from servobench.sim_backend.servers.can_wire import (
+from servobench.sim_backend.servers.canopen.wire import (
     CanFrame,
     WireError,
     command_words,

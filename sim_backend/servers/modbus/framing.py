@@ -1,7 +1,7 @@
 """Modbus framing of the served drive: RTU frames with their CRC, TCP frames with their MBAP header.
 
 Pure bytes in, bytes out, no I/O. The PDU (function code and data) is the
-business of :mod:`servobench.sim_backend.servers.modbus_pdu`.
+business of :mod:`servobench.sim_backend.servers.modbus.pdu`.
 
 RTU (Modbus over Serial Line v1.02, §2.5.1.2 and Appendix B)::
 

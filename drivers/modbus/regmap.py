@@ -5,8 +5,8 @@ A map names the registers a servo drive exposes for cyclic control
 ``watchdog``; optionally ``status``, ``timestamp``, ``cycle``,
 ``watchdog_feed`` and the identity strings) with their address, format,
 scale, word and byte order, register type and access. Both sides read the
-same file: :mod:`servobench.drivers.modbus` (the client) and
-:mod:`servobench.sim_backend.servers.serve_modbus` (the served simulated drive), so they agree by
+same file: :mod:`servobench.drivers.modbus.drive` (the client) and
+:mod:`servobench.sim_backend.servers.modbus.serve_modbus` (the served simulated drive), so they agree by
 construction. This module is pure: parsing, validation and the codec, no I/O
 beyond reading the file.
 
@@ -270,7 +270,7 @@ def words_of(block: Block, reg: Register, words: Sequence[int]) -> list[int]:
 # -------------------------------------------------------------- parsing
 def shipped_maps() -> list[str]:
     """Names of the maps shipped in ``drivers/data/maps``."""
-    folder = resources.files(__package__) / "data" / "maps"
+    folder = resources.files("servobench.drivers") / "data" / "maps"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
@@ -286,7 +286,7 @@ def resolve_map(name_or_path: str) -> Path:
             f"unknown register map {name_or_path!r}; shipped: {', '.join(shipped_maps())} "
             "(or give a path to a .toml file)"
         )
-    return Path(str(resources.files(__package__) / "data" / "maps" / f"{name_or_path}.toml"))
+    return Path(str(resources.files("servobench.drivers") / "data" / "maps" / f"{name_or_path}.toml"))
 
 
 def load_map(name_or_path: str) -> RegisterMap:

@@ -2,7 +2,7 @@
 
 ``servobench serve-sim --transport serial [--dialect odrive]`` opens a pty
 pair, announces ``serial:///dev/pts/N?baud=115200&dialect=odrive`` and
-answers the dialect (:mod:`servobench.drivers.dialect`) on the master end, as an ODrive
+answers the dialect (:mod:`servobench.drivers.serial.dialect`) on the master end, as an ODrive
 answers its ASCII protocol on ``/dev/ttyACM0``. The client opens the slave
 path with pyserial like any serial port.
 
@@ -15,7 +15,7 @@ emulated line; the dialect carries no time stamp. Units: the plant's command uni
 turn and its velocity unit as turn/s, one to one.
 
 A dialect that names a ``firmware_model`` is answered as that firmware
-does: ``odrive-0.5`` is :class:`~servobench.sim_backend.servers.odrive_firmware.OdriveFirmware`
+does: ``odrive-0.5`` is :class:`~servobench.sim_backend.servers.serial.odrive_firmware.OdriveFirmware`
 at the release the ``firmware`` option names (``0.5.1`` ... ``0.5.6``,
 default 0.5.6): its rejection texts, its property tree, a watchdog fed only
 by ``c``/``u`` and closed-loop entry and checked in every axis state.
@@ -66,14 +66,14 @@ from collections.abc import Callable, Mapping
 from urllib.parse import quote
 
 from servobench.clock import sleep_until
-from servobench.drivers.ascii_line import decode_request, encode_line
-from servobench.drivers.dialect import DEFAULT_DIALECT, Dialect, load_dialect, parse_version
+from servobench.drivers.serial.ascii_line import decode_request, encode_line
+from servobench.drivers.serial.dialect import DEFAULT_DIALECT, Dialect, load_dialect, parse_version
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.serial import SerialFaultHook
 from servobench.sim_backend.faults.spec import FaultPlan, parse_plan
-from servobench.sim_backend.servers.odrive_firmware import (
+from servobench.sim_backend.servers.serial.odrive_firmware import (
     DEFAULT_VERSION,
     FEEDBACK,
     OdriveFirmware,

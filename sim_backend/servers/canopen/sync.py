@@ -2,7 +2,7 @@
 
 canopen's :class:`~canopen.LocalNode` stores PDO parameters but neither sends
 TPDOs nor applies received RPDOs. :class:`SyncEngine` compiles the maps the
-host wrote (:mod:`servobench.sim_backend.servers.can_pdo`) when the node enters
+host wrote (:mod:`servobench.sim_backend.servers.canopen.pdo`) when the node enters
 OPERATIONAL or a PDO parameter changed, writes received RPDO payloads into
 the object dictionary (controlword, target torque, torque offset, target
 position -> the drive's callbacks), and on each SYNC:
@@ -34,10 +34,10 @@ from typing import TYPE_CHECKING
 from servobench.drivers.cia402 import CiA402State
 from servobench.sim_backend.device import DeviceSample
 from servobench.sim_backend.faults.can import BUSOFF_FAULT
-from servobench.sim_backend.servers import can_pdo
+from servobench.sim_backend.servers.canopen import pdo as can_pdo
 
 if TYPE_CHECKING:
-    from servobench.sim_backend.servers.can_drive import ServedCiA402Drive
+    from servobench.sim_backend.servers.canopen.drive import ServedCiA402Drive
 
 #: EMCY: PDO not processed due to length error.
 EMCY_PDO_LENGTH = 0x8210

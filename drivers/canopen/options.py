@@ -1,4 +1,4 @@
-"""The options of a ``canopen://`` URL, checked once (see :mod:`servobench.drivers.canopen402`)."""
+"""The options of a ``canopen://`` URL, checked once (see :mod:`servobench.drivers.canopen.drive`)."""
 
 from __future__ import annotations
 

@@ -34,10 +34,10 @@ from dataclasses import dataclass, replace
 import can
 
 from servobench.drivers.base import Feedback
-from servobench.drivers.canopen_link import CounterUnwrap, HeartbeatProducer, TappedNetwork
-from servobench.drivers.canopen_mapping import Layout
-from servobench.drivers.canopen_sdo import SdoAccess
-from servobench.drivers.canopen_url import CanopenOptions
+from servobench.drivers.canopen.link import CounterUnwrap, HeartbeatProducer, TappedNetwork
+from servobench.drivers.canopen.mapping import Layout
+from servobench.drivers.canopen.options import CanopenOptions
+from servobench.drivers.canopen.sdo import SdoAccess
 from servobench.drivers.cia402_units import Scaling
 from servobench.errors import DriveTimeoutError
 

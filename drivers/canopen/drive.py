@@ -47,7 +47,7 @@ Set-up runs over SDO in NMT PRE-OPERATIONAL (mode, PDO mapping, heartbeats;
 the cycle period 0x1006 and interpolation period 0x60C2 too, in
 :meth:`set_cycle`), the cycle in OPERATIONAL: :meth:`exchange` sends the
 RPDOs and a SYNC, and waits for the SYNC's TPDOs (the layout is in
-:mod:`servobench.drivers.canopen_mapping`). The CiA 402 state machine is walked with
+:mod:`servobench.drivers.canopen.mapping`). The CiA 402 state machine is walked with
 :func:`servobench.drivers.cia402.plan`, each step under a deadline; failures
 raise, never log. :meth:`read` uses SDO and sends no SYNC, so it does not
 clock a lock-step simulated drive. Position and the time stamp are unwrapped
@@ -82,10 +82,10 @@ import warnings
 import canopen
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.canopen_bringup import set_mode
-from servobench.drivers.canopen_link import load_eds
-from servobench.drivers.canopen_session import CanopenSession
-from servobench.drivers.canopen_url import QUERY_KEYS, CanopenOptions
+from servobench.drivers.canopen.bringup import set_mode
+from servobench.drivers.canopen.link import load_eds
+from servobench.drivers.canopen.options import QUERY_KEYS, CanopenOptions
+from servobench.drivers.canopen.session import CanopenSession
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
     MODE_CSP,

@@ -2,11 +2,11 @@
 
 Three layers, as pymodbus has them: the transport (this module: a TCP
 listener, or an RTU line on a baud-emulating pty), the framing
-(:mod:`servobench.sim_backend.servers.modbus_framing`: MBAP header, RTU CRC)
-and the device logic (:mod:`servobench.sim_backend.servers.modbus_pdu`: the
+(:mod:`servobench.sim_backend.servers.modbus.framing`: MBAP header, RTU CRC)
+and the device logic (:mod:`servobench.sim_backend.servers.modbus.pdu`: the
 function codes, the exception rules and the register bridge to the
 :class:`~servobench.sim_backend.device.SimulatedDevice`). The served register
-layout is a :mod:`servobench.drivers.regmap` map (``servobench-sim`` unless
+layout is a :mod:`servobench.drivers.modbus.regmap` map (``servobench-sim`` unless
 ``--map`` names another).
 
 Unit identifiers
@@ -51,13 +51,13 @@ import threading
 from collections.abc import Callable, Mapping
 from urllib.parse import quote
 
-from servobench.drivers.regmap import load_map
+from servobench.drivers.modbus.regmap import load_map
 from servobench.errors import DriveConfigError
 from servobench.sim_backend.device import SimulatedDevice
 from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.faults.modbus import ModbusFaultHook, NoAnswer
 from servobench.sim_backend.faults.spec import FaultPlan, parse_plan
-from servobench.sim_backend.servers.modbus_framing import (
+from servobench.sim_backend.servers.modbus.framing import (
     RTU_MIN_BYTES,
     TcpFrame,
     decode_tcp,
@@ -67,7 +67,7 @@ from servobench.sim_backend.servers.modbus_framing import (
     split_rtu,
     tcp_frame_length,
 )
-from servobench.sim_backend.servers.modbus_pdu import (  # noqa: F401 (re-exported)
+from servobench.sim_backend.servers.modbus.pdu import (  # noqa: F401 (re-exported)
     IDENTITY,
     PduHandler,
     RegisterBridge,

@@ -1,7 +1,7 @@
 """``serial://`` -- drives that speak a line-based ASCII protocol over a serial port.
 
 ``serial:///dev/ttyACM0?baud=115200&dialect=odrive`` opens the port with
-pyserial and talks the dialect (:mod:`servobench.drivers.dialect`) named by
+pyserial and talks the dialect (:mod:`servobench.drivers.serial.dialect`) named by
 ``dialect`` -- a shipped name or a path to a TOML file. The default,
 ``odrive``, is the ODrive ASCII protocol of firmware 0.5.x
 (https://docs.odriverobotics.com/v/0.5.5/ascii-protocol.html); its units are
@@ -38,7 +38,7 @@ query, so its clock is the count of them times the cycle, and
 :attr:`SerialAsciiDrive.drive_clock` is True.
 
 Line I/O (terminators, checksums, deadlines, duplicated replies, getting
-back in step) is :class:`servobench.drivers.ascii_link.AsciiLink`.
+back in step) is :class:`servobench.drivers.serial.link.AsciiLink`.
 
 Leaving the drive as the firmware expects
 ------------------------------------------
@@ -85,10 +85,15 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import replace
 
-from servobench.drivers.ascii_link import AsciiLink
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.dialect import CommandRejectedError, Dialect, ParsedLine, load_dialect
 from servobench.drivers.link_budget import ascii_max_rate_hz
+from servobench.drivers.serial.dialect import (
+    CommandRejectedError,
+    Dialect,
+    ParsedLine,
+    load_dialect,
+)
+from servobench.drivers.serial.link import AsciiLink
 from servobench.errors import (
     DriveConfigError,
     DriveFaultError,
@@ -112,7 +117,7 @@ TYPICAL_U, TYPICAL_X, TYPICAL_V = -1.234567, -12.345678, -1.234567
 
 
 class SerialAsciiDrive(Drive):
-    """A drive on a serial port speaking a line-based ASCII :class:`~servobench.drivers.dialect.Dialect`."""
+    """A drive on a serial port speaking a line-based ASCII :class:`~servobench.drivers.serial.dialect.Dialect`."""
 
     query_keys = frozenset({"baud", "dialect", "axis", "checksum", "timeout", "poll", "units"})
 
@@ -165,7 +170,7 @@ class SerialAsciiDrive(Drive):
     # ------------------------------------------------------------ link facts
     @property
     def duplicates(self) -> int:
-        """Repeated reply lines dropped (see :mod:`servobench.drivers.ascii_link`)."""
+        """Repeated reply lines dropped (see :mod:`servobench.drivers.serial.link`)."""
         return self.link.duplicates
 
     @property

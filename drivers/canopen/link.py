@@ -1,6 +1,6 @@
 """The CAN side of ``canopen://``: EDS loading, the tapped network, the host heartbeat, counters.
 
-Kept apart from :mod:`servobench.drivers.canopen402` (the CiA 402 drive logic) so each
+Kept apart from :mod:`servobench.drivers.canopen.drive` (the CiA 402 drive logic) so each
 stays small. Sent frames pass through :class:`TappedNetwork`, which can feed
 a :class:`TrafficRecorder` (python-can log formats) together with the
 received frames, under one lock, with the send time and direction.
