@@ -133,12 +133,17 @@ def test_report_text_and_json_state_each_part_of_the_floor(stepped, tmp_path):
     step = part(d, "position step")
     j = to_json(d)
     assert j["noise"]["floor_from"] == d.verdict.floor.source
+    assert [(p["name"], p["percent"]) for p in j["noise"]["parts"]] == [
+        (p.name, p.percent) for p in d.verdict.floor.parts
+    ]  # the parts as data too, not only in the sentence
     for p in d.verdict.floor.parts:
         assert f"{p.name} {p.percent:.3g}%" in d.verdict.floor.source
     assert f"{STEP:.4g}" in step.detail  # the step found, in the log's units
     assert d.verdict.floor.source in summary_lines(d)[1]
     write_report(d, tmp_path)
-    assert f"position step {step.percent:.3g}%" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert f"position step {step.percent:.3g}%" in report
+    assert "white sensor noise" not in report  # the measurement part is more than a sensor's noise
 
 
 # ------------------------------------------------------------------ EMPS

@@ -105,6 +105,7 @@ def to_json(d: Diagnosis) -> dict:
             "repeat_percent": v.floor.repeat_percent,
             "unpredictable_percent": v.floor.unpredictable_percent,
             "floor_from": v.floor.source,
+            "parts": [p.as_dict() for p in v.floor.parts],
         },
         "residual": {
             "places": [{"place": p.name, "held_out_share": p.share} for p in v.places],
@@ -224,7 +225,7 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     v = d.verdict
     lines = ["# servobench diagnose", "", f"**{v.headline()}**", ""]
     lines += [
-        f"Noise floor {v.floor.percent:.3g}%: {v.floor.source} (white sensor noise "
+        f"Noise floor {v.floor.percent:.3g}%: {v.floor.source} (measurement "
         f"{v.floor.sensor_percent:.3g}%"
         + (
             f", period-to-period scatter {v.floor.repeat_percent:.3g}%"
