@@ -33,6 +33,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset, Segment
 from servobench.bench.identify.dataset import prepare as prepare_log
+from servobench.bench.identify.motion import second_difference_sigma
 from servobench.bench.identify.resolution import signal_step, step_noise_std
 from servobench.bench.log.io import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
@@ -204,8 +205,7 @@ def noise_std(prepared: Dataset) -> float:
     0 for velocity derived from position, already smooth."""
     if prepared.derived:
         return 0.0
-    d2 = np.concatenate([np.diff(s.v, 2) for s in prepared.segments])
-    white = float(np.median(np.abs(d2 - np.median(d2)))) / 0.6745 / math.sqrt(6.0)
+    white = second_difference_sigma(np.concatenate([np.diff(s.v, 2) for s in prepared.segments]))
     return math.hypot(white, step_noise_std(velocity_step(prepared)))
 
 

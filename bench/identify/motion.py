@@ -26,8 +26,8 @@ from servobench.errors import IdentificationError
 
 #: Least rms of the motion (noise power taken out) over the noise sigma, in one run at least.
 MIN_SIGNAL_TO_NOISE = 0.5
-#: Median absolute deviation to sigma of a normal distribution.
-_MAD_TO_SIGMA = 1.4826
+#: Median absolute deviation to sigma of a normal distribution (1 / 0.6745).
+_MAD_TO_SIGMA = 1.0 / 0.6745
 
 
 @dataclass(frozen=True)
@@ -56,13 +56,23 @@ class Motion:
         return self.signal_rms >= MIN_SIGNAL_TO_NOISE * self.noise_std
 
 
+def second_difference_sigma(d2: np.ndarray) -> float:
+    """White noise sigma behind second differences ``d2`` of a record, shape (m,) -> float.
+
+    Robust (median absolute deviation): a smooth motion's few large second
+    differences at command switches do not count. Diagnose's noise floor uses
+    it too (:func:`servobench.bench.diagnose.data.noise_std`).
+    """
+    d2 = np.asarray(d2, dtype=float)
+    if d2.size == 0:
+        return 0.0
+    return float(_MAD_TO_SIGMA * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+
+
 def sensor_noise_std(v: np.ndarray) -> float:
     """White noise sigma of a velocity record from its second differences, shape (n,) -> float."""
     v = np.asarray(v, dtype=float)
-    if v.size < 3:
-        return 0.0
-    d2 = np.diff(v, 2)
-    return float(_MAD_TO_SIGMA * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+    return second_difference_sigma(np.diff(v, 2)) if v.size >= 3 else 0.0
 
 
 def motion(velocities: list[np.ndarray]) -> Motion:
