@@ -54,7 +54,7 @@ def progress(done, total):
     if done >= {STREAMING_AFTER} and not said:
         said.append(print("streaming", flush=True))
 
-u = np.tile(excitation()[0][1], 20)
+u = np.tile(excitation()[0][1], 60)
 with open_drive(sys.argv[1]) as drive:
     stream_runs(drive, [(1, u)], {FS_HZ}, sys.argv[2], pace="real", progress=progress)
 """
@@ -62,7 +62,13 @@ with open_drive(sys.argv[1]) as drive:
 ATOL = 1e-6
 
 
-def run_host_and_kill(url: str, log: Path, sig: signal.Signals) -> subprocess.Popen[str]:
+def run_host_and_kill(url: str, log: Path, state_path: Path, sig: signal.Signals) -> subprocess.Popen[str]:
+    """Start the host, and kill it once it streams and the drive reports itself enabled.
+
+    Waiting for the drive's own report of ``enabled`` first means the state read after
+    the kill cannot be the report written before the host enabled the axis (its
+    ``disabled`` is one of the states the test waits for).
+    """
     host = subprocess.Popen(
         [sys.executable, "-c", HOST, url, str(log)],
         stdout=subprocess.PIPE,
@@ -72,6 +78,8 @@ def run_host_and_kill(url: str, log: Path, sig: signal.Signals) -> subprocess.Po
     try:
         line = host.stdout.readline()
         assert line.strip() == "streaming", host.stderr.read() if host.poll() is not None else line
+        running = wait_for_state(state_path, ("enabled",))
+        assert running.get("state") == "enabled", running
         host.send_signal(sig)
         host.wait(10)
     finally:
@@ -97,7 +105,7 @@ def test_killed_host(transport: str, sig: signal.Signals, tmp_path: Path) -> Non
     state_path, log_path = tmp_path / "state.json", tmp_path / "log.csv"
     args = [*SERVE_ARGS[transport], "--state-file", str(state_path)]
     with ServedSim(transport, SIM_URL, args, clock="lockstep") as served:
-        host = run_host_and_kill(served.url + HOST_KEYS + "&watchdog=0.2", log_path, sig)
+        host = run_host_and_kill(served.url + HOST_KEYS + "&watchdog=0.2", log_path, state_path, sig)
         state = wait_for_state(state_path, ("fault", "disabled"))
         stderr = host.stderr.read()
         host.stderr.close()
@@ -106,7 +114,7 @@ def test_killed_host(transport: str, sig: signal.Signals, tmp_path: Path) -> Non
     log = read_log(log_path)
     run = log.runs[0]
     assert not log.complete and len(run) >= STREAMING_AFTER - UNFLUSHED
-    u = np.tile(excitation()[0][1], 20)[: len(run)]
+    u = np.tile(excitation()[0][1], 60)[: len(run)]
     v_ref, x_ref = simulate(u, FS_HZ, PARAMS)
     np.testing.assert_array_equal(run.u, u)
     np.testing.assert_allclose(run.v, v_ref, atol=ATOL)
