@@ -3,8 +3,14 @@
 Works on any log -- one run or two, any excitation, open or closed loop:
 
 1. Exact sampled-data regression (:mod:`servobench.bench.identify.regression`) on the sample
-   pairs that keep one strict velocity sign. For noise-free data this is
-   exact at every amplitude and the estimate is final.
+   pairs that keep one strict velocity sign. For noise-free data at exact
+   instants this is exact at every amplitude and the estimate is final.
+   Not so when the instants are uncertain (``t_unc``): the timing weights
+   leave the pairs of the transients -- the ones that carry ``M`` -- next
+   to no weight, so a vanishing residual says only that the steady pairs
+   fit, and ``M`` can be far off (a 10 ms time constant on a 20 ms cycle:
+   -58 %). Such logs always go on to steps 2 and 3, whose output error
+   weighs each sample equally.
 2. With sensor noise (judged from the regression residual): the pairs are
    re-chosen on the simulated, noise-free velocity of the current estimate
    (so the choice does not depend on the noise) and solved by instrumental
@@ -62,6 +68,7 @@ from servobench.bench.identify.regression import (
     select_pairs,
     timing_weights,
 )
+from servobench.bench.identify.resolution import grid_step, step_noise_std
 from servobench.bench.identify.simulation import simulate_run
 from servobench.bench.model.servo import ServoModel
 from servobench.errors import IdentificationError
@@ -122,7 +129,7 @@ def identify_joint(
     fit = _solve(_pairs(data), data, None)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
     v_rms = math.sqrt(float(np.mean(v_all**2)))
-    if sigma <= EXACT_RTOL * v_rms:
+    if sigma <= EXACT_RTOL * v_rms and not data.timing_uncertain:
         model = _model(fit)
         return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-ls", 0.0, tuple(notes))
 
@@ -268,11 +275,28 @@ def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = F
     if pairs.sigma_dt is None:
         return fit_pairs_irregular(pairs, start)
     fit = fit_pairs_irregular(pairs, start)  # unweighted: the accelerations for the weights
+    floor = _velocity_floor(data)
     for _ in range(2):
         model = (fit.M, fit.B, fit.coulomb_pos, fit.coulomb_neg)
-        sigma_v = _velocity_noise(pairs, fit)
+        sigma_v = max(_velocity_noise(pairs, fit), floor)
         fit = fit_pairs_irregular(pairs, model, timing_weights(pairs, model, sigma_v))
     return fit
+
+
+def _velocity_floor(data: Dataset) -> float:
+    """The least velocity noise [units/s] the timing weights may assume: the rounding of the
+    step the drive reports velocity in (:func:`~servobench.bench.identify.resolution.grid_step`),
+    and never below :data:`EXACT_RTOL` of the rms velocity.
+
+    A drive that reports velocity in steps repeats its steady values exactly, so the
+    residual of the calm pairs can be far below what one reading is worth (3.6e-10
+    against a 1e-6 step, measured). Taken as the noise, it leaves the transient pairs --
+    the only ones that carry ``M`` -- a weight of 1e-20 of the steady ones, below what
+    the least-squares solve can resolve, and ``M`` drifts (-58 % in two passes).
+    """
+    v = data.cat("v")
+    v_rms = math.sqrt(float(np.mean(v**2)))
+    return max(step_noise_std(grid_step(v)), EXACT_RTOL * v_rms)
 
 
 def _velocity_noise(pairs: Pairs, fit: ZohFit) -> float:
