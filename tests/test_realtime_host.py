@@ -289,10 +289,17 @@ def test_a_slow_cycle_of_a_fast_plant_with_wide_brackets_keeps_its_inertia(tmp_p
         writer.append_block(np.full(n, run), t_log, u, np.round(v, 6), np.round(x, 6), t_log, half)
     writer.finish("complete")
     log = read_log(path)
+    result = identify(log, "joint")
     # the pair regression alone (its weights assume no less noise than the 1e-6 step), and all of it
-    for model in (pair_regression(prepare(log)), identify(log, "joint").model):
+    for model in (pair_regression(prepare(log)), result.model):
         for got, want in ((model.M, 0.01), (model.B, 1.0), (model.coulomb_pos, 0.5), (model.coulomb_neg, 0.4)):
             assert got == pytest.approx(want, rel=0.01)
+    # the timing figure reads the instants' real scatter (uniform +-0.1 ms: 0.058 ms), not the
+    # 1.2 ms brackets, and predicts an error within the stated accuracy, as measured
+    timing = result.timing
+    assert timing.instant_scatter_s == pytest.approx(1e-4 / math.sqrt(3.0), rel=0.35)
+    assert timing.within_accuracy and 0 < timing.model_error_max_pct < 1.0
+    assert result.to_json()["timing"]["instant_scatter_s"] == pytest.approx(timing.instant_scatter_s)
 
 
 def test_timing_figure_predicts_an_error_that_grows_with_the_uncertainty(tmp_path):

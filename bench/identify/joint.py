@@ -92,6 +92,9 @@ MAX_PAIRS = 100_000
 TIMING_REJECT_SHARE = 0.25
 #: Setting aside stops short of leaving fewer than this share of the pairs (weights only then).
 MIN_KEPT_SHARE = 0.5
+#: :func:`instant_scatter_s` reads the timing from pairs whose acceleration is at least
+#: this share of the log's 99th percentile (the transients).
+STEEP_SHARE = 0.1
 
 
 def identify_joint(
@@ -281,6 +284,41 @@ def _solve(pairs, data: Dataset, previous: ZohFit | None, instrumental: bool = F
         sigma_v = max(_velocity_noise(pairs, fit), floor)
         fit = fit_pairs_irregular(pairs, model, timing_weights(pairs, model, sigma_v))
     return fit
+
+
+def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
+    """How far the logged instants of ``data`` really stray from the true ones [s], 1 sigma
+    each, from the residuals of ``model``; NaN when the log shows too little to tell.
+
+    ``t_unc`` bounds each instant (the half-width of the host's bracket), but a drive
+    that samples at a steady point of a wide bracket strays far less: a constant
+    delay moves every instant, and every command with it, alike. What reaches the
+    data is the interval error ``d_{k+1} - d_k``: a pair's residual is the
+    acceleration at its end times that error (plus the velocity noise). On the pairs
+    in a transient (acceleration over :data:`STEEP_SHARE` of its 99th percentile, where
+    timing shows most and the small misfit of a steady state does not) the
+    interval error is the rms of ``e / acc`` (each clipped to what the brackets
+    allow; the rms, not a median: the tails of late answers count), and an
+    instant's error that over ``sqrt(2)``. Velocity noise and effects the model lacks only make it larger, so
+    it errs on the side of a wider scatter.
+    """
+    try:
+        pairs = _pairs(data)
+    except IdentificationError:
+        return math.nan
+    if len(pairs) < 8:
+        return math.nan
+    M, B, fp, fn = model.M, model.B, model.coulomb_pos, model.coulomb_neg
+    force = np.where(pairs.pos, fp, 0.0) - np.where(pairs.neg, fn, 0.0)
+    acc = (pairs.u - force - B * pairs.v1) / M
+    e = pairs.v1 - np.exp(-B * pairs.dt / M) * pairs.v0 - (1.0 - np.exp(-B * pairs.dt / M)) / B * (pairs.u - force)
+    steep = np.abs(acc) >= STEEP_SHARE * np.quantile(np.abs(acc), 0.99)
+    steep &= np.abs(acc) > 0
+    if np.count_nonzero(steep) < 4:
+        return math.nan
+    bound = 2.0 * float(np.max(pairs.sigma_dt)) * math.sqrt(3.0) if pairs.sigma_dt is not None else math.inf
+    interval_error = np.clip(e[steep] / acc[steep], -bound, bound)  # never past the brackets
+    return float(np.sqrt(np.mean(interval_error**2)) / math.sqrt(2.0))
 
 
 def _velocity_floor(data: Dataset) -> float:
