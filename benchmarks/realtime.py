@@ -18,7 +18,10 @@ the verification fit, the clock source, the host's jitter p50 / p99 / max
 the run ended. Then the host's own 1 kHz cycle (a drive that answers at
 once, ``SCHED_FIFO`` where permitted), idle and busy: the jitter p50 / p99 /
 max of the request instants (``|period - 1 ms|``), missed cycles, and the
-periods between answers that deviate by over 1 ms.
+periods between answers that deviate by over 1 ms; beside it the machine's
+own floor, ``cyclictest`` (rt-tests) at the same priority on the same CPU
+under the same load: what no user-space loop here can beat (a virtual
+machine's vCPU is paused by its hypervisor now and then).
 
 Targets (issue 22): under load, with time stamps within 0.5 %, without within
 1 % and fit >= 99 %, no time-out; idle within 0.3 % either way; the host's
@@ -38,6 +41,7 @@ import contextlib
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -48,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.testing.served import ServedSim
+from servobench.realtime import FIFO_PRIORITY
 
 PLANTS = {
     "100": {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4},
@@ -60,6 +65,8 @@ NO_STAMP_EVER = frozenset({"serial"})
 DRIVE_PRIORITY = 70
 #: Seconds the host's own cycle is measured.
 CYCLE_S = 10.0
+#: The host's cyclic priority, given to cyclictest too.
+HOST_PRIORITY = FIFO_PRIORITY
 
 
 def sim_url(p: dict[str, float]) -> str:
@@ -140,6 +147,38 @@ def host_cycle(seconds: float = CYCLE_S) -> dict[str, float]:
     }  # fmt: skip
 
 
+def machine_floor(seconds: float, cpu: int) -> dict[str, float] | str:
+    """The machine's own latency floor: ``cyclictest`` (rt-tests, a C program by the
+    PREEMPT_RT maintainers) at the host's priority, on the host's CPU, memory locked,
+    for as long as the host's cycle ran: what no user-space loop on this machine can
+    beat. A one-line reason when it is not installed."""
+    exe = shutil.which("cyclictest")
+    if exe is None:
+        return "cyclictest not installed (apt-get install rt-tests): the machine's floor not measured"
+    loops = int(seconds * 1000)
+    proc = subprocess.run(
+        [exe, "-m", "-p", str(HOST_PRIORITY), "-i", "1000", "-l", str(loops), "-a", str(cpu), "-t", "1",
+         "-q", "-h", "20000"],
+        capture_output=True, text=True, timeout=seconds + 30,
+    )  # fmt: skip
+    if proc.returncode != 0:
+        return f"cyclictest failed: {(proc.stderr or proc.stdout).strip().splitlines()[-1:]}"
+    lat, count = [], []
+    for line in proc.stdout.splitlines():
+        parts = line.split()
+        if line.startswith("#") or len(parts) < 2:
+            continue
+        lat.append(int(parts[0]))
+        count.append(int(parts[1]))
+    lat_us, n = np.array(lat), np.array(count)
+    cum = np.cumsum(n) / max(int(n.sum()), 1)
+    return {
+        "p99_ms": float(lat_us[np.searchsorted(cum, 0.99)]) / 1e3,
+        "max_ms": float(lat_us[n > 0].max()) / 1e3 if n.any() else math.nan,
+        "over_1ms": int(n[lat_us > 1000].sum()),
+    }
+
+
 def _ms(value) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value * 1e3:.3f}"
 
@@ -193,11 +232,19 @@ def main() -> None:
                             sys.stdout.flush()
         print("host's own 1 kHz cycle (sim:// answering at once, pace real):")
         for load_name in loads:
+            seconds = 4.0 if args.quick else CYCLE_S
             with busy(load_name == "busy"):
-                c = host_cycle(4.0 if args.quick else CYCLE_S)
+                c = host_cycle(seconds)
+                floor = machine_floor(seconds, max(os.sched_getaffinity(0)))
             print(f"  {load_name:<5} {c['policy']}: request jitter p50 {c['p50_ms']:.4f} ms, p99 "
                   f"{c['p99_ms']:.4f} ms, max {c['max_ms']:.3f} ms, missed {c['missed']}; answers p99 "
                   f"{c['answered_p99_ms']:.4f} ms, {c['over_1ms']} over 1 ms (load {c['load']:.1f})")  # fmt: skip
+            if isinstance(floor, str):
+                print(f"        machine floor: {floor}")
+            else:
+                print(f"        machine floor (cyclictest, SCHED_FIFO {HOST_PRIORITY}, same CPU and load, "
+                      f"{seconds:g} s): latency p99 {floor['p99_ms']:.4f} ms, max {floor['max_ms']:.3f} ms, "
+                      f"{floor['over_1ms']} over 1 ms")  # fmt: skip
 
 
 if __name__ == "__main__":
