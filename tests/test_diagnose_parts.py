@@ -248,3 +248,28 @@ def test_position_friction_s_knot_count_is_chosen_on_held_out_samples(seed, shap
     s = position_friction.screen(screen_input(data, truth, simulate(data, truth)))
     assert knots[0] <= s.guess["knots"] <= knots[1]
     assert all(a["knots"] > s.guess["knots"] for a in s.alternatives)  # more go to simulation
+
+
+def test_identify_and_diagnose_refuse_and_accept_motion_by_one_rule():
+    """One motion rule (:func:`servobench.bench.identify.motion.require_motion`): a slow sine
+    whose rms is 1.2 noise sigmas is motion to both (diagnose's own rule, a spread of 3
+    sigmas, refused it while identify took it), and noise alone is refused by both with
+    the same words."""
+    from servobench.bench.identify.dataset import prepare as identify_prepare
+    from servobench.bench.identify.motion import require_motion
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    t = np.arange(n) / FS
+    u = 0.3 * np.sign(np.sin(2 * np.pi * 0.5 * t))
+    slow = 0.012 * math.sqrt(2) * np.sin(2 * np.pi * 0.5 * t - 0.3)
+    moving = make_log([RunData(1, t, u, slow + rng.normal(0, 0.01, n))])
+    still = make_log([RunData(1, t, u, rng.normal(0, 0.01, n))])
+    require_motion([r.v for r in moving.runs])  # identify's check: moves
+    prepare(moving)  # diagnose: moves too
+    words = []
+    for check in (lambda: require_motion([r.v for r in identify_prepare(still).segments]), lambda: prepare(still)):
+        with pytest.raises(IdentificationError, match="no motion above the sensor noise") as err:
+            check()
+        words.append(str(err.value).split(" in ")[0])
+    assert words[0] == words[1]

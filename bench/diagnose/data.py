@@ -33,7 +33,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset, Segment
 from servobench.bench.identify.dataset import prepare as prepare_log
-from servobench.bench.identify.motion import second_difference_sigma
+from servobench.bench.identify.motion import require_motion, second_difference_sigma
 from servobench.bench.identify.resolution import signal_step, step_noise_std
 from servobench.bench.log.io import ExperimentLog
 from servobench.errors import IdentificationError, UsageError
@@ -161,29 +161,13 @@ def prepare(log: ExperimentLog, horizon_s: float | None = None) -> DiagnosisData
     held_out = tuple(held for held, _ in plans)
     starts = tuple(start for _, start in plans)
     sigma = noise_std(prepared)
-    _check_motion(prepared, sigma)
+    require_motion([s.v for s in prepared.segments], prepared.source or "the log", noise_std=sigma)
     fit_starts = starts
     if horizon_s is None and sum(len(s) for s in prepared.segments) > REFIT_MAX_SAMPLES:
         step = max(MIN_RUN_SAMPLES, int(round(FIT_WINDOW_S * prepared.fs_hz)))
         fit_starts = tuple(np.arange(0, len(s), step) for s in prepared.segments)
     units = SignalUnits.from_metadata(log.metadata)
     return DiagnosisData(prepared, horizon_s, held_out, starts, sigma, fit_starts, units)
-
-
-#: A run moves when its velocity's spread exceeds this multiple of the sensor noise.
-MOTION_OVER_NOISE = 3.0
-
-
-def _check_motion(prepared: Dataset, sigma_v: float) -> None:
-    """Raise when no run moves beyond the sensor noise: there is nothing to diagnose."""
-    if sigma_v <= 0:
-        return
-    spread = max(float(np.std(s.v)) for s in prepared.segments)
-    if spread < MOTION_OVER_NOISE * sigma_v:
-        raise IdentificationError(
-            f"the axis does not move beyond the sensor noise (velocity spread {spread:.3g}, "
-            f"noise {sigma_v:.3g}): raise the command amplitude above the breakaway friction"
-        )
 
 
 def _plan(n: int, horizon_s: float | None, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:

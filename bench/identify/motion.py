@@ -75,25 +75,34 @@ def sensor_noise_std(v: np.ndarray) -> float:
     return second_difference_sigma(np.diff(v, 2)) if v.size >= 3 else 0.0
 
 
-def motion(velocities: list[np.ndarray]) -> Motion:
-    """:class:`Motion` of the velocity records of a log's runs (each shape (n_i,))."""
+def motion(velocities: list[np.ndarray], noise_std: float | None = None) -> Motion:
+    """:class:`Motion` of the velocity records of a log's runs (each shape (n_i,)).
+
+    ``noise_std``: the sensor noise sigma when the caller knows it better (diagnose
+    adds the rounding of a velocity reported in steps, which second differences do
+    not see); else each run's own from its second differences.
+    """
     runs = [np.asarray(v, dtype=float) for v in velocities if v is not None and len(v)]
     if not runs:
         return Motion(0.0, 0.0, 0.0)
-    sigmas = [sensor_noise_std(v) for v in runs]
+    sigmas = [sensor_noise_std(v) if noise_std is None else float(noise_std) for v in runs]
     weights = np.array([len(v) for v in runs], dtype=float)
     sigma = float(np.sqrt(np.average(np.square(sigmas), weights=weights)))
     signal = max(math.sqrt(max(0.0, float(np.mean(v**2)) - s**2)) for v, s in zip(runs, sigmas, strict=True))
     return Motion(sigma, signal, float(max(np.max(np.abs(v)) for v in runs)))
 
 
-def require_motion(velocities: list[np.ndarray], where: str = "the log") -> Motion:
+def require_motion(
+    velocities: list[np.ndarray], where: str = "the log", noise_std: float | None = None
+) -> Motion:
     """:func:`motion`, raising :class:`IdentificationError` when the axis did not move.
 
-    The message says what to change: the amplitude (above the breakaway
-    friction), and the drive's enable, brake and limits.
+    The one motion rule of servobench: ``identify`` (and so ``sidbe``) and
+    ``diagnose`` both refuse a log by it. The message says what to change: the
+    amplitude (above the breakaway friction), and the drive's enable, brake and
+    limits.
     """
-    m = motion(velocities)
+    m = motion(velocities, noise_std)
     if not m.moved:
         raise IdentificationError(
             f"no motion above the sensor noise in {where}: the axis never moved (velocity rms {m.signal_rms:.3g} "
