@@ -31,6 +31,9 @@ STOP_TIMEOUT_S = 10.0
 #: answers, not how fast. A served drive, or a host, starved of CPU on a busy machine is late,
 #: not silent. The defaults (0.1 s for a TPDO or a serial reply, 0.25 s for a Modbus answer,
 #: a 0.5 s watchdog) stay for the tests whose subject is the deadline itself.
+#: Real-time priority of a served drive (``serve-sim --rt-priority``): below the host's
+#: cyclic thread (80), above every time-shared process.
+DRIVE_PRIORITY = 60
 PATIENT_KEYS = {
     "canopen": "&pdo_timeout=2&watchdog=5",
     "modbus-tcp": "&timeout=2&watchdog=5",
@@ -55,6 +58,13 @@ class ServedSim:
         ``"real"`` (the axis moves in wall-clock time) or ``"lockstep"`` (one
         cycle per SYNC/read, exact): ``serve-sim --clock``; ``None``: serve-sim's
         default, ``real``.
+    priority : int or None
+        ``serve-sim --rt-priority`` unless ``extra_args`` gives one:
+        :data:`DRIVE_PRIORITY` by default, as a real drive has a processor of its
+        own (on a loaded machine a time-shared served drive answers a request
+        100 ms late now and then, and a test of the protocol would read that as
+        the drive's silence); ``None``: time-shared. Where SCHED_FIFO is not
+        permitted serve-sim takes the best nice level and says so.
     """
 
     def __init__(
@@ -63,10 +73,13 @@ class ServedSim:
         sim_url: str = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4",
         extra_args: Sequence[str] = (),
         clock: str | None = None,
+        priority: int | None = DRIVE_PRIORITY,
     ) -> None:
         self.transport = transport
         self.sim_url = sim_url
         self.extra_args = list(extra_args) + (["--clock", clock] if clock else [])
+        if priority is not None and "--rt-priority" not in self.extra_args:
+            self.extra_args += ["--rt-priority", str(priority)]
         self.proc: subprocess.Popen[str] | None = None
         self.url = ""
         self.returncode: int | None = None
