@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,9 +30,7 @@ from servobench.bench.commission.config import BumpSettings
 from servobench.bench.commission.errors import CommissionRefused
 from servobench.bench.commission.limits import ConfirmedLimits
 from servobench.bench.identify.resolution import signal_step
-from servobench.bench.log.io import LogWriter
-from servobench.bench.run.runner import LOG_COLUMNS
-from servobench.clock import sleep_until
+from servobench.bench.run.reactive import ReactiveCycle
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError
 
@@ -176,36 +173,38 @@ def run_bump_test(
     if settings.fs_hz is None:
         settings = at_link_rate(settings, None, drive)
     dt = 1.0 / settings.fs_hz
-    streamer = _Streamer(drive, dt, pace, LogWriter(log_path, _metadata(drive, settings), LOG_COLUMNS))
     total = 2 * len(settings.fractions)
     pulses: list[BumpPulse] = []
-    try:
-        drive.set_cycle(dt)
-        drive.enable()
-        rest = streamer.run(0, np.zeros(REST_CYCLES))
-        noise = _noise(rest, limits)
-        breakaway: dict[int, float] = {}
-        for direction in (1, -1):
-            for i, fraction in enumerate(settings.fractions):
-                pulse = _pulse(streamer, len(pulses) + 1, direction * fraction * limits.max_u,
-                               settings, limits, noise)  # fmt: skip
-                pulses.append(pulse)
-                if progress is not None:
-                    progress((0 if direction > 0 else len(settings.fractions)) + i + 1, total)
-                if pulse.moved:
-                    breakaway[direction] = abs(pulse.amplitude)
-                    break
-        drive.stop()
-        drive.disable()
-    except BaseException as err:
-        with contextlib.suppress(DriveError, OSError):
+    meta = {**_metadata(drive, settings), "pace": pace}
+    with ReactiveCycle(drive, dt, pace, log_path, meta) as cycle:
+        streamer = _Streamer(drive, cycle)
+        try:
+            drive.set_cycle(dt)
+            drive.enable()
+            rest = streamer.run(0, np.zeros(REST_CYCLES))
+            noise = _noise(rest, limits)
+            breakaway: dict[int, float] = {}
+            for direction in (1, -1):
+                for i, fraction in enumerate(settings.fractions):
+                    pulse = _pulse(streamer, len(pulses) + 1, direction * fraction * limits.max_u,
+                                   settings, limits, noise)  # fmt: skip
+                    pulses.append(pulse)
+                    if progress is not None:
+                        progress((0 if direction > 0 else len(settings.fractions)) + i + 1, total)
+                    if pulse.moved:
+                        breakaway[direction] = abs(pulse.amplitude)
+                        break
             drive.stop()
-        with contextlib.suppress(DriveError, OSError):
             drive.disable()
-        reason = "interrupted (Ctrl-C)" if isinstance(err, KeyboardInterrupt) else str(err)
-        streamer.writer.finish("incomplete", reason=reason or type(err).__name__)
-        raise
-    streamer.writer.finish("complete", samples=streamer.writer.rows)
+        except BaseException as err:
+            with contextlib.suppress(DriveError, OSError):
+                drive.stop()
+            with contextlib.suppress(DriveError, OSError):
+                drive.disable()
+            reason = "interrupted (Ctrl-C)" if isinstance(err, KeyboardInterrupt) else str(err)
+            cycle.finish("incomplete", reason=reason or type(err).__name__)
+            raise
+        cycle.finish("complete")
     checked = judge(pulses, breakaway, noise, settings, streamer.clock_advanced)
     return BumpResult(tuple(pulses), breakaway[1], breakaway[-1], noise.speed_threshold, checked, log_path)
 
@@ -215,26 +214,20 @@ def _metadata(drive: Drive, settings: BumpSettings) -> dict[str, object]:
 
 
 class _Streamer:
-    """Cycle the drive, log every sample, keep the arrays of the last segment."""
+    """Cycle the drive on the reactive cyclic engine, keep the arrays of the last segment."""
 
-    def __init__(self, drive: Drive, dt: float, pace: str, writer: LogWriter) -> None:
-        self.drive, self.dt, self.pace, self.writer = drive, dt, pace, writer
-        self.t0 = time.monotonic()
-        self.k = 0
+    def __init__(self, drive: Drive, cycler: ReactiveCycle) -> None:
+        self.drive, self.cycler = drive, cycler
+        self.writer = cycler.writer
         self.first_t: float | None = None
         self.clock_advanced = False
 
     def cycle(self, run: int, u: float) -> tuple[float, float, float, float]:
-        if self.pace == "real":
-            sleep_until(self.t0 + self.k * self.dt)
-        fb, applied = self.drive.exchange(u)
-        self.k += 1
+        fb, applied, t = self.cycler.exchange(run, u)
         if self.first_t is None:
             self.first_t = fb.t_s
         elif fb.t_s != self.first_t:
             self.clock_advanced = True
-        t = fb.t_s - self.first_t
-        self.writer.append(run, t, applied, fb.velocity, fb.position, time.monotonic() - self.t0)
         if not (math.isfinite(fb.velocity) and math.isfinite(fb.position)):
             raise CommissionRefused(
                 f"feedback is not finite during the bump test (v={fb.velocity}, x={fb.position})"

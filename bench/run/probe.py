@@ -16,14 +16,16 @@ The relay's samples are identified by the joint estimator
 (:func:`~servobench.bench.identify.joint.identify_joint`): ``M``, ``B`` and
 both Coulomb levels, rough but enough to design the hold and the excitation.
 Every sample goes to ``probe.csv`` as it is taken (``run`` = relay level, 0
-the rest before it), kept on any failure. A relay that runs away (wrong
+the rest before it), kept on any failure; each command follows from the
+sample before it, so the relay runs on
+:class:`~servobench.bench.run.reactive.ReactiveCycle` (the cyclic engine's
+deadlines, instants and ``t_unc`` at real pace). A relay that runs away (wrong
 polarity) or an axis that never swings stops with a one-line error.
 """
 
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -31,17 +33,16 @@ import numpy as np
 
 from servobench.bench.identify.dataset import prepare
 from servobench.bench.identify.joint import identify_joint
-from servobench.bench.log.io import LogWriter, read_log
+from servobench.bench.log.io import read_log
 from servobench.bench.model.servo import ServoModel
+from servobench.bench.run.reactive import ReactiveCycle
 from servobench.bench.run.runner import (
-    LOG_COLUMNS,
     REST_SAMPLES,
     _reason,
     _stop_quietly,
     note_partial_log,
 )
 from servobench.bench.run.travel import TravelWindow
-from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import IdentificationError, LimitExceededError, UsageError
 
@@ -126,17 +127,18 @@ def run_probe(
     log_path = Path(log_path)
     meta = {"fs": fs_hz, "drive": drive.url.raw, "pace": pace, "experiment": "relay probe",
             **drive.log_metadata()}  # fmt: skip
-    relay = _Relay(drive, window, 1.0 / fs_hz, pace, LogWriter(log_path, meta, LOG_COLUMNS))
-    try:
-        level = relay.session(start, cap)
-    except BaseException as err:
+    with ReactiveCycle(drive, 1.0 / fs_hz, pace, log_path, meta) as cycle:
+        relay = _Relay(drive, window, 1.0 / fs_hz, cycle)
         try:
-            _stop_quietly(drive)
-        finally:
-            relay.writer.finish("incomplete", reason=_reason(err), samples=relay.writer.rows)
-            note_partial_log(err, relay.writer)
-        raise
-    relay.writer.finish("complete", samples=relay.writer.rows, relay_amplitude=level)
+            level = relay.session(start, cap)
+        except BaseException as err:
+            try:
+                _stop_quietly(drive)
+            finally:
+                cycle.finish("incomplete", reason=_reason(err))
+                note_partial_log(err, cycle.writer)
+            raise
+        cycle.finish("complete", relay_amplitude=level)
     return _identify(log_path, level, relay.x0)
 
 
@@ -157,22 +159,14 @@ def _identify(log_path: Path, level: float, x0: float) -> ProbeResult:
 class _Relay:
     """The relay experiment, cycle by cycle, every sample logged."""
 
-    def __init__(self, drive: Drive, window: TravelWindow, dt: float, pace: str, writer: LogWriter):
-        self.drive, self.window, self.dt, self.pace, self.writer = drive, window, dt, pace, writer
-        self.t0 = time.monotonic()
-        self.k = 0
-        self.t_first: float | None = None
+    def __init__(self, drive: Drive, window: TravelWindow, dt: float, cycler: ReactiveCycle):
+        self.drive, self.window, self.dt, self.cycler = drive, window, dt, cycler
+        self.writer = cycler.writer
         self.x0 = math.nan
         self.still = 0.0  # displacement that counts as motion [position units]
 
     def cycle(self, run: int, u: float) -> tuple[float, float]:
-        if self.pace == "real":
-            sleep_until(self.t0 + self.k * self.dt)
-        self.k += 1
-        fb, sent = self.drive.exchange(u)
-        self.t_first = fb.t_s if self.t_first is None else self.t_first
-        t = (self.k - 1) * self.dt if not self.drive.drive_clock else fb.t_s - self.t_first
-        self.writer.append(run, t, sent, fb.velocity, fb.position, time.monotonic() - self.t0)
+        fb, _, _ = self.cycler.exchange(run, u)
         if not (math.isfinite(fb.position) and math.isfinite(fb.velocity)):
             raise LimitExceededError(f"non-finite feedback in the relay probe (x={fb.position}, v={fb.velocity})")
         return fb.position, fb.velocity
