@@ -13,7 +13,7 @@ from test_commission_cli import CONFIG, check_record
 
 from servobench.bench.cli import main
 from servobench.bench.log.io import read_log
-from servobench.bench.testing.served import ServedSim
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.drivers.registry import open_drive
 
 #: One candump line: ``(timestamp) channel ID#DATA [R|T]``.
@@ -41,7 +41,7 @@ def test_commission_over_a_served_drive(tmp_path, transport, capsys):
     out = tmp_path / "record"
     bus = tmp_path / "bus.log"
     with ServedSim(transport, clock="lockstep") as served:
-        url = fast(served.url)
+        url = fast(served.url) + PATIENT_KEYS[transport]  # a loaded machine answers late now and then
         rc = main(["commission", "--drive", url, "--yes", "--config", str(config), "--out", str(out),
                    "--record-bus", str(bus)])  # fmt: skip
         captured = capsys.readouterr()

@@ -22,7 +22,6 @@ import numpy as np
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
-from servobench.bench.testing.served import DRIVE_PRIORITY
 from servobench.sim_backend.physics.plant import Plant, PlantParams, simulate
 
 pytestmark = pytest.mark.slow  # a default sidbe (32 s at 1 kHz) and a closed-loop one: 2 min
@@ -32,9 +31,6 @@ PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 NOISY = "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4&noise=0.01&seed=2"
 #: serve-sim for the tests that compare exactly with the offline plant (the others run real).
 LOCKSTEP = ["--clock", "lockstep"]
-#: A real-time slave has a processor of its own: it runs at the served drives' priority, above
-#: every time-shared process (and level with the other tests' served drives).
-OWN_CPU = ["--rt-priority", str(DRIVE_PRIORITY)]
 STREAMING_HOST = """
 import sys
 from servobench.drivers.registry import open_drive
@@ -303,9 +299,9 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     ("serve_args", "clock"),
     [
         ([], "0x10F8 DC system time of each sample"),
-        # from the grid; and the slave asks for real-time priority, as a drive with its own CPU
+        # from the grid (the slave runs at real-time priority, as every served drive of the tests)
         (
-            ["--no-timestamp", *OWN_CPU],
+            ["--no-timestamp"],
             "DC system time of each sample (the SYNC0 event",
         ),
     ],
@@ -341,7 +337,7 @@ def test_real_time_slave_samples_at_the_dc_instants_the_log_gets(serve_args, clo
 def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
     """A default sidbe (32 s) on a real-time slave with its DC time stamp 0x10F8."""
     _link_tests()
-    out = run_on_link(__file__, "link_sidbe_open", PLANT, ["--clock", "real", *OWN_CPU])
+    out = run_on_link(__file__, "link_sidbe_open", PLANT, ["--clock", "real"])
     assert out["rc"] == 0, out["stderr"]
     model = json.loads(out["stdout"])
     note = f"model {model.get('pole')}, {model.get('dc_gain')}; stderr: {out['stderr'][-500:]}"
@@ -357,7 +353,7 @@ def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
 def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() -> None:
     """No 0x10F8 nor 0x1013: the SYNC0 event before each frame is the drive clock (12 s run)."""
     _link_tests()
-    out = run_on_link(__file__, "link_sidbe_short", PLANT, ["--clock", "real", "--no-timestamp", *OWN_CPU])
+    out = run_on_link(__file__, "link_sidbe_short", PLANT, ["--clock", "real", "--no-timestamp"])
     assert out["rc"] == 0, out["stderr"]
     model = json.loads(out["stdout"])
     note = f"model {model.get('pole')}, {model.get('dc_gain')}; stderr: {out['stderr'][-500:]}"

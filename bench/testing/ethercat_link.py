@@ -1,10 +1,10 @@
 """A private EtherCAT link for tests: a veth pair inside a network namespace of its own.
 
 :func:`run_on_link` runs ``function(master_iface, url)`` from a Python file in a
-child process that lives in a new user and network namespace (``unshare
--Urn``: no root needed where unprivileged user namespaces are allowed), or,
-as root where user namespaces are refused, a new network namespace
-(``unshare -n``). Inside it the
+child process that lives in a new network namespace: as root ``unshare -n``
+(where the served slave may take real-time priority), otherwise a new user
+and network namespace (``unshare -Urn``: no root needed where unprivileged
+user namespaces are allowed), each the other's fallback. Inside it the
 child creates the veth pair :data:`MASTER_IFACE` <-> :data:`SLAVE_IFACE`,
 starts ``servobench serve-sim --transport ethercat --iface SLAVE_IFACE`` on one
 end (:class:`~servobench.bench.testing.served.ServedSim`) and calls the
@@ -45,9 +45,18 @@ _PROBE = (
 )
 
 
-#: The ways to a namespace of one's own, tried in order: a user + network namespace (no root
-#: needed where unprivileged user namespaces are allowed), then as root a network namespace.
-NAMESPACES = (["unshare", "-Urn"], ["unshare", "-n"])
+#: The ways to a namespace of one's own, tried in order (:func:`namespaces`).
+USER_NETNS, NETNS = ["unshare", "-Urn"], ["unshare", "-n"]
+
+
+def namespaces() -> tuple[list[str], ...]:
+    """As root a network namespace first, then a user + network namespace; otherwise the
+    user + network namespace alone (no root needed where unprivileged user namespaces are
+    allowed). Root goes without the user namespace where it can: inside one the kernel
+    grants no SCHED_FIFO, and the served slave, like a real drive with its own processor,
+    runs at real-time priority (:data:`~servobench.bench.testing.served.DRIVE_PRIORITY`)."""
+    root = hasattr(os, "geteuid") and os.geteuid() == 0
+    return (NETNS, USER_NETNS) if root else (USER_NETNS, NETNS)
 _chosen: list[str] | None = None
 
 
@@ -79,7 +88,7 @@ def link_unavailable() -> str | None:
         if shutil.which(tool) is None:
             return f"no {tool!r} command (util-linux / iproute2)"
     reasons = []
-    for prefix in NAMESPACES:
+    for prefix in namespaces():
         if prefix[1] == "-n" and os.geteuid() != 0:
             continue  # a plain network namespace needs root
         why = _probe(prefix)
