@@ -299,8 +299,8 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
     timing shows most and the small misfit of a steady state does not) the
     interval error is the rms of ``e / acc`` (each clipped to what the brackets
     allow; the rms, not a median: the tails of late answers count), and an
-    instant's error that over ``sqrt(2)``. Velocity noise and effects the model lacks only make it larger, so
-    it errs on the side of a wider scatter.
+    instant's error that over ``sqrt(2)``. Velocity noise and effects the model lacks
+    only make it larger, so it errs on the side of a wider scatter.
     """
     try:
         pairs = _pairs(data)
@@ -308,17 +308,26 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
         return math.nan
     if len(pairs) < 8:
         return math.nan
-    M, B, fp, fn = model.M, model.B, model.coulomb_pos, model.coulomb_neg
-    force = np.where(pairs.pos, fp, 0.0) - np.where(pairs.neg, fn, 0.0)
-    acc = (pairs.u - force - B * pairs.v1) / M
-    e = pairs.v1 - np.exp(-B * pairs.dt / M) * pairs.v0 - (1.0 - np.exp(-B * pairs.dt / M)) / B * (pairs.u - force)
+    acc, e = _pair_residual(pairs, model.M, model.B, model.coulomb_pos, model.coulomb_neg)
     steep = np.abs(acc) >= STEEP_SHARE * np.quantile(np.abs(acc), 0.99)
     steep &= np.abs(acc) > 0
     if np.count_nonzero(steep) < 4:
         return math.nan
-    bound = 2.0 * float(np.max(pairs.sigma_dt)) * math.sqrt(3.0) if pairs.sigma_dt is not None else math.inf
+    # an interval's error is at most the two half-widths: sqrt(6) sigma_dt (uniform instants)
+    bound = math.sqrt(6.0) * pairs.sigma_dt[steep] if pairs.sigma_dt is not None else math.inf
     interval_error = np.clip(e[steep] / acc[steep], -bound, bound)  # never past the brackets
     return float(np.sqrt(np.mean(interval_error**2)) / math.sqrt(2.0))
+
+
+def _pair_residual(
+    pairs: Pairs, M: float, B: float, coulomb_pos: float, coulomb_neg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each pair's acceleration at its end [units/s^2] and its residual ``e`` [units/s] under
+    the model: ``v1`` against the exact step from ``v0`` over the pair's own interval."""
+    force = np.where(pairs.pos, coulomb_pos, 0.0) - np.where(pairs.neg, coulomb_neg, 0.0)
+    acc = (pairs.u - force - B * pairs.v1) / M
+    decay = np.exp(-B * pairs.dt / M)
+    return acc, pairs.v1 - decay * pairs.v0 - (1.0 - decay) / B * (pairs.u - force)
 
 
 def _velocity_floor(data: Dataset) -> float:
@@ -340,12 +349,10 @@ def _velocity_floor(data: Dataset) -> float:
 def _velocity_noise(pairs: Pairs, fit: ZohFit) -> float:
     """Velocity noise [units/s] from the residual of the pairs least touched by timing (the
     quarter with the smallest acceleration times interval uncertainty)."""
-    force = np.where(pairs.pos, fit.coulomb_pos, 0.0) - np.where(pairs.neg, fit.coulomb_neg, 0.0)
-    exposure = np.abs((pairs.u - force - fit.B * pairs.v1) / fit.M * pairs.sigma_dt)
+    acc, e = _pair_residual(pairs, fit.M, fit.B, fit.coulomb_pos, fit.coulomb_neg)
+    exposure = np.abs(acc * pairs.sigma_dt)
     calm = exposure <= np.quantile(exposure, 0.25)
     a = math.exp(-fit.B * float(np.mean(pairs.dt)) / fit.M)
-    b = (1.0 - np.exp(-fit.B * pairs.dt / fit.M)) / fit.B
-    e = pairs.v1 - np.exp(-fit.B * pairs.dt / fit.M) * pairs.v0 - b * (pairs.u - force)
     return noise_std_from_residual(e[calm], a)
 
 
