@@ -27,12 +27,30 @@ from servobench.bench.run.feedback_check import FeedbackCheck
 from servobench.bench.run.ring_writer import RingLogWriter
 from servobench.bench.run.timing_stats import CycleClock, PeriodStats
 from servobench.clock import SPIN_S, sleep_until
-from servobench.drivers.base import Drive
+from servobench.drivers.base import Drive, Feedback
 
 #: The spin before each deadline at ``SCHED_FIFO`` [s]: a real-time thread wakes within
 #: tens of microseconds, so it need not spin the half cycle a time-shared one does
 #: (which, at real-time priority, would take half a CPU from every other process).
 RT_SPIN_S = 2e-4
+
+
+def spin_here_s() -> float:
+    """The spin before a deadline for the calling thread [s]: :data:`RT_SPIN_S` at
+    ``SCHED_FIFO``, else :data:`~servobench.clock.SPIN_S`."""
+    return RT_SPIN_S if os.sched_getscheduler(0) == os.SCHED_FIFO else SPIN_S
+
+
+def sample_instant(fb: Feedback, start: float, end: float, by_drive: bool) -> tuple[float, float]:
+    """A sample's best instant and its uncertainty ``(t, t_unc)`` [s]: the drive's time stamp
+    (``by_drive``, uncertainty 0); else the bracket the transport narrowed
+    (``fb.t_host_s``, ``fb.t_unc_s``); else the midpoint and half-width of the exchange,
+    request out at ``start`` to answer in at ``end`` (host clock)."""
+    if by_drive:
+        return fb.t_s, 0.0
+    if fb.t_host_s == fb.t_host_s:  # the transport narrowed it
+        return fb.t_host_s, fb.t_unc_s
+    return 0.5 * (start + end), 0.5 * (end - start)
 
 
 @dataclass
@@ -68,7 +86,7 @@ def stream_realtime(
     monotonic = time.monotonic
     every = max(1, n // 200)
     acted = 0.0
-    spin_s = RT_SPIN_S if os.sched_getscheduler(0) == os.SCHED_FIFO else SPIN_S
+    spin_s = spin_here_s()
     t0_host = monotonic()
     t_first = math.nan
     for k in range(n):
@@ -78,12 +96,7 @@ def stream_realtime(
         start = monotonic()
         fb, applied = drive.exchange(u[k])
         end = monotonic()
-        if by_drive:
-            t_abs, t_unc = fb.t_s, 0.0
-        elif fb.t_host_s == fb.t_host_s:  # the transport narrowed it
-            t_abs, t_unc = fb.t_host_s, fb.t_unc_s
-        else:
-            t_abs, t_unc = 0.5 * (start + end), 0.5 * (end - start)
+        t_abs, t_unc = sample_instant(fb, start, end, by_drive)
         check(fb.t_s, acted, fb.velocity, fb.position)
         acted = applied
         if k == 0:

@@ -24,15 +24,14 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 from servobench.bench.log.io import LogWriter
-from servobench.bench.run.cyclic import RT_SPIN_S
+from servobench.bench.run.cyclic import sample_instant, spin_here_s
 from servobench.bench.run.ring_writer import RingLogWriter
-from servobench.bench.run.runner import LOG_COLUMNS, REALTIME_COLUMNS
+from servobench.bench.run.runner import LOG_COLUMNS, REALTIME_COLUMNS, _trailer, realtime_header
 from servobench.bench.run.timing_stats import CycleClock, CycleTiming
 from servobench.clock import SPIN_S, sleep_until
 from servobench.drivers.base import Drive, Feedback
@@ -82,12 +81,9 @@ class ReactiveCycle:
         meta, columns = self.metadata, LOG_COLUMNS
         if self.realtime:
             grant = self._stack.enter_context(realtime_thread(helper_threads=self.drive.io_threads()))
-            lead = self.drive.command_lead_s()
-            meta = {"clock_source": self.drive.clock_source(),
-                    **({"command_lead_s": lead} if lead > 0 else {}), **grant.as_metadata(), **meta}  # fmt: skip
-            columns = REALTIME_COLUMNS
+            meta, columns = realtime_header(self.drive, grant, meta), REALTIME_COLUMNS
             self._by_drive = self.drive.clock_source() == "drive"
-            self._spin_s = RT_SPIN_S if os.sched_getscheduler(0) == os.SCHED_FIFO else SPIN_S
+            self._spin_s = spin_here_s()
         try:
             self.writer = LogWriter(self.log_path, meta, columns, flush_every=1)
         except BaseException:
@@ -125,15 +121,10 @@ class ReactiveCycle:
         start = time.monotonic()
         fb, applied = self.drive.exchange(u)
         end = time.monotonic()
-        t_unc = 0.0
-        if not self.realtime:
-            t_abs = fb.t_s if self.drive.drive_clock else k * self.dt
-        elif self._by_drive:
-            t_abs = fb.t_s
-        elif fb.t_host_s == fb.t_host_s:  # the transport narrowed it
-            t_abs, t_unc = fb.t_host_s, fb.t_unc_s
+        if self.realtime:
+            t_abs, t_unc = sample_instant(fb, start, end, self._by_drive)
         else:
-            t_abs, t_unc = 0.5 * (start + end), 0.5 * (end - start)
+            t_abs, t_unc = (fb.t_s if self.drive.drive_clock else k * self.dt), 0.0
         if self.t_first is None:
             self.t_first = t_abs
         t = t_abs - self.t_first
@@ -164,12 +155,6 @@ class ReactiveCycle:
             return
         if isinstance(self._sink, RingLogWriter):
             self._sink.close()
-        extra: dict[str, object] = {}
-        timing = self.timing()
-        if timing is not None:
-            extra.update(timing.as_metadata())
-            extra.update(self.drive.cycle_counts())
-        for name, count in self.drive.link_recoveries().items():
-            if count:
-                extra[f"link_{name}"] = count
+        clocks = self._clocks if self.timing() is not None else []
+        extra = _trailer(self.drive, [], clocks, self.dt)  # the cycle's timing, the drive's counts
         self.writer.finish(status, reason=reason, samples=self.writer.rows, **extra, **metadata)

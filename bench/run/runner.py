@@ -73,7 +73,7 @@ from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodSta
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError, LimitExceededError, UsageError, add_note
-from servobench.realtime import realtime_thread
+from servobench.realtime import RealtimeGrant, realtime_thread
 
 #: Columns of a runner log.
 LOG_COLUMNS = ("run", "t", "u", "v", "x", "t_host")
@@ -207,9 +207,7 @@ def stream_runs(
     with rt as grant:
         columns = LOG_COLUMNS
         if grant is not None:
-            lead = {"command_lead_s": drive.command_lead_s()} if drive.command_lead_s() > 0 else {}
-            meta = {"clock_source": drive.clock_source(), **lead, **grant.as_metadata(), **meta}
-            columns = REALTIME_COLUMNS
+            meta, columns = realtime_header(drive, grant, meta), REALTIME_COLUMNS
         writer = LogWriter(log_path, meta, columns, flush_every=1)
         sink = RingLogWriter(writer) if realtime else writer
         timing: list[TimingStats] = []
@@ -233,6 +231,13 @@ def stream_runs(
     cycle = CycleTiming.of(clocks, plan.dt) if realtime else None
     source = drive.clock_source() if realtime else ""
     return RunResult(Path(log_path), writer.rows, tuple(timing), True, cycle, source)
+
+
+def realtime_header(drive: Drive, grant: RealtimeGrant, meta: Mapping[str, object]) -> dict[str, object]:
+    """A real-time log's header: where its instants come from (``clock_source``), the
+    command lead where the drive has one, what the OS granted (``rt_*``), then ``meta``."""
+    lead = {"command_lead_s": drive.command_lead_s()} if drive.command_lead_s() > 0 else {}
+    return {"clock_source": drive.clock_source(), **lead, **grant.as_metadata(), **meta}
 
 
 def _drain(sink: LogWriter | RingLogWriter) -> None:
