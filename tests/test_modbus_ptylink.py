@@ -2,33 +2,14 @@
 
 from __future__ import annotations
 
-import contextlib
-import os
 import time
-from collections.abc import Iterator
 
 import pytest
 import serial
 
-from servobench.bench.testing.served import DRIVE_PRIORITY
+from servobench.bench.testing.served import at_drive_priority
 from servobench.sim_backend.servers.modbus.serve_modbus import rtu_frame_gap_s
 from servobench.sim_backend.servers.pty_link import PtyLink
-
-
-@contextlib.contextmanager
-def as_hardware() -> Iterator[None]:
-    """This thread, and the link's pump thread it starts (Linux threads inherit the policy),
-    at the served drives' real-time priority where permitted: a wire and a device do not wait
-    for a time-shared scheduler, so a timing the test measures is the link's own, not the
-    load's. Reverted at exit."""
-    before = os.sched_getscheduler(0), os.sched_getparam(0)
-    with contextlib.suppress(OSError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DRIVE_PRIORITY))
-    try:
-        yield
-    finally:
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, before[0], before[1])
 
 
 def test_passes_bytes_both_ways_and_survives_reopen():
@@ -52,7 +33,7 @@ def test_passes_bytes_both_ways_and_survives_reopen():
 def test_frames_take_their_line_time(n):
     baud, gap = 115200, rtu_frame_gap_s(115200)
     expected_s = n * 10 / baud + gap
-    with as_hardware(), PtyLink(baud=baud, frame_gap_s=gap) as link:
+    with at_drive_priority(), PtyLink(baud=baud, frame_gap_s=gap) as link:
         a = serial.Serial(link.a_path, timeout=1)
         b = serial.Serial(link.b_path, timeout=1)
         for _ in range(3):

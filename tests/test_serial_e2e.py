@@ -16,7 +16,7 @@ import pytest
 
 from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
-from servobench.bench.testing.served import DRIVE_PRIORITY, ServedSim
+from servobench.bench.testing.served import ServedSim, at_drive_priority
 from servobench.drivers.registry import open_drive
 from servobench.drivers.serial.ascii_line import MalformedReplyError
 from servobench.drivers.serial.dialect import DIALECT_DIR, CommandRejectedError
@@ -284,12 +284,11 @@ def test_a_port_that_never_stops_talking_is_refused():
         def chatter() -> None:
             # a device has its own processor: on a loaded machine a time-shared talker pauses
             # for the driver's 50 ms quiet window now and then, and its line reads as a reply
-            with contextlib.suppress(OSError, AttributeError):
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DRIVE_PRIORITY))
-            while not stop.is_set():
-                with contextlib.suppress(BlockingIOError):
-                    os.write(port.master, b"hello\r\n")
-                time.sleep(0.002)
+            with at_drive_priority():
+                while not stop.is_set():
+                    with contextlib.suppress(BlockingIOError):
+                        os.write(port.master, b"hello\r\n")
+                    time.sleep(0.002)
 
         talker = threading.Thread(target=chatter)
         talker.start()

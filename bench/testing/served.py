@@ -12,13 +12,14 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import os
 import selectors
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from servobench.errors import DriveConnectionError, DriveTimeoutError
 
@@ -40,6 +41,22 @@ PATIENT_KEYS = {
     "modbus-rtu": "&timeout=2&watchdog=5",
     "serial": "&timeout=2&watchdog=5",
 }
+
+
+@contextlib.contextmanager
+def at_drive_priority() -> Iterator[None]:
+    """The calling thread, and every thread it starts meanwhile (Linux threads inherit the
+    policy), at :data:`DRIVE_PRIORITY` where permitted, reverted at exit: for a test's stand-in
+    of hardware (a wire, a talking device), which does not wait for a time-shared scheduler,
+    so a timing the test measures is the stand-in's own, not the machine's load."""
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DRIVE_PRIORITY))
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, before[0], before[1])
 
 
 class ServedSim:
