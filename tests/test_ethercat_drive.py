@@ -245,7 +245,7 @@ def link_cable_pulled(iface: str, url: str) -> dict:
     return out
 
 
-def link_late_frames(iface: str, url: str) -> dict:
+def link_late_frames(iface: str, url: str, pause_s: float = 0.0) -> dict:
     from servobench.drivers.registry import open_drive
     from servobench.errors import DriveConnectionError
 
@@ -258,6 +258,8 @@ def link_late_frames(iface: str, url: str) -> dict:
         try:
             for _ in range(5000):
                 drive.exchange(0.0)
+                if pause_s:
+                    time.sleep(pause_s)
             out["error"] = ""
         except DriveConnectionError as err:
             out["error"] = str(err)
@@ -268,6 +270,12 @@ def link_late_frames(iface: str, url: str) -> dict:
         except DriveConnectionError as err:
             out["close"] = str(err)
     return out
+
+
+def link_late_frames_slow_host(iface: str, url: str) -> dict:
+    """As :func:`link_late_frames` from a host 5 ms late for every frame: several SYNC0
+    cycles run between two frames, the delayed one among them."""
+    return link_late_frames(iface, url, pause_s=0.005)
 
 
 # --------------------------------------------------------------------- tests
@@ -421,10 +429,13 @@ def test_a_pulled_cable_stops_the_axis_within_the_watchdog() -> None:
     assert out["state"] == "FAULT" and out["fault"] == 0x8130  # the slave stopped it alone
 
 
-def test_late_frames_are_counted_and_bounded() -> None:
+@pytest.mark.parametrize("host", ["link_late_frames", "link_late_frames_slow_host"])
+def test_late_frames_are_counted_and_bounded(host) -> None:
     _link_tests()
-    out = run_on_link(__file__, "link_late_frames", PLANT, ["--fault", "delay@400:100"])
-    assert "link lost" in out["error"] and "\n" not in out["error"]
+    out = run_on_link(__file__, host, PLANT, ["--fault", "delay@400:100"])
+    # the slow host: the delay stays pending over the SYNC0 cycles that run before its next
+    # frame (it was once overwritten by them, and the run ended without the fault)
+    assert "link lost" in out["error"] and "\n" not in out["error"], out
     assert out["wkc_errors"] >= 3  # the delayed frame and the two sent again while it was out
 
 

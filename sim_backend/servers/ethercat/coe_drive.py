@@ -190,7 +190,8 @@ class PdoCycle(SyncEngine):
         super().__init__(drive)
         self.rx: list[can_pdo.MappedObject] = []
         self.tx: list[can_pdo.MappedObject] = []
-        #: How late the answer of the last cycle goes out (``--fault delay@N:MS``) [s].
+        #: How late the next answer goes out (``--fault delay@N:MS``) [s]; pending until the
+        #: serve loop sends that answer, however many SYNC0 cycles run before it.
         self.delay_s = 0.0
 
     def rebuild(self) -> None:
@@ -230,7 +231,9 @@ class PdoCycle(SyncEngine):
                     drive.node.set_data(e.index, e.subindex, outputs[pos : pos + n])
                 pos += n
             wire = drive.injector.next_cycle()  # drive faults (fault, freeze) due at this cycle
-            self.delay_s = sum(spec.arg for spec in wire if spec.kind == "delay") / 1000.0
+            delay_s = sum(spec.arg for spec in wire if spec.kind == "delay") / 1000.0
+            if delay_s:  # kept when later cycles run before the next frame comes (a late host)
+                self.delay_s = delay_s
             drive.sync_device()
             self._clock()
             try:
