@@ -143,41 +143,114 @@ class CouplingMixin:
         self._hidden = (vm, xm, vl, xl, 0)
         return vs, xs
 
+    def _gap_segments(self, r: float) -> list[tuple]:
+        """Per segment of the interval: the constants the play's hot loop reads inline.
+
+        ``(use_prev, h, rigid, motor, joint, motor_consts, load_decay, load_gain)`` where
+        ``joint`` and ``motor_consts`` are ``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of
+        the engaged bodies and of the motor alone, computed as the segment's own steppers
+        compute them (:func:`consts`), so the inline steps give their numbers bit for bit.
+        """
+        p = self.params
+        out = []
+        for use_prev, h, rigid, motor, kl in self._segs:
+            kj = consts(h, p.M, self.B_pos, self.B_neg)
+            km = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
+            joint = (kj[5], kj[6], kj[7], kj[8], kj[1], kj[2])
+            alone = (km[5], km[6], km[7], km[8], km[1], km[2])
+            out.append((use_prev, h, rigid, motor, joint, alone, (kl[5], kl[6]), (kl[7], kl[8])))
+        return out
+
     def _run_gap(self, cur: list[float], prev: list[float], c) -> tuple[list, list]:
         """Motor (friction, forces) with a play of width ``gap`` to the load; sensor on the motor.
 
         Engaged, both move as one body and the contact force on the load is
         ``r (f - F_friction)``; the play opens when that force would pull.
         Closing it is an inelastic impact that conserves momentum.
+
+        The hot path -- a body that keeps moving one way through a segment, with
+        Coulomb friction only -- is the steppers' own arithmetic written inline
+        (the diagnosis's refits run it tens of millions of times); sticking,
+        reversals, impacts and velocity- or position-dependent friction go
+        through :func:`slider` as before.
         """
         vm, xm, vl, xl, side = self._hidden
-        fr, segs, pf = self.friction, self._segs, self._pos_force
+        fr, pf = self.friction, self._pos_force
+        fcp, fcn = fr[0], fr[1]
+        nfcn = -fcn
+        # Coulomb levels alone, no position force: the inline steps apply.
+        plain = fr[4] is None and fr[5] is None and pf is None
         r = c.load_ratio
         half = 0.5 * c.gap
+        segs = self._gap_segments(r)
         vs: list[float] = []
         xs: list[float] = []
+        push_v, push_x = vs.append, xs.append
         for uc, up in zip(cur, prev, strict=True):
-            vs.append(vm)
-            xs.append(xm)
-            for use_prev, h, rigid, motor, kl in segs:
+            push_v(vm)
+            push_x(xm)
+            for use_prev, h, rigid, motor, joint, alone, (lap, lan), (lgp, lgn) in segs:
                 f = up if use_prev else uc
                 if pf is not None:
                     f -= pf(xm)
                 if side:
-                    # Friction the joint body would feel; the contact force is r (f - F).
-                    F = friction_force(vm, f, fr, xm)
-                    if F is not None and side * (f - F) < 0.0:
-                        side = 0
-                if side:
-                    vm, xm = rigid(vm, xm, f)
-                    vl, xl = vm, xm - side * half
-                    continue
+                    if plain and vm != 0.0:
+                        # friction_force of a moving joint body, then its slider step inline
+                        F = fcp if vm > 0.0 else nfcn
+                        if side * (f - F) < 0.0:
+                            side = 0
+                        else:
+                            ap, an, gp, gn, Bp, Bn = joint
+                            if vm > 0.0:
+                                vinf = (f - F) / Bp
+                                vn = vinf + (vm - vinf) * ap
+                                if vn > 0.0:
+                                    xm, vm = xm + vinf * h + (vm - vinf) * gp, vn
+                                else:
+                                    vm, xm = rigid(vm, xm, f)
+                            else:
+                                vinf = (f - F) / Bn
+                                vn = vinf + (vm - vinf) * an
+                                if vn < 0.0:
+                                    xm, vm = xm + vinf * h + (vm - vinf) * gn, vn
+                                else:
+                                    vm, xm = rigid(vm, xm, f)
+                            vl, xl = vm, xm - side * half
+                            continue
+                    else:
+                        # Friction the joint body would feel; the contact force is r (f - F).
+                        F = friction_force(vm, f, fr, xm)
+                        if F is not None and side * (f - F) < 0.0:
+                            side = 0
+                        if side:
+                            vm, xm = rigid(vm, xm, f)
+                            vl, xl = vm, xm - side * half
+                            continue
                 v0, x0, w0, y0 = vm, xm, vl, xl
-                vm, xm = motor(vm, xm, f)
-                _, _, _, _, _, ap, an, gp, gn = kl
-                a, g = (ap, gp) if vl >= 0.0 else (an, gn)
-                xl += vl * g
-                vl *= a
+                if plain and vm > 0.0:
+                    ap, _, gp, _, Bp, _ = alone
+                    vinf = (f - fcp) / Bp
+                    vn = vinf + (vm - vinf) * ap
+                    if vn > 0.0:
+                        xm, vm = xm + vinf * h + (vm - vinf) * gp, vn
+                    else:
+                        vm, xm = motor(vm, xm, f)
+                elif plain and vm < 0.0:
+                    _, an, _, gn, _, Bn = alone
+                    vinf = (f - nfcn) / Bn
+                    vn = vinf + (vm - vinf) * an
+                    if vn < 0.0:
+                        xm, vm = xm + vinf * h + (vm - vinf) * gn, vn
+                    else:
+                        vm, xm = motor(vm, xm, f)
+                else:
+                    vm, xm = motor(vm, xm, f)
+                if vl >= 0.0:
+                    xl += vl * lgp
+                    vl *= lap
+                else:
+                    xl += vl * lgn
+                    vl *= lan
                 d = xm - xl
                 if d >= half and vm >= vl:
                     side = 1
