@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -19,7 +20,8 @@ from servobench.bench.run.runner import stream_runs
 from servobench.bench.testing.served import ServedSim, at_drive_priority
 from servobench.drivers.registry import open_drive
 from servobench.drivers.serial.ascii_line import MalformedReplyError
-from servobench.drivers.serial.dialect import DIALECT_DIR, CommandRejectedError
+from servobench.drivers.serial.dialect import DIALECT_DIR, CommandRejectedError, load_dialect
+from servobench.drivers.serial.link import AsciiLink
 from servobench.errors import (
     DriveConfigError,
     DriveConnectionError,
@@ -299,6 +301,68 @@ def test_a_port_that_never_stops_talking_is_refused():
         finally:
             stop.set()
             talker.join(5)
+
+
+def firmware_late_on_empty_lines(port: PtyPort, stop: threading.Event, late_s: float,
+                                 rejects_all: bool = False) -> None:
+    """An ODrive as fw-v0.5.2 on answers lines (``unknown command`` for an empty one), the
+    answer to an empty line ``late_s`` late: a board whose USB link or processor is busy."""
+    buf = b""
+    with at_drive_priority():
+        while not stop.is_set():
+            ready, _, _ = select.select([port.master], [], [], 0.01)
+            if not ready:
+                continue
+            with contextlib.suppress(BlockingIOError, OSError):
+                buf += os.read(port.master, 256)
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                line = line.strip()
+                if not line:
+                    time.sleep(late_s)
+                    answer = b"unknown command"
+                else:
+                    answer = b"unknown command" if rejects_all else b"0"
+                os.write(port.master, answer + b"\r\n")
+
+
+@pytest.mark.parametrize("late_s", [0.15, 0.08], ids=["while-the-request-waits", "before-the-request"])
+def test_a_late_answer_to_the_resync_s_empty_line_is_not_the_first_request_s(late_s):
+    # open() ends the drive's half line with an empty line, which fw-v0.5.2 on answers with
+    # "unknown command". Later than the 50 ms quiet window, that answer came ahead of the
+    # first request's and read as the drive rejecting 'r axis0.error' (seen once with three
+    # test workers on two cores), or as bytes sent unasked.
+    stop = threading.Event()
+    with PtyPort() as port:
+        device = threading.Thread(target=firmware_late_on_empty_lines, args=(port, stop, late_s))
+        device.start()
+        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, 1.0)
+        try:
+            link.open()
+            time.sleep(0.15 - late_s + 0.05)  # before: the late answer is in when the request goes
+            assert int(link.query("error").fields["code"]) == 0
+            assert int(link.query("error").fields["code"]) == 0  # and the link is in step
+        finally:
+            link.close()
+            stop.set()
+            device.join(5)
+
+
+def test_a_drive_that_rejects_the_first_request_is_still_said_to():
+    stop = threading.Event()
+    with PtyPort() as port:
+        args = (port, stop, 0.0, True)
+        device = threading.Thread(target=firmware_late_on_empty_lines, args=args)
+        device.start()
+        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, 0.5)
+        try:
+            link.open()
+            with pytest.raises(CommandRejectedError, match="'unknown command' to 'r axis0.error'"):
+                link.query("error")
+        finally:
+            link.close()
+            stop.set()
+            device.join(5)
 
 
 @pytest.mark.parametrize(

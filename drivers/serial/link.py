@@ -11,6 +11,14 @@ repeat of the last reply line (a duplicated reply) is dropped and counted in
 :attr:`AsciiLink.duplicates`; anything else means the last reply may not
 have answered the last request, so :class:`MalformedReplyError` is raised
 and the line is resynchronised (drained until quiet) before the next request.
+
+Resynchronising at open ends the drive's half line with a bare terminator,
+which newer firmware answers with its rejection text (ODrive fw-v0.5.2 on:
+``unknown command``). A drive late by more than the quiet window sends that
+answer after the drain, ahead of the answer to the first request; so until
+the first reply has been read, a rejection is taken for the empty line's and
+the reply that follows it for the request's. When none follows by the
+deadline, the rejection was the request's own and is raised as such.
 POSIX only (waits with ``select`` on the port's file descriptor).
 """
 
@@ -72,6 +80,7 @@ class AsciiLink:
         self._sent: deque[str] = deque(maxlen=8)  # requests not yet followed by a reply
         self._out_of_step = False
         self._last_line = b""  # the last reply line, terminator included
+        self._blank_unanswered = False  # an empty line was sent and no reply read since
         #: Repeated reply lines dropped (see the module docstring).
         self.duplicates = 0
         #: Bytes written to / read from the port since it was opened (for rate figures).
@@ -136,12 +145,27 @@ class AsciiLink:
             self._rx.clear()
             self.duplicates += 1
             return
+        if self._blank_unanswered and self._is_rejection_line(bytes(self._rx)):
+            self._rx.clear()  # the resync's empty line answered late, before any request
+            self._blank_unanswered = False
+            return
         junk = bytes(self._rx[:60])
         self._out_of_step = True
         raise MalformedReplyError(
             f"{self.port}: the drive sent {junk!r} unasked; its last reply may not have "
             "answered the last request"
         )
+
+    def _is_rejection_line(self, raw: bytes) -> bool:
+        """Whether ``raw`` is exactly one whole reply line holding the dialect's rejection."""
+        end = self.dialect.reply_terminator[-1:]
+        if not raw.endswith(end) or raw.count(end) != 1:
+            return False
+        try:
+            body = decode_reply(raw.rstrip(b"\r\n"), self.use_checksum)
+        except MalformedReplyError:
+            return False
+        return self.dialect.rejection(body) is not None
 
     def _raw_line(self, deadline: float) -> bytes:
         """One reply line (terminator stripped) or :class:`DriveTimeoutError` at ``deadline``."""
@@ -182,10 +206,17 @@ class AsciiLink:
             deadline = time.monotonic() + self.reply_timeout_s
         try:
             body = decode_reply(self._raw_line(deadline), self.use_checksum)
+            blank, self._blank_unanswered = self._blank_unanswered, False
             if self.dialect.rejection(body) is not None:
-                raise CommandRejectedError(
+                rejected = CommandRejectedError(
                     f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
                 )
+                if not blank:
+                    raise rejected
+                try:  # the late answer to the resync's empty line: the request's comes next
+                    return self._next_body(deadline)
+                except DriveTimeoutError:
+                    raise rejected from None  # none came: the rejection was the request's
             return body
         except BaseException:
             self._out_of_step = (
@@ -194,6 +225,15 @@ class AsciiLink:
             raise
         finally:
             self._sent.clear()  # what was sent before has been answered, or never will be
+
+    def _next_body(self, deadline: float) -> str:
+        """The reply line after a rejection taken for the empty line's (see :meth:`read_body`)."""
+        body = decode_reply(self._raw_line(deadline), self.use_checksum)
+        if self.dialect.rejection(body) is not None:
+            raise CommandRejectedError(
+                f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
+            )
+        return body
 
     def read_reply(self, name: str) -> ParsedLine:
         body = self.read_body()
@@ -226,6 +266,7 @@ class AsciiLink:
             ser.reset_input_buffer()
             if end_drive_line:
                 ser.write(self.dialect.terminator)
+                self._blank_unanswered = True
             quiet_until = time.monotonic() + RESYNC_QUIET_S
             give_up = time.monotonic() + RESYNC_MAX_S
             while (remaining := quiet_until - time.monotonic()) > 0:
@@ -236,7 +277,9 @@ class AsciiLink:
                     )
                 ready, _, _ = select.select([ser.fileno()], [], [], remaining)
                 if ready:
-                    ser.read(max(1, ser.in_waiting))
+                    chunk = ser.read(max(1, ser.in_waiting))
+                    if self.dialect.reply_terminator[-1:] in chunk:
+                        self._blank_unanswered = False  # a whole line came: its answer, in time
                     quiet_until = time.monotonic() + RESYNC_QUIET_S
         except DriveConnectionError:
             raise
