@@ -153,10 +153,10 @@ class CouplingMixin:
         """
         p = self.params
         out = []
-        for use_prev, h, rigid, motor, kl in self._segs:
-            kj = consts(h, p.M, self.B_pos, self.B_neg)
+        for (use_prev, h, rigid, motor, kl), joint in zip(
+            self._segs, self._joint_consts(), strict=True
+        ):
             km = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
-            joint = (kj[5], kj[6], kj[7], kj[8], kj[1], kj[2])
             alone = (km[5], km[6], km[7], km[8], km[1], km[2])
             out.append((use_prev, h, rigid, motor, joint, alone, (kl[5], kl[6]), (kl[7], kl[8])))
         return out

@@ -202,26 +202,59 @@ class RichModel(CouplingMixin):
         self._last = out
         return np.array(vs), np.array(xs), PlantState(out.v, out.x)
 
+    def _joint_consts(self) -> list[tuple[float, ...]]:
+        """Per segment of the interval, ``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of the
+        whole (rigid) body, computed as its :func:`slider` computes them (:func:`consts`), so
+        the hot loops' inline steps give the stepper's numbers bit for bit."""
+        M = self.params.M
+        out = []
+        for _, h, _, _, _ in self._segs:
+            k = consts(h, M, self.B_pos, self.B_neg)
+            out.append((k[5], k[6], k[7], k[8], k[1], k[2]))
+        return out
+
     def _run_rigid(self, cur: list[float], prev: list[float]) -> tuple[list, list]:
+        """One body with every friction and force term; see the module docstring.
+
+        The hot path -- a body that keeps moving one way through a segment -- is
+        :func:`slider`'s own arithmetic written inline (the diagnosis's refits run
+        it tens of millions of times); a body at rest or reversing goes through
+        the segment's stepper.
+        """
         v, x = self._hidden[0], self._hidden[1]
         segs, pf = self._segs, self._pos_force
+        fcp0, fcn0, _, _, exc, at_x = self.friction
         vs: list[float] = []
         xs: list[float] = []
-        if pf is None and len(segs) == 1:  # one exact segment per interval: the fast path
-            step = segs[0][2]
-            for uc in cur:
-                vs.append(v)
-                xs.append(x)
-                v, x = step(v, x, uc)
-            self._hidden = (v, x, v, x, 0)
-            return vs, xs
+        push_v, push_x = vs.append, xs.append
+        plan = [
+            (use_prev, h, step, *k) for (use_prev, h, step, _, _), k in zip(segs, self._joint_consts(), strict=True)
+        ]  # fmt: skip
         for uc, up in zip(cur, prev, strict=True):
-            vs.append(v)
-            xs.append(x)
-            for use_prev, _, step, _, _ in segs:
+            push_v(v)
+            push_x(x)
+            for use_prev, h, step, ap, an, gp, gn, Bp, Bn in plan:
                 f = up if use_prev else uc
                 if pf is not None:
                     f -= pf(x)
+                if v > 0.0:
+                    F = fcp0 if at_x is None else fcp0 + at_x(x)
+                    if exc is not None:
+                        F = F + exc(v, 1)
+                    vinf = (f - F) / Bp
+                    vn = vinf + (v - vinf) * ap
+                    if vn > 0.0:
+                        x, v = x + vinf * h + (v - vinf) * gp, vn
+                        continue
+                elif v < 0.0:
+                    F = -(fcn0 if at_x is None else fcn0 + at_x(x))
+                    if exc is not None:
+                        F = F - exc(-v, -1)
+                    vinf = (f - F) / Bn
+                    vn = vinf + (v - vinf) * an
+                    if vn < 0.0:
+                        x, v = x + vinf * h + (v - vinf) * gn, vn
+                        continue
                 v, x = step(v, x, f)
         self._hidden = (v, x, v, x, 0)
         return vs, xs
