@@ -1,19 +1,39 @@
-"""The session's set-up: peers installed first, then the files marked ``slow`` run first.
+"""The session's set-up: peers installed first, a worker per core, the files marked ``slow`` first.
 
 Before any test runs, the controller makes the peers the selected tests pair
 with present (:mod:`peers`: installed as root, else one line and a non-zero
 exit).
 
-The suite runs on every core with one test file per worker (``--dist loadfile``
-in pyproject.toml); the workers take files in collection order, so a slow file
-collected last would run alone at the end while the other workers sit idle.
-Starting the slow files first lets the short ones fill in around them.
+The suite runs with one test file per worker (``--dist loadfile`` in
+pyproject.toml). ``-n auto`` gives a worker per core, and one more when the
+machine is idle as the suite starts: about a third of the suite's time is
+spent waiting on wall-clock time (drives streaming in real time at their
+rate, watchdogs, time-outs), and on an idle machine a third worker fills
+those waits; on a busy one it would only add contention, so there it is not
+started. The workers take files in collection order (xdist's reordering by
+number of tests is off), so a slow file collected last would run alone at
+the end while the other workers sit idle: the slow files start first and the
+short ones fill in around them.
 """
 
 from __future__ import annotations
 
+import os
+
 import peers
+import psutil
 import pytest
+
+#: Share of all cores busy [%], measured over :data:`IDLE_PROBE_S` as the suite starts, below
+#: which the machine counts as idle and ``-n auto`` starts one worker more than it has cores.
+IDLE_BELOW_PERCENT = 25.0
+IDLE_PROBE_S = 0.5
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    cores = len(os.sched_getaffinity(0))
+    busy = psutil.cpu_percent(interval=IDLE_PROBE_S)
+    return cores + 1 if busy < IDLE_BELOW_PERCENT else cores
 
 
 def pytest_configure(config: pytest.Config) -> None:
