@@ -379,8 +379,12 @@ def test_dc_synchronous_slave_samples_on_its_sync0_grid_in_real_time() -> None:
     plant.reset(rows[0, 2] * 1e-6, rows[0, 1] * 1e-6)
     v_ref, x_ref = plant.step_block(u_events, cycle * 1e-9)
     at = (stamp - stamp[0]) // cycle
-    np.testing.assert_allclose(rows[:, 2] * 1e-6, v_ref[at], atol=1e-5)  # µrad/s
-    np.testing.assert_allclose(rows[:, 1] * 1e-6, x_ref[at], atol=1e-5)  # µrad
+    off = np.flatnonzero(np.abs(rows[:, 2] * 1e-6 - v_ref[at]) > 1e-5)
+    around = range(max(0, off[0] - 3), min(len(rows), off[0] + 3)) if off.size else ()
+    frames = [(k, int(u[k] * 1000), int(dc[k] - start), int(stamp[k] - start)) for k in around]
+    note = f"first frames off (k, u permille, DC time, its sample's SYNC0) [ns]: {frames}"
+    np.testing.assert_allclose(rows[:, 2] * 1e-6, v_ref[at], atol=1e-5, err_msg=note)  # µrad/s
+    np.testing.assert_allclose(rows[:, 1] * 1e-6, x_ref[at], atol=1e-5, err_msg=note)  # µrad
     assert np.max(np.abs(v_ref)) > 0.3
 
 
