@@ -194,57 +194,37 @@ class CouplingMixin:
                 if pf is not None:
                     f -= pf(xm)
                 if side:
-                    if plain and vm != 0.0:
-                        # friction_force of a moving joint body, then its slider step inline
+                    # Friction the joint body would feel; the contact force is r (f - F).
+                    if plain and vm != 0.0:  # friction_force of a moving body, inline
                         F = fcp if vm > 0.0 else nfcn
-                        if side * (f - F) < 0.0:
-                            side = 0
-                        else:
-                            ap, an, gp, gn, Bp, Bn = joint
-                            if vm > 0.0:
-                                vinf = (f - F) / Bp
-                                vn = vinf + (vm - vinf) * ap
-                                if vn > 0.0:
-                                    xm, vm = xm + vinf * h + (vm - vinf) * gp, vn
-                                else:
-                                    vm, xm = rigid(vm, xm, f)
-                            else:
-                                vinf = (f - F) / Bn
-                                vn = vinf + (vm - vinf) * an
-                                if vn < 0.0:
-                                    xm, vm = xm + vinf * h + (vm - vinf) * gn, vn
-                                else:
-                                    vm, xm = rigid(vm, xm, f)
-                            vl, xl = vm, xm - side * half
-                            continue
                     else:
-                        # Friction the joint body would feel; the contact force is r (f - F).
                         F = friction_force(vm, f, fr, xm)
-                        if F is not None and side * (f - F) < 0.0:
-                            side = 0
-                        if side:
-                            vm, xm = rigid(vm, xm, f)
-                            vl, xl = vm, xm - side * half
-                            continue
+                    if F is not None and side * (f - F) < 0.0:
+                        side = 0
+                # One segment of the engaged bodies or of the motor alone: the slider's step,
+                # inline while the body keeps moving one way.
                 v0, x0, w0, y0 = vm, xm, vl, xl
+                ap, an, gp, gn, Bp, Bn = joint if side else alone
+                step = rigid if side else motor
                 if plain and vm > 0.0:
-                    ap, _, gp, _, Bp, _ = alone
                     vinf = (f - fcp) / Bp
                     vn = vinf + (vm - vinf) * ap
                     if vn > 0.0:
                         xm, vm = xm + vinf * h + (vm - vinf) * gp, vn
                     else:
-                        vm, xm = motor(vm, xm, f)
+                        vm, xm = step(vm, xm, f)
                 elif plain and vm < 0.0:
-                    _, an, _, gn, _, Bn = alone
                     vinf = (f - nfcn) / Bn
                     vn = vinf + (vm - vinf) * an
                     if vn < 0.0:
                         xm, vm = xm + vinf * h + (vm - vinf) * gn, vn
                     else:
-                        vm, xm = motor(vm, xm, f)
+                        vm, xm = step(vm, xm, f)
                 else:
-                    vm, xm = motor(vm, xm, f)
+                    vm, xm = step(vm, xm, f)
+                if side:
+                    vl, xl = vm, xm - side * half
+                    continue
                 if vl >= 0.0:
                     xl += vl * lgp
                     vl *= lap
