@@ -207,16 +207,15 @@ class AsciiLink:
         try:
             body = decode_reply(self._raw_line(deadline), self.use_checksum)
             blank, self._blank_unanswered = self._blank_unanswered, False
-            if self.dialect.rejection(body) is not None:
-                rejected = CommandRejectedError(
-                    f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
-                )
-                if not blank:
-                    raise rejected
+            rejected = self._rejected(body)
+            if rejected is not None and blank:
                 try:  # the late answer to the resync's empty line: the request's comes next
-                    return self._next_body(deadline)
+                    body = decode_reply(self._raw_line(deadline), self.use_checksum)
                 except DriveTimeoutError:
                     raise rejected from None  # none came: the rejection was the request's
+                rejected = self._rejected(body)
+            if rejected is not None:
+                raise rejected
             return body
         except BaseException:
             self._out_of_step = (
@@ -226,14 +225,13 @@ class AsciiLink:
         finally:
             self._sent.clear()  # what was sent before has been answered, or never will be
 
-    def _next_body(self, deadline: float) -> str:
-        """The reply line after a rejection taken for the empty line's (see :meth:`read_body`)."""
-        body = decode_reply(self._raw_line(deadline), self.use_checksum)
-        if self.dialect.rejection(body) is not None:
-            raise CommandRejectedError(
-                f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
-            )
-        return body
+    def _rejected(self, body: str) -> CommandRejectedError | None:
+        """The error for a reply ``body`` that is the dialect's rejection text, else ``None``."""
+        if self.dialect.rejection(body) is None:
+            return None
+        return CommandRejectedError(
+            f"{self.port}: the drive answered {body!r} to {' / '.join(self._sent)!r}"
+        )
 
     def read_reply(self, name: str) -> ParsedLine:
         body = self.read_body()
