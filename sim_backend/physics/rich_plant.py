@@ -227,9 +227,8 @@ class RichModel(CouplingMixin):
         vs: list[float] = []
         xs: list[float] = []
         push_v, push_x = vs.append, xs.append
-        plan = [
-            (use_prev, h, step, *k) for (use_prev, h, step, _, _), k in zip(segs, self._joint_consts(), strict=True)
-        ]  # fmt: skip
+        # per segment: (use_prev, h, stepper, a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)
+        plan = [(*seg[:3], *k) for seg, k in zip(segs, self._joint_consts(), strict=True)]
         for uc, up in zip(cur, prev, strict=True):
             push_v(v)
             push_x(x)
