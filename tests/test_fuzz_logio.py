@@ -164,3 +164,27 @@ def test_a_clean_log_never_needs_the_reference(monkeypatch) -> None:
             log = parse_log_text(variant.encode(), engine=engine)
             assert len(log.runs[0]) == 50 and log.complete and log.fs_hz == 100.0
             np.testing.assert_array_equal(log.runs[0].v, np.arange(50.0))
+
+
+def test_the_pyarrow_reader_starts_no_thread_pool() -> None:
+    """A large log read through pyarrow starts none of Arrow's CPU pool threads: a pool torn
+    down at interpreter exit with a worker alive aborts the process (exit -6, once seen after a
+    complete ``sidbe``; apache/arrow#34314). Counted in a fresh interpreter: the allocator's
+    background thread and one reader thread at most."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import os\n"
+        "import pyarrow\n"
+        "from servobench.bench.log.io import parse_log_text\n"
+        "rows = ''.join(f'1,{k / 1000:.3f},0.5,{k},0\\n' for k in range(60000))\n"
+        "text = '# fs = 1000\\nrun,t,u,v,x\\n' + rows + '# status = complete\\n'\n"
+        "before = len(os.listdir('/proc/self/task'))\n"
+        "log = parse_log_text(text.encode(), engine='pyarrow')\n"
+        "assert len(log.runs[0]) == 60000\n"
+        "print(len(os.listdir('/proc/self/task')) - before)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout) <= 2, f"{done.stdout.strip()} threads started by one read"

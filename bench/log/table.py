@@ -232,7 +232,10 @@ def _read_pyarrow(body: str | bytes, width: int, delimiter: str) -> list[np.ndar
     names = [f"c{i}" for i in range(width)]
     table = pacsv.read_csv(
         pa.py_buffer(body if isinstance(body, bytes) else body.encode("utf-8")),
-        read_options=pacsv.ReadOptions(column_names=names, block_size=1 << 22),
+        # one thread: Arrow's thread pool, torn down at interpreter exit with a worker still
+        # alive, aborts the process ("terminate called without an active exception", exit -6,
+        # apache/arrow#34314), once seen after a complete sidbe run
+        read_options=pacsv.ReadOptions(column_names=names, block_size=1 << 22, use_threads=False),
         parse_options=pacsv.ParseOptions(delimiter=delimiter, quote_char=False),
         convert_options=pacsv.ConvertOptions(column_types=dict.fromkeys(names, pa.float64())),
     )
