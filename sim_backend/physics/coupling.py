@@ -143,23 +143,20 @@ class CouplingMixin:
         self._hidden = (vm, xm, vl, xl, 0)
         return vs, xs
 
-    def _gap_segments(self, r: float) -> list[tuple]:
+    def _gap_segments(self) -> list[tuple]:
         """Per segment of the interval: the constants the play's hot loop reads inline.
 
-        ``(use_prev, h, rigid, motor, joint, motor_consts, load_decay, load_gain)`` where
-        ``joint`` and ``motor_consts`` are ``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of
-        the engaged bodies and of the motor alone, computed as the segment's own steppers
-        compute them (:func:`consts`), so the inline steps give their numbers bit for bit.
+        ``(use_prev, h, rigid, motor, joint, alone, load_decay, load_gain)``: ``joint`` and
+        ``alone`` are the coefficients of the engaged bodies and of the motor alone that
+        their steppers were built from (prepared with the segments), so the inline steps
+        give the steppers' numbers bit for bit.
         """
-        p = self.params
-        out = []
-        for (use_prev, h, rigid, motor, kl), joint in zip(
-            self._segs, self._joint_consts(), strict=True
-        ):
-            km = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
-            alone = (km[5], km[6], km[7], km[8], km[1], km[2])
-            out.append((use_prev, h, rigid, motor, joint, alone, (kl[5], kl[6]), (kl[7], kl[8])))
-        return out
+        return [
+            (use_prev, h, rigid, motor, joint, alone, (kl[5], kl[6]), (kl[7], kl[8]))
+            for (use_prev, h, rigid, motor, kl), (joint, alone) in zip(
+                self._segs, self._inline, strict=True
+            )
+        ]
 
     def _run_gap(self, cur: list[float], prev: list[float], c) -> tuple[list, list]:
         """Motor (friction, forces) with a play of width ``gap`` to the load; sensor on the motor.
@@ -182,7 +179,7 @@ class CouplingMixin:
         plain = fr[4] is None and fr[5] is None and pf is None
         r = c.load_ratio
         half = 0.5 * c.gap
-        segs = self._gap_segments(r)
+        segs = self._gap_segments()
         vs: list[float] = []
         xs: list[float] = []
         push_v, push_x = vs.append, xs.append

@@ -43,6 +43,12 @@ MAX_SUBSTEPS = 16
 PREPARED_STEPS = 64
 
 
+def _coefficients(k: tuple[float, ...]) -> tuple[float, ...]:
+    """``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of :func:`consts` ``k``: what the hot loops'
+    inline steps read, the very numbers the segment's :func:`slider` was built from."""
+    return (k[5], k[6], k[7], k[8], k[1], k[2])
+
+
 def _pattern(substeps: int, frac: float) -> list[tuple[float, bool]]:
     """Segments of one interval as ``(fraction of dt, uses the previous command)``."""
     cuts = {j / substeps for j in range(substeps + 1)}
@@ -132,7 +138,7 @@ class RichModel(CouplingMixin):
             raise UsageError("sample interval must be > 0 s")
         hit = self._prepared.get(dt_s)
         if hit is not None:
-            self._whole, self._segs = hit
+            self._whole, self._segs, self._inline = hit
             self._dt = dt_s
             return
         if len(self._prepared) >= PREPARED_STEPS:  # irregular steps (clock=real): keep it bounded
@@ -145,19 +151,24 @@ class RichModel(CouplingMixin):
         pattern = _pattern(self.substeps(dt_s), frac if frac > 1e-9 else 0.0)
         r = c.load_ratio if c is not None else 0.0
         segs = []
+        inline = []  # per segment: coefficients of the whole body and of the motor alone
         fr = self.friction
         for share, prev in pattern:
             h = share * dt_s
-            rigid = slider(consts(h, p.M, self.B_pos, self.B_neg), fr)
+            k_rigid = consts(h, p.M, self.B_pos, self.B_neg)
+            rigid = slider(k_rigid, fr)
             if c is None:
                 segs.append((prev, h, rigid, rigid, ()))
+                inline.append((_coefficients(k_rigid), _coefficients(k_rigid)))
                 continue
-            motor = slider(consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg), fr)
+            k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
+            motor = slider(k_motor, fr)
             load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
             segs.append((prev, h, rigid, motor, load))
-        self._segs = segs
+            inline.append((_coefficients(k_rigid), _coefficients(k_motor)))
+        self._segs, self._inline = segs, inline
         self._dt = dt_s
-        self._prepared[dt_s] = (self._whole, segs)
+        self._prepared[dt_s] = (self._whole, segs, inline)
 
     def _commands(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Effective command held in each interval and in the interval before it (delay line)."""
@@ -202,17 +213,6 @@ class RichModel(CouplingMixin):
         self._last = out
         return np.array(vs), np.array(xs), PlantState(out.v, out.x)
 
-    def _joint_consts(self) -> list[tuple[float, ...]]:
-        """Per segment of the interval, ``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of the
-        whole (rigid) body, computed as its :func:`slider` computes them (:func:`consts`), so
-        the hot loops' inline steps give the stepper's numbers bit for bit."""
-        M = self.params.M
-        out = []
-        for _, h, _, _, _ in self._segs:
-            k = consts(h, M, self.B_pos, self.B_neg)
-            out.append((k[5], k[6], k[7], k[8], k[1], k[2]))
-        return out
-
     def _run_rigid(self, cur: list[float], prev: list[float]) -> tuple[list, list]:
         """One body with every friction and force term; see the module docstring.
 
@@ -228,7 +228,7 @@ class RichModel(CouplingMixin):
         xs: list[float] = []
         push_v, push_x = vs.append, xs.append
         # per segment: (use_prev, h, stepper, a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)
-        plan = [(*seg[:3], *k) for seg, k in zip(segs, self._joint_consts(), strict=True)]
+        plan = [(*seg[:3], *joint) for seg, (joint, _) in zip(segs, self._inline, strict=True)]
         for uc, up in zip(cur, prev, strict=True):
             push_v(v)
             push_x(x)
