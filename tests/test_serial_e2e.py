@@ -326,43 +326,43 @@ def firmware_late_on_empty_lines(port: PtyPort, stop: threading.Event, late_s: f
                 os.write(port.master, answer + b"\r\n")
 
 
+@contextlib.contextmanager
+def link_to_firmware(late_s: float, reply_timeout_s: float, rejects_all: bool = False):
+    """An :class:`AsciiLink` (ODrive dialect) to :func:`firmware_late_on_empty_lines` on a pty,
+    not yet opened; the link closed and the device stopped on exit."""
+    stop = threading.Event()
+    with PtyPort() as port:
+        device = threading.Thread(
+            target=firmware_late_on_empty_lines, args=(port, stop, late_s, rejects_all)
+        )
+        device.start()
+        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, reply_timeout_s)
+        try:
+            yield link
+        finally:
+            link.close()
+            stop.set()
+            device.join(5)
+
+
 @pytest.mark.parametrize("late_s", [0.15, 0.08], ids=["while-the-request-waits", "before-the-request"])
 def test_a_late_answer_to_the_resync_s_empty_line_is_not_the_first_request_s(late_s):
     # open() ends the drive's half line with an empty line, which fw-v0.5.2 on answers with
     # "unknown command". Later than the 50 ms quiet window, that answer came ahead of the
     # first request's and read as the drive rejecting 'r axis0.error' (seen once with three
     # test workers on two cores), or as bytes sent unasked.
-    stop = threading.Event()
-    with PtyPort() as port:
-        device = threading.Thread(target=firmware_late_on_empty_lines, args=(port, stop, late_s))
-        device.start()
-        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, 1.0)
-        try:
-            link.open()
-            time.sleep(0.15 - late_s + 0.05)  # before: the late answer is in when the request goes
-            assert int(link.query("error").fields["code"]) == 0
-            assert int(link.query("error").fields["code"]) == 0  # and the link is in step
-        finally:
-            link.close()
-            stop.set()
-            device.join(5)
+    with link_to_firmware(late_s, reply_timeout_s=1.0) as link:
+        link.open()
+        time.sleep(0.15 - late_s + 0.05)  # before: the late answer is in when the request goes
+        assert int(link.query("error").fields["code"]) == 0
+        assert int(link.query("error").fields["code"]) == 0  # and the link is in step
 
 
 def test_a_drive_that_rejects_the_first_request_is_still_said_to():
-    stop = threading.Event()
-    with PtyPort() as port:
-        args = (port, stop, 0.0, True)
-        device = threading.Thread(target=firmware_late_on_empty_lines, args=args)
-        device.start()
-        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, 0.5)
-        try:
-            link.open()
-            with pytest.raises(CommandRejectedError, match="'unknown command' to 'r axis0.error'"):
-                link.query("error")
-        finally:
-            link.close()
-            stop.set()
-            device.join(5)
+    with link_to_firmware(0.0, reply_timeout_s=0.5, rejects_all=True) as link:
+        link.open()
+        with pytest.raises(CommandRejectedError, match="'unknown command' to 'r axis0.error'"):
+            link.query("error")
 
 
 @pytest.mark.parametrize(
