@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from servobench.bench.identify.delay import merged_grid
 from servobench.bench.model.servo import ServoModel
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
 
@@ -42,6 +43,11 @@ def simulate_velocity(
     """
     u = np.asarray(u, dtype=float)
     params = model.to_plant_params()
+    if model.delay_s > 0:
+        v = simulate_delayed(u, dt_s, params, model.delay_s, v0)
+        if model.resonance is not None:
+            v = model.resonance.filter_velocity(v, float(np.mean(dt_s)))
+        return v
     if np.ndim(dt_s) == 0:
         dt = float(dt_s)
         v, _, _ = simulate_coulomb(u, dt, params, PlantState(v0, 0.0))
@@ -52,6 +58,26 @@ def simulate_velocity(
     if model.resonance is not None:
         v = model.resonance.filter_velocity(v, dt)
     return v
+
+
+def simulate_delayed(
+    u: np.ndarray,
+    dt_s: float | np.ndarray,
+    params: PlantParams,
+    delay_s: float,
+    v0: float = 0.0,
+    u_before: float = 0.0,
+) -> np.ndarray:
+    """Exact stick-slip velocity at the sample instants when ``u[k]`` acts from ``t_k + delay_s``.
+
+    Simulated on the grid of the sample and switch instants
+    (:func:`~servobench.bench.identify.delay.merged_grid`) and taken back at the
+    samples; ``u_before`` [command units] is in force until ``u[0]`` acts.
+    """
+    u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before)
+    if u_m.size == 0:
+        return u_m
+    return simulate_variable_dt(u_m, dt_m, params, v0)[rows]
 
 
 def simulate_variable_dt(

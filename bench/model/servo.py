@@ -26,11 +26,19 @@ import numpy as np
 
 from servobench.bench.identify.frequency import model_frf
 from servobench.errors import IdentificationError, UsageError
-from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
+from servobench.bench.identify.delay import merged_grid
+from servobench.sim_backend.physics.coulomb import (
+    PlantParams,
+    PlantState,
+    simulate_coulomb,
+    simulate_coulomb_steps,
+)
 from servobench.units import SignalUnits
 
-#: Keys of :attr:`IdentificationResult.std`.
+#: Keys of :attr:`IdentificationResult.std` (the base model's four parameters).
 STD_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
+#: The std key of the drive's action delay (:attr:`ServoModel.delay_s`), present where it was identified.
+DELAY_KEY = "delay_s"
 
 
 @dataclass(frozen=True)
@@ -86,6 +94,12 @@ class ServoModel:
         Coulomb friction magnitude in positive / negative motion [command units], >= 0.
     resonance : Resonance or None
         Optional series resonance of the linear block.
+    delay_s : float
+        The drive's effective action delay [s], >= 0: from a command's logged
+        instant to the instant it acts on the plant, the sample's lag included
+        (a drive that samples at its last control tick and acts at its next
+        one: about one tick). ``u[k]`` logged at ``t_k`` acts over
+        ``[t_k + delay_s, t_{k+1} + delay_s)``; 0 is the plain zero-order hold.
     """
 
     M: float
@@ -93,6 +107,7 @@ class ServoModel:
     coulomb_pos: float
     coulomb_neg: float
     resonance: Resonance | None = None
+    delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("M", "B"):
@@ -106,6 +121,8 @@ class ServoModel:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise IdentificationError(f"identified {name} = {value!r} is not >= 0")
+        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
+            raise IdentificationError(f"identified delay_s = {self.delay_s!r} is not a finite delay >= 0 s")
 
     @property
     def pole(self) -> float:
@@ -157,16 +174,22 @@ class ServoModel:
         Returns
         -------
         ModelResponse
-            ``v[k]``, ``x[k]`` sampled at ``t_k`` before ``u[k]`` acts. With a
+            ``v[k]``, ``x[k]`` sampled at ``t_k`` before ``u[k]`` acts (at
+            ``t_k + delay_s``; the command before ``u[0]`` is 0). With a
             resonance, the rigid-body velocity is passed through it (an
             approximation: friction acts on the rigid-body velocity).
         """
         if not (math.isfinite(fs_hz) and fs_hz > 0):
             raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
         dt = 1.0 / fs_hz
-        v, x, _ = simulate_coulomb(
-            np.asarray(u, dtype=float), dt, self.to_plant_params(), PlantState(v0, 0.0)
-        )
+        if self.delay_s > 0:  # u[k] acts from t_k + delay_s: simulated on the switch grid
+            u_m, dt_m, rows = merged_grid(np.asarray(u, dtype=float), dt, self.delay_s)
+            v, x, _ = simulate_coulomb_steps(u_m, dt_m, self.to_plant_params(), PlantState(v0, 0.0))
+            v, x = v[rows], x[rows]
+        else:
+            v, x, _ = simulate_coulomb(
+                np.asarray(u, dtype=float), dt, self.to_plant_params(), PlantState(v0, 0.0)
+            )
         if self.resonance is not None:
             v = self.resonance.filter_velocity(v, dt)
             x = np.concatenate(([0.0], np.cumsum(v[:-1]) * dt))
@@ -180,6 +203,7 @@ class ServoModel:
             "dc_gain": self.dc_gain,
             "coulomb_pos": self.coulomb_pos,
             "coulomb_neg": self.coulomb_neg,
+            "delay_s": self.delay_s,
         }
         if self.resonance is not None:
             out["resonance"] = {"wn_rad_s": self.resonance.wn_rad_s, "zeta": self.resonance.zeta}
@@ -246,7 +270,7 @@ class IdentificationResult:
             {
                 "fit_percent": _finite(self.fit_percent),
                 "method": self.method,
-                "std": {k: _finite(self.std.get(k, math.nan)) for k in STD_KEYS},
+                "std": {k: _finite(self.std.get(k, math.nan)) for k in (*STD_KEYS, DELAY_KEY)},
                 "selection": self.selection,
                 "estimator": self.estimator,
                 "noise_std": _finite(self.noise_std),

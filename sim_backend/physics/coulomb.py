@@ -179,3 +179,60 @@ def simulate_coulomb(
         x += vinf2 * rest - vinf2 * tau * (1.0 - e2)
         v = vinf2 * (1.0 - e2)
     return np.array(vs), np.array(xs), PlantState(v, x)
+
+
+def simulate_coulomb_steps(
+    u: np.ndarray,
+    dt_s: np.ndarray,
+    params: PlantParams,
+    state: PlantState | None = None,
+) -> tuple[np.ndarray, np.ndarray, PlantState]:
+    """:func:`simulate_coulomb` with its own interval after each sample.
+
+    ``u`` has shape ``(n,)`` and ``dt_s`` shape ``(n - 1,)`` [s] (>= 0; the
+    last command is held for no time): the grid of a delayed command
+    (:func:`servobench.bench.identify.delay.merged_grid`), or any irregular one.
+    Same piecewise-exponential solution, velocity and position at each grid
+    instant, and the state at the last one.
+    """
+    st = PlantState() if state is None else PlantState(state.v, state.x)
+    M, B = params.M, params.B
+    fcp, fcn = params.coulomb_pos, params.coulomb_neg
+    bkp, bkn = params.breakaway_pos, params.breakaway_neg
+    tau = M / B
+    exp, log = math.exp, math.log
+    v, x = st.v, st.x
+    vs: list[float] = []
+    xs: list[float] = []
+    push_v, push_x = vs.append, xs.append
+    steps = np.asarray(dt_s, dtype=float).tolist() + [0.0]
+    for uk, dt in zip(np.asarray(u, dtype=float).tolist(), steps, strict=True):
+        push_v(v)
+        push_x(x)
+        if dt <= 0.0:
+            continue
+        if v > 0.0 or (v == 0.0 and uk > bkp):
+            f, forward = fcp, True
+        elif v < 0.0 or uk < -bkn:
+            f, forward = -fcn, False
+        else:
+            continue  # stuck for the whole interval
+        vinf = (uk - f) / B
+        a = exp(-dt / tau)
+        vn = vinf + (v - vinf) * a
+        if (vn > 0.0) == forward and vn != 0.0:
+            x += vinf * dt + (v - vinf) * tau * (1.0 - a)
+            v = vn
+            continue
+        tc = tau * log((v - vinf) / -vinf)
+        x += vinf * tc + (v - vinf) * tau * (1.0 - exp(-tc / tau))
+        rest = dt - tc
+        if -bkn <= uk <= bkp:
+            v = 0.0
+            continue
+        f2 = fcp if uk > bkp else -fcn
+        vinf2 = (uk - f2) / B
+        e2 = exp(-rest / tau)
+        x += vinf2 * rest - vinf2 * tau * (1.0 - e2)
+        v = vinf2 * (1.0 - e2)
+    return np.array(vs), np.array(xs), PlantState(v, x)
