@@ -63,7 +63,7 @@ def test_identify_json_contract(sim_log):
         1.0, rel=1e-3
     )
     assert out["method"] in ("joint", "sidbe") and out["selection"].startswith("auto")
-    assert set(out["std"]) == {"M", "B", "coulomb_pos", "coulomb_neg"}
+    assert set(out["std"]) == {"M", "B", "coulomb_pos", "coulomb_neg", "delay_s"}
 
 
 @pytest.mark.parametrize("method", ["sidbe", "joint"])

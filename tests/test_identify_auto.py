@@ -57,7 +57,8 @@ def test_result_json_contract():
     assert set(out) >= CONTRACT
     assert out["pole"] == pytest.approx(-out["B"] / out["M"])
     assert out["dc_gain"] == pytest.approx(1 / out["B"])
-    assert set(out["std"]) == {"M", "B", "coulomb_pos", "coulomb_neg"}
+    assert set(out["std"]) == {"M", "B", "coulomb_pos", "coulomb_neg", "delay_s"}
+    assert out["delay_s"] == pytest.approx(0.0, abs=1e-9)  # a lock-step log: no action delay
     assert out["coulomb_pos"] >= 0 and out["coulomb_neg"] >= 0
 
 

@@ -307,11 +307,17 @@ def _segment(
     r: RunData, fs_hz: float, cutoff_hz: float | None, method: str
 ) -> tuple[Segment, list[str]]:
     """One run as a :class:`Segment`, and notes on how it was prepared (none if plainly)."""
+    notes = []
+    r, repeated = merge_repeated(r)
+    if repeated:
+        notes.append(
+            f"{repeated} repeated samples (a drive tick read twice: the same time stamp) kept once, "
+            "with the last command sent in that tick"
+        )
     t = np.asarray(r.t, dtype=float)
     dt = np.diff(t)
     nominal = 1.0 / fs_hz
     dt_s = None
-    notes = []
     if dt.std() > JITTER_RTOL * dt.mean() or abs(np.median(dt) - nominal) > 1e-2 * nominal:
         dt_s = dt
         notes.append("irregular time stamps: per-sample intervals from t are used")
@@ -334,6 +340,37 @@ def _segment(
         t_unc = np.asarray(t_unc, dtype=float)
         t_unc = t_unc if np.any(t_unc > 0) else None
     return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref, t_unc), notes
+
+
+def merge_repeated(r: RunData) -> tuple[RunData, int]:
+    """A run with each repeated sample kept once, and how many rows were merged.
+
+    A drive that stamps its samples with its control tick returns the same
+    sample, with the same stamp, to every read inside one tick. Such rows are
+    one sample: the first row's feedback and instant stay; its command becomes
+    the last one sent before the next distinct sample (a drive acts on the
+    last command that arrived before its tick, so the earlier ones in the
+    group never acted). The log itself keeps every row.
+    """
+    t = np.asarray(r.t, dtype=float)
+    if t.size < 2:
+        return r, 0
+    same = np.diff(t) == 0
+    if not same.any():
+        return r, 0
+    keep = np.concatenate(([True], ~same))
+    first = np.flatnonzero(keep)
+    last = np.concatenate((first[1:] - 1, [t.size - 1]))  # each group's last row
+
+    def pick(a, rows):
+        return None if a is None else np.asarray(a)[rows]
+
+    extra = {k: pick(a, first) for k, a in r.extra.items()}
+    merged = replace(
+        r, t=t[first], u=pick(r.u, last), v=pick(r.v, first), x=pick(r.x, first),
+        u_exc=pick(r.u_exc, last), x_ref=pick(r.x_ref, last), extra=extra,
+    )  # fmt: skip
+    return merged, int(t.size - first.size)
 
 
 def _moves(s: Segment) -> bool:

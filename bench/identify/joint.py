@@ -53,7 +53,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset, initial_velocity
+from servobench.bench.identify.dataset import Dataset, Segment, initial_velocity
+from servobench.bench.identify.delay import effective_command
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
 from servobench.bench.identify.idim import identify_idim
@@ -70,7 +71,7 @@ from servobench.bench.identify.regression import (
 )
 from servobench.bench.identify.resolution import grid_step, step_noise_std
 from servobench.bench.identify.simulation import simulate_run
-from servobench.bench.model.servo import ServoModel
+from servobench.bench.model.servo import DELAY_KEY, ServoModel
 from servobench.errors import IdentificationError
 
 #: Noise below this fraction of the rms velocity counts as none (log rounding is ~1e-10).
@@ -92,6 +93,12 @@ MAX_PAIRS = 100_000
 TIMING_REJECT_SHARE = 0.25
 #: Setting aside stops short of leaving fewer than this share of the pairs (weights only then).
 MIN_KEPT_SHARE = 0.5
+#: The delay scan's grid step and first reach [cycles], and how far it may reach at most.
+DELAY_GRID = 0.25
+DELAY_MAX_CYCLES = 4.0
+DELAY_LIMIT_CYCLES = 32.0
+#: Samples the delay scan solves on (all runs together).
+DELAY_SCAN_SAMPLES = 40_000
 #: :func:`instant_scatter_s` reads the timing from pairs whose acceleration is at least
 #: this share of the log's 99th percentile (the transients).
 STEEP_SHARE = 0.1
@@ -130,11 +137,14 @@ def identify_joint(
         return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
 
     fit = _solve(_pairs(data), data, None)
+    delay_s, fit, delay_std = scan_delay(data, fit)
+    ddata = delayed(data, delay_s, fit.M / fit.B)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
     v_rms = math.sqrt(float(np.mean(v_all**2)))
     if sigma <= EXACT_RTOL * v_rms and not data.timing_uncertain:
-        model = _model(fit)
-        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-ls", 0.0, tuple(notes))
+        model = _model(fit, delay_s)
+        std = {**fit.physical_std(dt), DELAY_KEY: delay_std}
+        return MethodEstimate(model, "joint", std, "zoh-ls", 0.0, tuple(notes))
 
     threshold = NOISE_SIGMAS * sigma
     moving = np.mean(np.abs(v_all) > 2 * threshold)
@@ -142,11 +152,107 @@ def identify_joint(
         raise IdentificationError(
             f"no motion above the sensor noise (sigma {sigma:.3g}); raise the amplitude"
         )
-    fit = _solve(_pairs(data, threshold), data, fit)
-    fit, model = _instrumental(data, fit, sigma, v_rms)
+    fit = _solve(_pairs(ddata, threshold), ddata, fit)
+    fit, model = _instrumental(data, fit, sigma, v_rms, delay_s)
     if not refine_oe:
-        return MethodEstimate(model, "joint", fit.physical_std(dt), "zoh-iv", sigma, tuple(notes))
+        std = {**fit.physical_std(dt), DELAY_KEY: delay_std}
+        return MethodEstimate(model, "joint", std, "zoh-iv", sigma, tuple(notes))
     return _refine(data, model, sigma, threshold, v_all, notes)
+
+
+def delayed(data: Dataset, delay_s: float, tau_s: float) -> Dataset:
+    """``data`` with each run's command (and excitation) replaced by the command equivalent,
+    per interval, to the commands acting ``delay_s`` [s] after their logged instants
+    (:func:`~servobench.bench.identify.delay.effective_command`, for a time constant
+    ``tau_s`` [s]): the pair regression of the delayed plant. ``data`` itself at delay 0."""
+    if delay_s <= 0:
+        return data
+
+    def eff(s: Segment, u: np.ndarray | None) -> np.ndarray | None:
+        if u is None:
+            return None
+        dt = data.dt_s if s.dt_s is None else s.dt_s
+        return np.concatenate((effective_command(u, dt, delay_s, tau_s), u[-1:]))
+
+    return replace(data, segments=tuple(replace(s, u=eff(s, s.u), u_exc=eff(s, s.u_exc))
+                                        for s in data.segments))  # fmt: skip
+
+
+def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
+    """The drive's action delay that best explains the pairs: ``(delay_s, fit at it, 1-sigma)``.
+
+    The pair regression (:func:`delayed` data) is solved on a grid of
+    :data:`DELAY_GRID` cycles from 0 to :data:`DELAY_MAX_CYCLES` cycles (further while
+    the best lies at the grid's end), the sum of squared pair residuals is
+    minimised around the best grid point by bounded scalar search, and the
+    time constant the equivalent commands need is taken from the fit at the
+    previous best (twice). A delay of 0 is kept unless another explains the
+    pairs better by more than rounding: exact delay-free data stay exact. The
+    sigma is the curvature's (Gauss-Newton) bound on the residual sum at the
+    minimum; the output-error refinement, where it runs, replaces it.
+    """
+    from scipy.optimize import minimize_scalar
+
+    dt = data.dt_s
+    pairs0 = _pairs(data)
+    rss0 = float(fit.residual @ fit.residual)
+    if len(pairs0) < 16 or rss0 == 0.0:
+        return 0.0, fit, 0.0
+    scan = _scan_data(data)
+
+    start = (fit.M, fit.B, fit.coulomb_pos, fit.coulomb_neg)
+
+    def rss(cycles: float, tau: float) -> float:
+        pairs = _pairs(delayed(scan, cycles * dt, tau))
+        try:  # plain least squares: the scan only compares delays
+            f = fit_pairs_irregular(pairs, start) if scan.jittered else fit_pairs(pairs, dt)
+        except IdentificationError:
+            return math.inf
+        return float(f.residual @ f.residual)
+
+    tau = fit.M / fit.B
+    grid = list(np.arange(0.0, DELAY_MAX_CYCLES + 1e-9, DELAY_GRID))
+    costs = [rss(c, tau) for c in grid]
+    while int(np.argmin(costs)) == len(grid) - 1 and grid[-1] < DELAY_LIMIT_CYCLES:
+        more = list(np.arange(grid[-1] + DELAY_GRID, grid[-1] + DELAY_MAX_CYCLES + 1e-9, DELAY_GRID))
+        grid += more
+        costs += [rss(c, tau) for c in more]
+    best = grid[int(np.argmin(costs))]
+    for _ in range(2):
+        lo, hi = max(0.0, best - DELAY_GRID), best + DELAY_GRID
+        res = minimize_scalar(lambda c: rss(c, tau), bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-7})  # fmt: skip
+        best = float(res.x)
+        try:
+            trial = _solve(_pairs(delayed(data, best * dt, tau)), delayed(data, best * dt, tau), fit)
+        except IdentificationError:
+            break
+        tau = trial.M / trial.B
+    full_rss = rss_at = None
+    try:
+        at = delayed(data, best * dt, tau)
+        fit_d = _solve(_pairs(at), at, fit)
+        rss_at = float(fit_d.residual @ fit_d.residual)
+    except IdentificationError:
+        fit_d = None
+    full_rss = rss_at if rss_at is not None else math.inf
+    if fit_d is None or not full_rss < rss0 * (1.0 - 1e-9):
+        return 0.0, fit, 0.0
+    # 1 sigma from the curvature of the residual sum (Gauss-Newton): s^2 / (0.5 d2 RSS / dd2)
+    h = max(1e-3, 1e-2 * best)
+    curv = (rss(best + h, tau) - 2.0 * rss(best, tau) + rss(max(best - h, 0.0), tau)) / h**2
+    s2 = full_rss / max(1, len(fit_d.residual) - 5)
+    std = math.sqrt(2.0 * s2 / curv) * dt if curv > 0 else math.nan
+    return best * dt, fit_d, std
+
+
+def _scan_data(data: Dataset) -> Dataset:
+    """The data the delay scan solves on: each run's first :data:`DELAY_SCAN_SAMPLES` samples
+    (the scan only locates the delay; the final fits see everything)."""
+    per_run = max(1, DELAY_SCAN_SAMPLES // len(data.segments))
+    if all(len(s) <= per_run for s in data.segments):
+        return data
+    return replace(data, segments=tuple(s.head(per_run) for s in data.segments))
 
 
 def pair_regression(data: Dataset) -> ServoModel:
@@ -202,7 +308,7 @@ def _closed(data: Dataset) -> bool:
 
 
 def _instrumental(
-    data: Dataset, fit: ZohFit, sigma: float, v_rms: float
+    data: Dataset, fit: ZohFit, sigma: float, v_rms: float, delay_s: float = 0.0
 ) -> tuple[ZohFit, ServoModel]:
     """:data:`IV_PASSES` instrumental-variable fits, each on the pairs and instruments of
     the previous estimate's simulation; the last fit that gives a model, and that model.
@@ -210,10 +316,11 @@ def _instrumental(
     The instruments need simulations: on long non-periodic logs they run on the
     refinement window (:func:`_iv_data`).
     """
-    model = _model(fit)
+    model = _model(fit, delay_s)
     iv = _iv_data(data)
     iv_v = iv.cat("v")
     for _ in range(IV_PASSES):
+        div = delayed(iv, delay_s, model.time_constant_s)
         sims = [
             simulate_run(
                 model,
@@ -227,8 +334,8 @@ def _instrumental(
         mismatch2 = float(np.mean((iv_v - np.concatenate(sims)) ** 2)) - sigma**2
         margin = NOISE_SIGMAS * math.sqrt(max(mismatch2, 0.0)) + 1e-12 * v_rms
         try:
-            new = _solve(_pairs(iv, margin, sims), iv, fit, instrumental=True)
-            model = _model(new)
+            new = _solve(_pairs(div, margin, sims), div, fit, instrumental=True)
+            model = _model(new, delay_s)
         except IdentificationError:
             break
         fit = new
@@ -247,7 +354,7 @@ def _refine(
     if note:
         notes.append(note)
     free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
-    oe = refine(model, chunks, free)
+    oe = refine(model, chunks, free, free_delay=True)
     estimator = "output-error"
     if _closed(data):
         estimator = "zoh-iv (excitation as instrument) + output-error"
@@ -356,8 +463,9 @@ def _velocity_noise(pairs: Pairs, fit: ZohFit) -> float:
     return noise_std_from_residual(e[calm], a)
 
 
-def _model(fit: ZohFit) -> ServoModel:
-    return ServoModel(fit.M, fit.B, max(fit.coulomb_pos, 0.0), max(fit.coulomb_neg, 0.0))
+def _model(fit: ZohFit, delay_s: float = 0.0) -> ServoModel:
+    return ServoModel(fit.M, fit.B, max(fit.coulomb_pos, 0.0), max(fit.coulomb_neg, 0.0),
+                      delay_s=delay_s)  # fmt: skip
 
 
 def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:

@@ -23,7 +23,7 @@ import numpy as np
 
 from servobench.bench.identify.derivative import DerivedMotion, differentiate_position
 from servobench.bench.identify.simulation import simulate_steady_period, simulate_velocity
-from servobench.bench.model.servo import STD_KEYS, ServoModel
+from servobench.bench.model.servo import DELAY_KEY, STD_KEYS, ServoModel
 from servobench.errors import IdentificationError
 from servobench.sim_backend.physics.coulomb import PlantState, simulate_coulomb
 
@@ -101,9 +101,14 @@ def measured_chunk(chunk: Chunk) -> np.ndarray:
     return chunk.v[chunk.skip : end]
 
 
-def _model(p: np.ndarray, base: ServoModel) -> ServoModel:
+def _model(p: np.ndarray, base: ServoModel, delay_unit_s: float = 1.0) -> ServoModel:
+    """The model of parameter vector ``p``: ``(log M, log B, coulomb_pos, coulomb_neg)`` and, as a
+    fifth entry, ``1 + delay / delay_unit_s`` (else the base model's delay): offset by one, so a
+    relative finite-difference step stays a step of about DIFF_STEP sample at zero delay."""
+    delay = max(float(p[4]) - 1.0, 0.0) * delay_unit_s if len(p) > 4 else base.delay_s
     return ServoModel(
-        math.exp(p[0]), math.exp(p[1]), max(float(p[2]), 0.0), max(float(p[3]), 0.0), base.resonance
+        math.exp(p[0]), math.exp(p[1]), max(float(p[2]), 0.0), max(float(p[3]), 0.0), base.resonance,
+        delay,
     )
 
 
@@ -123,8 +128,11 @@ def refine(
     chunks: Sequence[Chunk],
     free: Sequence[bool] = (True,) * 4,
     friction_scale: float | None = None,
+    *,
+    free_delay: bool = False,
 ) -> OutputErrorFit:
-    """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``.
+    """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``, and the
+    drive's action delay ``delay_s`` (from ``model0.delay_s``, >= 0) with ``free_delay``.
 
     ``free`` fixes parameters the data cannot see (e.g. friction in a direction
     never travelled) at their starting value. Zero friction is a kink of the
@@ -138,7 +146,7 @@ def refine(
     floor = FRICTION_FLOOR * friction_scale
     fp = max(model0.coulomb_pos, floor) if free[2] else model0.coulomb_pos
     fn = max(model0.coulomb_neg, floor) if free[3] else model0.coulomb_neg
-    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free)
+    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free, free_delay)
     on_bound = (free[2] and best.model.coulomb_pos <= floor * 1e-3) or (
         free[3] and best.model.coulomb_neg <= floor * 1e-3
     )
@@ -152,6 +160,7 @@ def refine(
             ),
             chunks,
             free,
+            free_delay,
         )
         if again.cost < best.cost:
             best = again
@@ -159,12 +168,15 @@ def refine(
 
 
 def _refine_once(
-    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool]
+    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool], free_delay: bool = False
 ) -> OutputErrorFit:
     from scipy.optimize import least_squares
 
-    free_idx = [i for i in range(4) if free[i]]
-    p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg])
+    free_idx = [i for i in range(4) if free[i]] + ([4] if free_delay else [])
+    # the delay in units of the mean sample interval: a step of DIFF_STEP is then ~1e-6 sample
+    unit = float(np.mean([np.mean(c.dt_s) for c in chunks])) if chunks else 1.0
+    p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg,
+                   1.0 + model0.delay_s / unit])  # fmt: skip
     weights = [np.sqrt(c.weight) for c in chunks]
 
     def full(q: np.ndarray) -> np.ndarray:
@@ -173,7 +185,7 @@ def _refine_once(
         return p
 
     def residual(q: np.ndarray) -> np.ndarray:
-        m = _model(full(q), model0)
+        m = _model(full(q), model0, unit)
         return np.concatenate(
             [
                 w * (simulate_chunk(m, c) - measured_chunk(c))
@@ -181,7 +193,7 @@ def _refine_once(
             ]
         )
 
-    lower = np.array([-np.inf, -np.inf, 0.0, 0.0])[free_idx]
+    lower = np.array([-np.inf, -np.inf, 0.0, 0.0, 1.0])[free_idx]
     upper = np.full(len(free_idx), np.inf)
     q0 = np.clip(p0[free_idx], lower, upper)
     step = np.full(len(free_idx), DIFF_STEP)
@@ -200,25 +212,29 @@ def _refine_once(
     except (ValueError, FloatingPointError) as err:
         raise IdentificationError(f"output-error refinement failed: {err}") from None
     p = full(sol.x)
-    model = _model(p, model0)
+    model = _model(p, model0, unit)
     sigma2 = 2.0 * sol.cost / max(1, sol.fun.size - len(free_idx))
     # an averaged chunk's residual has variance sigma^2 / weight; the weighting undoes that
-    std = _std_from_jacobian(sol.jac, sigma2, p, free_idx)
+    std = _std_from_jacobian(sol.jac, sigma2, p, free_idx, unit)
     return OutputErrorFit(model, std, math.sqrt(sigma2), int(sol.nfev), float(sol.cost))
 
 
 def _std_from_jacobian(
-    jac: np.ndarray, sigma2: float, p: np.ndarray, free_idx: list[int]
+    jac: np.ndarray, sigma2: float, p: np.ndarray, free_idx: list[int], delay_unit_s: float = 1.0
 ) -> dict[str, float]:
-    scale = np.array([math.exp(p[0]), math.exp(p[1]), 1.0, 1.0])[free_idx]
+    """1-sigma of the natural parameters; ``delay_s`` [s] too where the delay was free."""
+    scale = np.array([math.exp(p[0]), math.exp(p[1]), 1.0, 1.0, delay_unit_s])[free_idx]
     Jn = np.asarray(jac) / scale  # d r / d natural parameter
     try:
         cov = sigma2 * np.linalg.inv(Jn.T @ Jn)
     except np.linalg.LinAlgError:
         cov = np.full((len(free_idx), len(free_idx)), np.nan)
-    sd = np.full(4, np.nan)
+    sd = np.full(5, np.nan)
     sd[free_idx] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    return dict(zip(STD_KEYS, (float(x) for x in sd), strict=True))
+    out = dict(zip(STD_KEYS, (float(x) for x in sd[:4]), strict=True))
+    if 4 in free_idx:
+        out[DELAY_KEY] = float(sd[4])
+    return out
 
 
 def sensitivity(model: ServoModel, chunks: Sequence[Chunk]) -> np.ndarray:
@@ -231,7 +247,7 @@ def sensitivity(model: ServoModel, chunks: Sequence[Chunk]) -> np.ndarray:
         for sign in (1.0, -1.0):
             q = p.copy()
             q[i] += sign * h
-            m = ServoModel(q[0], q[1], max(q[2], 0.0), max(q[3], 0.0), model.resonance)
+            m = ServoModel(q[0], q[1], max(q[2], 0.0), max(q[3], 0.0), model.resonance, model.delay_s)
             sims.append(np.concatenate([np.sqrt(c.weight) * simulate_chunk(m, c) for c in chunks]))
         cols.append((sims[0] - sims[1]) / (2 * h))
     return np.column_stack(cols)

@@ -1,0 +1,110 @@
+"""The drive's action delay (issue 28): simulated exactly, identified jointly with the plant.
+
+A command logged at ``t_k`` acts over ``[t_k + d, t_{k+1} + d)``. The references
+here are independent of :mod:`servobench.bench.identify.delay`: a ten times
+finer zero-order hold with the command shifted by whole fine steps, and the
+plain first-order recursion over the pieces of each interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from servobench.bench.identify.dataset import Dataset, Segment, merge_repeated
+from servobench.bench.identify.delay import effective_command, merged_grid, split_delay
+from servobench.bench.identify.joint import identify_joint
+from servobench.bench.identify.simulation import simulate_velocity
+from servobench.bench.log.io import RunData
+from servobench.bench.model.servo import ServoModel
+
+FS = 1000.0
+PLANT = dict(M=0.01, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
+
+
+def _command(n: int, amplitude: float = 2.0, seed: int = 0) -> np.ndarray:
+    t = np.arange(n) / FS
+    rng = np.random.default_rng(seed)
+    phases = rng.uniform(0, 2 * np.pi, 3)
+    s = sum(np.sin(2 * np.pi * f * t + p) for f, p in zip((1.0, 3.0, 7.0), phases, strict=True))
+    return amplitude * np.sign(s)
+
+
+def test_fractional_delay_matches_a_finer_zero_order_hold():
+    u = _command(3000) * (0.3 + np.random.default_rng(1).random(3000))
+    fine = 10
+    for shift in (3, 4, 10, 17):  # 0.3, 0.4, 1.0, 1.7 samples
+        u_fine = np.concatenate((np.zeros(shift), np.repeat(u, fine)[:-shift]))
+        reference = simulate_velocity(ServoModel(**PLANT), u_fine, 1.0 / (FS * fine))[::fine]
+        delayed = simulate_velocity(ServoModel(**PLANT, delay_s=shift / (FS * fine)), u, 1.0 / FS)
+        assert np.max(np.abs(delayed - reference)) < 1e-12
+        r = ServoModel(**PLANT, delay_s=shift / (FS * fine)).simulate(u, FS)
+        assert np.max(np.abs(r.v - reference)) < 1e-12
+
+
+def test_effective_command_is_the_first_order_response_to_the_pieces():
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=400)
+    dts = 1e-3 * (1.0 + 0.3 * rng.random(399))
+    tau, d = 0.01, 0.00137
+    u_eff = effective_command(u, dts, d, tau)
+    u_m, dt_m, rows = merged_grid(u, dts, d)
+    # the plain recursion over the pieces: v' = exp(-h/tau) v + (1 - exp(-h/tau)) u_piece
+    v = np.zeros(u_m.size)
+    for i in range(u_m.size - 1):
+        a = np.exp(-dt_m[i] / tau)
+        v[i + 1] = a * v[i] + (1 - a) * u_m[i]
+    vs = v[rows]
+    a = np.exp(-dts / tau)
+    assert np.max(np.abs(vs[1:] - (a * vs[:-1] + (1 - a) * u_eff))) < 1e-12
+    assert split_delay(0.00137, 1e-3) == (1, pytest.approx(0.37))
+
+
+@pytest.mark.parametrize("delay_samples", [0.0, 0.37, 1.0, 1.6])
+def test_joint_identifies_the_delay_exactly_on_noise_free_data(delay_samples):
+    n = 6000
+    true = ServoModel(**PLANT, delay_s=delay_samples / FS)
+    segments = []
+    for run, scale in ((1, 1.0), (2, 0.8)):
+        u = _command(n) * scale
+        segments.append(Segment(run, np.arange(n) / FS, u, simulate_velocity(true, u, 1 / FS), FS))
+    est = identify_joint(Dataset(tuple(segments), FS))
+    m = est.model
+    for got, want in ((m.M, true.M), (m.B, true.B), (m.coulomb_pos, 0.5), (m.coulomb_neg, 0.4)):
+        assert got == pytest.approx(want, rel=1e-7)
+    assert m.delay_s == pytest.approx(true.delay_s, abs=1e-9)
+    assert "delay_s" in est.std
+
+
+def test_joint_delay_with_noise_is_within_its_error_bar():
+    n = 8000
+    true = ServoModel(**PLANT, delay_s=1.0e-3)
+    rng = np.random.default_rng(5)
+    errors = []
+    for seed in range(4):
+        segments = []
+        for run, scale in ((1, 1.0), (2, 0.8)):
+            u = _command(n, seed=seed) * scale
+            v = simulate_velocity(true, u, 1 / FS) + 0.01 * rng.standard_normal(n)
+            segments.append(Segment(run, np.arange(n) / FS, u, v, FS))
+        est = identify_joint(Dataset(tuple(segments), FS))
+        sigma = est.std["delay_s"]
+        assert 0 < sigma < 0.05e-3
+        errors.append((est.model.delay_s - true.delay_s) / sigma)
+        assert est.model.M == pytest.approx(true.M, rel=0.01)
+        assert est.model.coulomb_neg == pytest.approx(0.4, rel=0.01)
+    assert max(abs(e) for e in errors) < 4.0
+
+
+def test_a_tick_read_twice_is_one_sample_with_the_last_command():
+    t = np.array([0.0, 0.001, 0.001, 0.002, 0.003, 0.003, 0.003, 0.004])
+    u = np.arange(8.0)
+    v = np.array([0.0, 1.0, 1.0, 2.0, 3.0, 3.0, 3.0, 4.0])
+    run = RunData(1, t, u, v, None, {"t_unc": np.zeros(8)})
+    merged, repeated = merge_repeated(run)
+    assert repeated == 3
+    assert merged.t.tolist() == [0.0, 0.001, 0.002, 0.003, 0.004]
+    assert merged.v.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert merged.u.tolist() == [0.0, 2.0, 3.0, 6.0, 7.0]  # the last command of each tick acts
+    assert merged.extra["t_unc"].size == 5
+    assert merge_repeated(RunData(1, np.arange(4.0), u[:4], v[:4]))[1] == 0
