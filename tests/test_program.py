@@ -64,7 +64,8 @@ def test_program_gives_the_commissioning_design_in_si_and_drive_units(logged, tm
     doc = json.loads(_program(capsys, str(out / "model.json"), "--format", "json"))
     assert doc["fs"] == 1000 and "identified base model" in doc["source"]
     rows = {r["name"]: r for r in doc["values"]}
-    pi = design_pi(model["M"], model["B"], 1000.0)
+    # the loop's delay: one cycle plus the drive's identified action delay
+    pi = design_pi(model["M"], model["B"], 1000.0, delay_cycles=1.0 + model["delay_s"] * 1000.0)
     ff = friction_feed_forward(model["B"], model["coulomb_pos"], model["coulomb_neg"])
     assert rows[FF_POS]["value"] == pytest.approx(ff.coulomb_pos) and rows[FF_POS]["unit"] == "N m"
     assert rows[FF_POS]["drive_value"] == pytest.approx(ff.coulomb_pos / 0.00064)  # per mille

@@ -39,8 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="take the drive's scale factors (scale_u, scale_v) from this log's header")
     p.add_argument("--phase-margin", type=float, default=60.0, metavar="DEG",
                    help="target phase margin of the PI (default 60)")
-    p.add_argument("--delay-cycles", type=float, default=1.0, metavar="N",
-                   help="delay beyond the zero-order hold [cycles] (default 1)")
+    p.add_argument("--delay-cycles", type=float, default=None, metavar="N",
+                   help="delay beyond the zero-order hold [cycles] (default: 1 plus the model's "
+                   "identified drive action delay delay_s)")
     p.add_argument("--sign-band", type=float, default=0.0, metavar="V",
                    help="reference speed below which the Coulomb feed-forward ramps in (default 0: a step)")  # fmt: skip
 

@@ -139,9 +139,11 @@ class DesignSettings:
     ----------
     phase_margin_deg : float
         Target phase margin [deg], in (20, 85).
-    delay_cycles : float
+    delay_cycles : float or None
         Host/drive delay beyond the zero-order hold [cycles]; 1 for a lock-step
-        exchange (the command computed from ``v_k`` acts from ``t_{k+1}``).
+        exchange (the command computed from ``v_k`` acts from ``t_{k+1}``). None
+        (the default): from the model, one cycle plus the drive's identified
+        action delay (:func:`~servobench.bench.model.program.loop_delay_cycles`).
     pi_zero_ratio : float
         Crossover over PI zero frequency, ``wc * Ti`` (>= 1; 4 costs ~14 deg of phase).
     max_bandwidth_hz : float or None
@@ -151,7 +153,7 @@ class DesignSettings:
     """
 
     phase_margin_deg: float = 60.0
-    delay_cycles: float = 1.0
+    delay_cycles: float | None = None
     pi_zero_ratio: float = 4.0
     max_bandwidth_hz: float | None = None
     fs_hz: float | None = None
@@ -159,7 +161,7 @@ class DesignSettings:
     def __post_init__(self) -> None:
         if not 20.0 < self.phase_margin_deg < 85.0:
             raise UsageError("[design] phase_margin_deg must be in (20, 85)")
-        if not self.delay_cycles >= 0:
+        if self.delay_cycles is not None and not self.delay_cycles >= 0:
             raise UsageError("[design] delay_cycles must be >= 0")
         if not self.pi_zero_ratio >= 1:
             raise UsageError("[design] pi_zero_ratio must be >= 1")

@@ -62,7 +62,7 @@ from servobench.bench.commission.source import DIAGNOSE, ProgramSource, choose_s
 from servobench.bench.commission.ui import Console
 from servobench.bench.log.identity import configured_axis
 from servobench.bench.log.io import read_log
-from servobench.bench.model.program import DriveScale, integral_unit, program_values
+from servobench.bench.model.program import DriveScale, integral_unit, loop_delay_cycles, program_values
 from servobench.bench.model.servo import IdentificationResult, ServoModel
 from servobench.bench.report import commission_record as document
 from servobench.bench.report.html import REPORT_FILE, write_report
@@ -384,15 +384,19 @@ class Commissioning:
         c.say(f"would run SIDBE with its verification loop ({opts}) and the diagnosis")
         c.say(
             f"would design friction feed-forward and a velocity PI "
-            f"(phase margin {cfg.design.phase_margin_deg:g} deg, delay {cfg.design.delay_cycles:g} cycles)"
+            f"(phase margin {cfg.design.phase_margin_deg:g} deg, delay "
+            + (f"{cfg.design.delay_cycles:g} cycles)" if cfg.design.delay_cycles is not None
+               else "1 cycle plus the identified drive action delay)")
         )
         c.say(f"would write {MODEL_FILE}, log.csv, {BUMP_LOG}, {REPORT_FILE}, {MAT_FILE} in {self.out}")
 
     def _design(self, model: ServoModel, limits: ConfirmedLimits, fs_hz: float, units) -> Design:
         cfg = self.o.config
         d = cfg.design
-        pi = design_pi(model.M, model.B, d.fs_hz or fs_hz, phase_margin_deg=d.phase_margin_deg,
-                       delay_cycles=d.delay_cycles, pi_zero_ratio=d.pi_zero_ratio,
+        loop_fs = d.fs_hz or fs_hz
+        pi = design_pi(model.M, model.B, loop_fs, phase_margin_deg=d.phase_margin_deg,
+                       delay_cycles=loop_delay_cycles(model, loop_fs, d.delay_cycles),
+                       pi_zero_ratio=d.pi_zero_ratio,
                        max_bandwidth_hz=d.max_bandwidth_hz)  # fmt: skip
         amplitude = reference_amplitude(model.M, model.B, model.coulomb_pos, model.coulomb_neg,
                                         limits.max_u, limits.max_v, cfg.compensation)  # fmt: skip

@@ -2,7 +2,8 @@
 
 Every one of them holds the base model: ``identify --json`` and the
 ``model.json`` of ``sidbe`` and ``commission`` at their top level (``M``,
-``B``, ``coulomb_pos``, ``coulomb_neg``, optionally ``resonance``), the
+``B``, ``coulomb_pos``, ``coulomb_neg``, optionally ``resonance`` and the
+drive's action delay ``delay_s`` [s], 0 when absent), the
 output of ``diagnose`` as ``base_after``. A diagnosed model also holds its
 effects, a list of ``{"name": ..., "parameters": {...}}`` (or a mapping
 ``{name: {parameter: value}}``); parameters an effect does not declare
@@ -100,8 +101,9 @@ def model_from_json(doc: Mapping[str, Any], where: str = "model") -> SavedModel:
         r = base["resonance"]
         resonance = Resonance(_number(r.get("wn_rad_s"), "resonance.wn_rad_s", where),
                               _number(r.get("zeta"), "resonance.zeta", where))  # fmt: skip
+    delay = _number(base["delay_s"], "delay_s", where) if base.get("delay_s") is not None else 0.0
     try:
-        model = ServoModel(**values, resonance=resonance)
+        model = ServoModel(**values, resonance=resonance, delay_s=delay)
     except IdentificationError as err:
         raise UsageError(f"{where}: {err}") from None
     units = doc.get("units") if isinstance(doc.get("units"), Mapping) else {}
@@ -124,7 +126,7 @@ def program_model(saved: SavedModel) -> tuple[ServoModel, str]:
     chosen = saved.program_source
     if chosen and all(k in chosen for k in BASE_KEYS):
         values = {k: _number(chosen[k], f"program_source.{k}", saved.source) for k in BASE_KEYS}
-        model = ServoModel(**values, resonance=saved.model.resonance)
+        model = ServoModel(**values, resonance=saved.model.resonance, delay_s=saved.model.delay_s)
         return model, str(chosen.get("description") or f"the model the record programs ({chosen.get('model')})")
     if saved.kind == "diagnose" or saved.effects:
         named = " + ".join(saved.effects) or "no effect"

@@ -191,6 +191,16 @@ def program_values(
     return tuple(rows)
 
 
+def loop_delay_cycles(model: ServoModel, fs_hz: float, given: float | None = None) -> float:
+    """The delay a velocity loop closed through the exchanges sees [cycles]: ``given`` when
+    stated, else one cycle (the command computed from ``v_k`` goes out with the next exchange)
+    plus the drive's identified action delay ``model.delay_s`` (from a command's logged instant
+    to its action, the sample's lag included) at ``fs_hz`` [Hz]."""
+    if given is not None:
+        return float(given)
+    return 1.0 + model.delay_s * fs_hz
+
+
 def design_values(
     model: ServoModel,
     units: SignalUnits,
@@ -198,14 +208,16 @@ def design_values(
     scale: DriveScale = DriveScale(),
     *,
     phase_margin_deg: float = 60.0,
-    delay_cycles: float = 1.0,
+    delay_cycles: float | None = None,
     pi_zero_ratio: float = 4.0,
     max_bandwidth_hz: float | None = None,
     sign_band: float = 0.0,
 ) -> tuple[FrictionFeedForward, PIDesign, tuple[ProgramValue, ...]]:
     """The feed-forward, the velocity PI and the values to program of a saved model, without
     a commissioning: the same design code (:func:`design_pi`, :func:`friction_feed_forward`)
-    at the loop rate ``fs_hz`` [Hz], the ramp-in band ``sign_band`` [velocity units/s]."""
+    at the loop rate ``fs_hz`` [Hz], the ramp-in band ``sign_band`` [velocity units/s]; the
+    delay from the model unless ``delay_cycles`` is given (:func:`loop_delay_cycles`)."""
+    delay_cycles = loop_delay_cycles(model, fs_hz, delay_cycles)
     pi = design_pi(model.M, model.B, fs_hz, phase_margin_deg=phase_margin_deg, delay_cycles=delay_cycles,
                    pi_zero_ratio=pi_zero_ratio, max_bandwidth_hz=max_bandwidth_hz)  # fmt: skip
     ff = friction_feed_forward(model.B, model.coulomb_pos, model.coulomb_neg, sign_band)

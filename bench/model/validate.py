@@ -163,13 +163,16 @@ def validate(
             raise UsageError(f"loop must be 'open' or 'closed', got {loop!r}")
         log = replace(log, metadata={**log.metadata, "loop": loop})
     effects = {k: dict(v) for k, v in (effects or {}).items()}
+    if model.delay_s > 0 and "time_delay" not in effects:
+        # the drive's action delay of the model, in the simulator's terms: u(t - delay)
+        effects = {"time_delay": {"delay": model.delay_s}, **effects}
     data = prepare(log)
     candidate = Candidate(
         {"M": model.M, "B": model.B, "coulomb_pos": model.coulomb_pos, "coulomb_neg": model.coulomb_neg},
         effects,
     )
     notes: list[str] = list(data.prepared.notes)
-    if effects:
+    if set(effects) - {"time_delay"}:
         whole = replace(data, horizon_s=None, starts=tuple(np.array([0]) for _ in data.segments))
         v_sim = simulate(whole, candidate)
     else:

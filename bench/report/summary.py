@@ -75,6 +75,7 @@ def model_rows(result: IdentificationResult) -> list[tuple[str, str, str]]:
         ("Coulomb friction, v < 0", plus_minus(m.coulomb_neg, s.get("coulomb_neg")), unit["coulomb_neg"]),
         ("pole -B/M", plus_minus(m.pole, d.get("pole")), unit["pole"]),
         ("DC gain 1/B", plus_minus(m.dc_gain, d.get("dc_gain")), unit["dc_gain"]),
+        ("drive action delay", plus_minus(m.delay_s * 1e3, s.get("delay_s", math.nan) * 1e3), "ms"),
     ]
     if m.resonance is not None:
         rows.append(("resonance", f"{m.resonance.f_hz:.4g} (zeta {m.resonance.zeta:.3g})", "Hz"))
