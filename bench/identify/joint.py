@@ -255,10 +255,12 @@ def _scan_data(data: Dataset) -> Dataset:
     return replace(data, segments=tuple(s.head(per_run) for s in data.segments))
 
 
-def pair_regression(data: Dataset) -> ServoModel:
-    """The exact pair regression alone (step 1, timing-weighted where the log gives ``t_unc``):
+def pair_regression(data: Dataset, delay_s: float = 0.0, tau_s: float = 1.0) -> ServoModel:
+    """The exact pair regression alone (step 1, timing-weighted where the log gives ``t_unc``),
+    for commands acting ``delay_s`` [s] late (equivalent commands for time constant ``tau_s``):
     the cheap estimate :mod:`servobench.bench.identify.timing` re-runs on perturbed instants."""
-    return _model(_solve(_pairs(data), data, None))
+    at = delayed(data, delay_s, tau_s)
+    return _model(_solve(_pairs(at), at, None), delay_s)
 
 
 def _pairs(
@@ -410,7 +412,7 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
     only make it larger, so it errs on the side of a wider scatter.
     """
     try:
-        pairs = _pairs(data)
+        pairs = _pairs(delayed(data, model.delay_s, model.time_constant_s))
     except IdentificationError:
         return math.nan
     if len(pairs) < 8:

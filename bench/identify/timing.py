@@ -30,7 +30,17 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   timing error [%] (1 sigma). The draws cover the excited band as the log
   does: they perturb the very samples the model comes from.
 * A drive time stamp (``clock_source = drive``) has no interval: the
-  predicted error is 0, whatever the host's jitter (the instants are exact).
+  timing's share is 0, whatever the host's jitter (the instants are exact).
+* The drive's own clock: the model carries the drive's action delay
+  (``delay_s``, identified with the plant, its 1 sigma from the same fit) and
+  the figure states it beside the tick the stamps show (``drive_tick_s``,
+  ``repeated_samples``, ``skipped_ticks`` from the log's trailer). Each
+  parameter's predicted error is the timing's share and the model's own
+  statistical 1 sigma (whose fit holds the delay free, so the delay's
+  uncertainty is in it) added in quadrature. Where the delay's 1 sigma is
+  more than :data:`DELAY_SEPARABLE_SHARE` of the longer of a cycle and the
+  time constant, the data cannot tell the delay from the plant's lag: the
+  figure is not within accuracy and its first lines say what to change.
 
 A figure whose largest parameter error exceeds the stated accuracy
 (:data:`ACCURACY_PCT`) is not :attr:`TimingFigure.within_accuracy`; its
@@ -51,7 +61,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
 from servobench.bench.identify.estimate import MethodEstimate
-from servobench.bench.model.servo import STD_KEYS
+from servobench.bench.model.servo import DELAY_KEY, STD_KEYS
 from servobench.errors import IdentificationError
 
 #: Accuracy the model states for its parameters [%]: timing that predicts more is reported.
@@ -66,12 +76,18 @@ CYCLE_KEYS = ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s", "mi
 METHOD = (
     f"re-identification ({DRAWS} draws, by the estimator that gave the model) with every instant "
     "moved at random by the scatter the residuals show (instant_scatter_s, normal), never beyond "
-    "its uncertainty t_unc; rms relative change, 1 sigma"
+    "its uncertainty t_unc; rms relative change, 1 sigma, with the model's own 1 sigma in quadrature"
 )
+#: The method where the drive stamps its samples (the instants are exact).
+METHOD_STAMPS = "drive time stamps: exact instants; the model's own 1 sigma"
+#: The delay counts as inseparable from the plant's lag when its 1 sigma exceeds this share of
+#: the longer of a cycle and the time constant.
+DELAY_SEPARABLE_SHARE = 0.25
 #: The method where the residuals show no scatter to read.
 METHOD_BOUND = (
     f"re-identification ({DRAWS} draws, by the estimator that gave the model) with every instant "
-    "moved at random within its uncertainty t_unc; rms relative change, 1 sigma"
+    "moved at random within its uncertainty t_unc; rms relative change, 1 sigma, with the model's "
+    "own 1 sigma in quadrature"
 )
 
 
@@ -105,6 +121,16 @@ class TimingFigure:
     link_max_hz: float = math.nan  #: the rate the link carries, from the log [Hz]
     #: How far the instants stray, 1 sigma each, as the residuals show [s] (NaN: not read).
     instant_scatter_s: float = math.nan
+    #: The drive's identified action delay and its 1 sigma [s] (the model's ``delay_s``).
+    delay_s: float = 0.0
+    delay_std_s: float = math.nan
+    #: The drive's control tick read from its time stamps [s] (NaN: no stamps, or no grid in them).
+    drive_tick_s: float = math.nan
+    #: Reads that returned a tick already read, and ticks that passed unread (stamped logs).
+    repeated_samples: int = 0
+    skipped_ticks: int = 0
+    #: The model's own statistical 1 sigma of each parameter [%], folded into the prediction.
+    statistical_pct: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def model_error_max_pct(self) -> float:
@@ -113,7 +139,16 @@ class TimingFigure:
 
     @property
     def within_accuracy(self) -> bool:
-        return self.model_error_max_pct <= self.accuracy_pct
+        return self.model_error_max_pct <= self.accuracy_pct and self.delay_separable
+
+    @property
+    def delay_separable(self) -> bool:
+        """False when the data cannot tell the drive's delay from the plant's lag: the delay's
+        1 sigma exceeds :data:`DELAY_SEPARABLE_SHARE` of a cycle and of the time constant."""
+        sd = self.delay_std_s
+        if not math.isfinite(sd):
+            return True
+        return sd <= DELAY_SEPARABLE_SHARE * max(1.0 / self.fs_hz, self.time_constant_s)
 
     def advice(self) -> list[str]:
         """What to change, most effective first (empty when within accuracy)."""
@@ -140,6 +175,14 @@ class TimingFigure:
         """The lines a summary starts with when the timing takes the model outside its accuracy."""
         if self.within_accuracy:
             return []
+        if not self.delay_separable:
+            return [
+                f"WARNING: the drive's action delay ({self.delay_s * 1e3:.3g} ms +- "
+                f"{self.delay_std_s * 1e3:.2g} ms) cannot be told from the plant's lag (time constant "
+                f"{self.time_constant_s * 1e3:.3g} ms) at {self.fs_hz:g} Hz: M and B may be off",
+                "to change: raise --fs where the link allows, or excite faster lines "
+                "(--fmax closer to the time constant's corner), so delay and lag differ in phase",
+            ]
         worst = max(self.model_error_pct, key=lambda k: self.model_error_pct[k])
         c = self.cycle
         first = (
@@ -162,6 +205,13 @@ class TimingFigure:
             model_error_max_pct=_finite(self.model_error_max_pct),
             model_error_method=self.method,
             instant_scatter_s=_finite(self.instant_scatter_s),
+            delay_s=_finite(self.delay_s),
+            delay_std_s=_finite(self.delay_std_s),
+            drive_tick_s=_finite(self.drive_tick_s),
+            repeated_samples=int(self.repeated_samples),
+            skipped_ticks=int(self.skipped_ticks),
+            statistical_pct={k: _finite(v) for k, v in self.statistical_pct.items()},
+            delay_separable=self.delay_separable,
             accuracy_pct=self.accuracy_pct,
             within_accuracy=self.within_accuracy,
             advice=self.advice(),
@@ -209,19 +259,40 @@ def timing_figure(
     if not source:
         return None
     cycle = {key: _number(metadata.get(key)) for key in CYCLE_KEYS}
-    error = {k: 0.0 for k in STD_KEYS}
-    scatter, method = math.nan, METHOD
+    timing = {k: 0.0 for k in STD_KEYS}
+    scatter, method = math.nan, METHOD_STAMPS
+    m = estimate.model
     if data.timing_uncertain and not data.derived:
         from servobench.bench.identify.joint import instant_scatter_s
 
-        scatter = instant_scatter_s(data, estimate.model)
-        error = perturbed_spread_pct(data, estimate, scatter_s=scatter)
+        scatter = instant_scatter_s(data, m)
+        timing = perturbed_spread_pct(data, estimate, scatter_s=scatter)
         method = METHOD if math.isfinite(scatter) else METHOD_BOUND
-    m = estimate.model
+    statistical = {k: _relative_pct(estimate.std.get(k, math.nan), getattr(m, k)) for k in STD_KEYS}
+    # the timing's share and the model's own statistical sigma, independent: added in quadrature
+    error = {k: math.hypot(timing[k], statistical[k]) if math.isfinite(statistical[k]) else timing[k]
+             for k in STD_KEYS}  # fmt: skip
     tau = m.M / m.B if m.B > 0 else math.inf
     return TimingFigure(source, cycle, data.fs_hz, error, method=method, time_constant_s=tau,
                         link_max_hz=_number(metadata.get("link_max_rate_hz")),
-                        instant_scatter_s=scatter)  # fmt: skip
+                        instant_scatter_s=scatter, delay_s=m.delay_s,
+                        delay_std_s=float(estimate.std.get(DELAY_KEY, math.nan)),
+                        drive_tick_s=_number(metadata.get("drive_tick_s")),
+                        repeated_samples=_count(metadata.get("repeated_samples")),
+                        skipped_ticks=_count(metadata.get("skipped_ticks")),
+                        statistical_pct=statistical)  # fmt: skip
+
+
+def _relative_pct(std: float, value: float) -> float:
+    try:
+        return abs(float(std) / float(value)) * 100.0 if value else math.nan
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _count(text: str | None) -> int:
+    value = _number(text)
+    return int(value) if math.isfinite(value) else 0
 
 
 def perturbed_spread_pct(
@@ -245,9 +316,10 @@ def perturbed_spread_pct(
     rng = np.random.default_rng(seed)
     refine = estimate.estimator.endswith("output-error")
     model = estimate.model
+    delay, tau = model.delay_s, model.time_constant_s
     if not refine:
         with contextlib.suppress(IdentificationError):  # the same estimator on the instants as logged
-            model = pair_regression(data)
+            model = pair_regression(data, delay, tau)
     nominal = np.array([model.M, model.B, model.coulomb_pos, model.coulomb_neg])
     changes = []
     for _ in range(draws):
@@ -268,7 +340,7 @@ def perturbed_spread_pct(
             segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12)))
         moved = replace(data, segments=tuple(segments))
         try:
-            m = identify_joint(moved, start=estimate).model if refine else pair_regression(moved)
+            m = identify_joint(moved, start=estimate).model if refine else pair_regression(moved, delay, tau)
         except IdentificationError:
             continue
         values = np.array([m.M, m.B, m.coulomb_pos, m.coulomb_neg])
