@@ -14,7 +14,9 @@ exchange for batch work.
 time, each exchange samples the plant when it is handled and then latches
 the command, and its time stamps are its free-running clock (wall time
 since the drive was opened) at each sample. :attr:`realtime` is True, so
-the runner paces it; there is no block exchange.
+the runner paces it; there is no block exchange. ``tick=S`` gives it a
+control tick of its own (it samples and acts only at its ticks,
+:mod:`servobench.sim_backend.device`).
 
 Drive-side position hold: with ``pos_kp``, ``pos_ki`` or ``pos_kd`` in the
 URL the simulated drive has its own position loop -- the served CiA 402
@@ -43,6 +45,7 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import REAL, PowerState, SimulatedDevice, clock_mode_from_url
+from servobench.sim_backend.drive_tick import tick_from_url
 from servobench.sim_backend.servers.canopen.position_loop import (
     Gains,
     PositionLoop,
@@ -72,7 +75,9 @@ class SimDrive(Drive):
         self.supports_block = not self.realtime
         given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
         plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
-        self.device = SimulatedDevice(plant_from_url(plant_url), clock_mode=clock_mode)
+        self.device = SimulatedDevice(
+            plant_from_url(plant_url), clock_mode=clock_mode, tick_s=tick_from_url(self.url)
+        )
         p = self.device.params
         self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None
         self.supports_drive_hold = self.hold_gains is not None

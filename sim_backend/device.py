@@ -29,6 +29,28 @@ the instant each sample is taken (not a cycle count); the transports encode
 it at their register's resolution (CiA 402 0x1013: UNSIGNED32 microseconds,
 wrapping).
 
+A control tick of its own (``clock="real"``, ``tick_s > 0``)
+------------------------------------------------------------
+``sim://?clock=real&tick=S``, ``serve-sim --tick S``: the drive runs its
+physics on its own tick grid, asynchronous to the host, as a real drive's
+control loop does (:mod:`servobench.sim_backend.drive_tick`): tick instants
+``phase + k * S`` on the device's wall clock, the phase drawn uniformly in
+``[0, S)`` when the device is made (from the plant's ``seed`` if it has
+one). A command takes force at the first tick strictly after its arrival
+(the request's instant) and is held until the tick at which a later one
+takes force; of two commands that arrive between the same two ticks the
+later one wins (the plant's ``delay`` effect adds on top). A read returns
+the sample of the last tick at or before its instant: the plant measured
+once at that tick (one noise draw), so every read within one tick returns
+the same velocity, position and time stamp, the stamp being that tick's
+instant on the drive clock (the drive clock then stands at 0 at the tick a
+session began in, so the stamps are whole ticks). Power-stage changes still
+remove the torque at the instant they happen, and :meth:`~SimulatedDevice.true_state`
+is the state now. :meth:`~SimulatedDevice.timing` is the drive's record of
+its timing (:class:`~servobench.sim_backend.drive_tick.TimingRecord`). With
+``tick_s == 0`` (the default) nothing of this applies. Lockstep drives have
+no tick of their own (a tick needs ``clock="real"``).
+
 Wall-clock time in lockstep (served drives)
 -------------------------------------------
 A real axis does not wait for the host: after a quick stop it coasts down
@@ -69,7 +91,8 @@ from enum import Enum
 
 import numpy as np
 
-from servobench.errors import DriveFaultError
+from servobench.errors import DriveConfigError, DriveFaultError
+from servobench.sim_backend.drive_tick import TickGrid, TimingRecord, draw_phase, tick_from_url
 from servobench.sim_backend.physics.plant import Plant, PlantParams
 from servobench.sim_backend.physics.realtime import TimedPlant
 
@@ -146,6 +169,9 @@ class SimulatedDevice:
     clock_mode : str
         ``"lockstep"`` or ``"real"`` (see the module doc); ``"real"`` implies
         ``wall_clock``.
+    tick_s : float
+        The drive's own control tick [s] (``"real"`` only; see the module
+        doc); 0: none, the drive samples and acts at each request's instant.
     """
 
     def __init__(
@@ -159,9 +185,19 @@ class SimulatedDevice:
         wall_clock: bool = False,
         watchdog_in_every_state: bool = False,
         clock_mode: str = LOCKSTEP,
+        tick_s: float = 0.0,
     ) -> None:
         if clock_mode not in CLOCK_MODES:
             raise ValueError(f"clock mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
+        if not (math.isfinite(tick_s) and tick_s >= 0):
+            raise DriveConfigError(
+                f"drive tick must be a finite number of seconds >= 0, got {tick_s!r}"
+            )
+        if tick_s > 0 and clock_mode != REAL:
+            raise DriveConfigError(
+                f"a drive tick (tick={tick_s:g}) needs clock=real (serve-sim --clock real), "
+                f"not clock={clock_mode}: a lock-step drive is clocked by its host"
+            )
         self.params = params
         self.plant = Plant(params)
         self.cycle_s = float(cycle_s)
@@ -181,6 +217,14 @@ class SimulatedDevice:
         self._wall_base = self._wall_due  # wall time at which the drive clock read _t_base_s
         #: The plant in wall-clock time (``clock="real"`` only).
         self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
+        #: The drive's own tick grid (``tick_s > 0``), else None.
+        self.tick = TickGrid(float(tick_s), draw_phase(tick_s, params.seed)) if tick_s > 0 else None
+        self._timing = TimingRecord(tick_s, self.tick.phase_s if self.tick else 0.0)
+        self._read_pinned = False  # a read of the request being handled was counted
+        if self.tick is not None:  # the plant stood in its initial state at the last tick
+            self._tick_k = self._tick_base = self.tick.index_at(self._wall_due)
+            self._tick_vx = self.timed.measure()  # the sample of tick _tick_k
+            self._wall_base = self.tick.instant(self._tick_base)
         self._command = 0.0
         #: Host sessions begun (:meth:`begin_session`).
         self.sessions = 0
@@ -217,6 +261,7 @@ class SimulatedDevice:
                 yield
                 return
             self._pinned = self._clock() if at_s is None else float(at_s)
+            self._read_pinned = False
             try:
                 yield
             finally:
@@ -272,7 +317,14 @@ class SimulatedDevice:
             if not math.isfinite(u):
                 u = 0.0
             self._command = min(max(float(u), -self.max_command), self.max_command)
-            if self.timed is not None and self.state is PowerState.ENABLED:
+            if self.state is not PowerState.ENABLED:
+                return
+            if self.tick is not None:  # from the first tick after its arrival
+                self.timed.latch_at(self.tick.instant(self._tick_k + 1), self._command)
+                self._timing.command(self._tick_k + 1)
+                return
+            self._timing.command()
+            if self.timed is not None:
                 self.timed.latch(self._wall_due, self._command)
 
     @property
@@ -351,6 +403,7 @@ class SimulatedDevice:
             v, x = self.plant._measure(
                 np.array([self.plant.state.v]), np.array([self.plant.state.x])
             )
+            self._note_read()
             return DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
 
     def step(self) -> DeviceSample:
@@ -364,6 +417,7 @@ class SimulatedDevice:
                 self._k += 1
                 return self.frozen_feedback or self._sample_now()
             v, x = self.plant.step_block(np.array([self.command]), self.cycle_s)
+            self._note_read()
             sample = DeviceSample(self._t_s, float(v[0]), float(x[0]), self.state, self.fault_code)
             self._advance(1)
             self._wall_due = self._clock() + self.cycle_s
@@ -392,6 +446,7 @@ class SimulatedDevice:
                 u = np.zeros_like(u)
             if u.size:
                 self._command = float(u[-1])
+            self._timing.exchanges(u.size)
             t = self._t_s + self.cycle_s * np.arange(u.size)
             v, x = self.plant.step_block(u, self.cycle_s)
             self._advance(u.size)
@@ -411,10 +466,36 @@ class SimulatedDevice:
             return float(self._t_s), float(self.plant.state.v), float(self.plant.state.x)
 
     def _sample_now(self) -> DeviceSample:
-        """``real``: the measurement of the plant as integrated up to now, on the drive clock."""
+        """``real``: the measurement of the plant as integrated up to now, on the drive clock.
+
+        With a tick: the measurement taken at the last tick, stamped with its instant.
+        """
+        if self.tick is not None:
+            v, x = self._tick_vx
+            self._t_s = self._t_base_s + (self._tick_k - self._tick_base) * self.tick.tick_s
+            self._note_read(self._tick_k)
+            return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
         v, x = self.timed.measure()
         self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+        self._note_read()
         return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
+
+    def _note_read(self, tick: int = 0) -> None:
+        """Enter a read in the timing record (one per request: :meth:`instant`)."""
+        counted = self._pinned is None or not self._read_pinned
+        if self._pinned is not None:
+            self._read_pinned = True
+        self._timing.read(tick, counted)
+
+    def timing(self) -> dict[str, float | int]:
+        """The drive's record of its timing: see :meth:`.drive_tick.TimingRecord.as_dict`."""
+        with self._lock:
+            return self._timing.as_dict()
+
+    def wall_instant_of(self, t_s: float) -> float:
+        """The instant [s, the device's wall clock] the drive clock read ``t_s`` at (``real``)."""
+        with self._lock:
+            return self._wall_base + (t_s - self._t_base_s)
 
     def _advance(self, n: int) -> None:
         self._k += n
@@ -427,6 +508,9 @@ class SimulatedDevice:
         if self.timed is None:
             self._wall_due = self._clock()
         self._wall_base = self._wall_due
+        if self.tick is not None:  # the clock reads t_s at the last tick: stamps are whole ticks
+            self._tick_base = self._tick_k
+            self._wall_base = self.tick.instant(self._tick_k)
 
     def _catch_up(self, until: float | None = None, force: bool = False) -> None:
         """Integrate the wall-clock time the host left unpolled (``wall_clock`` devices only).
@@ -438,6 +522,8 @@ class SimulatedDevice:
         if self.timed is not None:
             now = self._now() if until is None else until
             if now > self._wall_due:
+                if self.tick is not None:
+                    self._pass_tick(now)
                 span_s = self.timed.advance_to(now)
                 self._wall_due = now
                 if self.state is not PowerState.ENABLED:
@@ -454,6 +540,14 @@ class SimulatedDevice:
             self.plant.step_block(np.full(n, self.command), lag_s / n)
         self._wall_due = now
         self.idle_s += lag_s
+
+    def _pass_tick(self, now: float) -> None:
+        """Tick: measure the plant at the last tick up to ``now`` if the integration passes it."""
+        k = self.tick.index_at(now)
+        t_k = min(self.tick.instant(k), now)
+        if k != self._tick_k and t_k >= self.timed.t_s:
+            self.timed.advance_to(t_k)
+            self._tick_k, self._tick_vx = k, self.timed.measure()
 
     # --------------------------------------------------------------- watchdog
     def check_watchdog(self) -> bool:
@@ -518,9 +612,10 @@ class WatchdogThread(threading.Thread):
 
 
 def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
-    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``, ``clock``).
+    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``, ``clock``, ``tick``).
 
-    A ``clock_mode`` keyword wins over the URL's ``clock`` key.
+    A ``clock_mode`` keyword wins over the URL's ``clock`` key, a ``tick_s``
+    keyword over its ``tick`` key.
     """
     from servobench.drivers.url import parse_drive_url
     from servobench.sim_backend.simurl import plant_from_url
@@ -533,6 +628,7 @@ def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
     params = plant_from_url(parsed)
     max_u = parsed.get_float("max_u", math.inf)
     kwargs.setdefault("clock_mode", clock_mode_from_url(parsed))
+    kwargs.setdefault("tick_s", tick_from_url(parsed))
     return SimulatedDevice(params, max_command=max_u, **kwargs)  # type: ignore[arg-type]
 
 

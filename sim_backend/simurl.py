@@ -4,7 +4,9 @@
 ``sim://?plant=path/to/plant.toml`` reads the same keys from the file's
 ``[plant]`` table (keys given in the URL override the file).
 ``clock=lockstep|real`` chooses the drive's clock mode
-(:mod:`servobench.sim_backend.device`), not the physics.
+(:mod:`servobench.sim_backend.device`), not the physics; so does
+``tick=S``, the drive's own control tick [s] (``clock=real`` only; 0, the
+default: none; :mod:`servobench.sim_backend.drive_tick`).
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ PLANT_FIELDS: dict[str, str] = {
     "res_v": "res_v",
 }
 PLANT_KEYS = frozenset(PLANT_FIELDS)
-#: Keys that configure the simulated drive rather than the physics.
-DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units", "clock"})  # "pace" is also a common key
+#: Keys that configure the simulated drive rather than the physics ("pace" is also a common key).
+DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units", "clock", "tick"})
 #: ``units=`` of ``sim://``: what the simulated axis's signals are in.
 AXIS_UNITS = {"rotary": ROTARY, "linear": LINEAR}
 

@@ -1,7 +1,10 @@
 """``servobench serve-sim --transport T --sim SIMURL``: serve the simulated drive.
 
 The first line on stdout is the drive URL (a contract); ``--rt-priority``
-says on stderr what priority was obtained.
+says on stderr what priority was obtained. ``--tick S`` (or the URL's
+``tick=S``; the option wins) gives the drive a control tick of its own
+(:mod:`servobench.sim_backend.device`); ``--state-file`` reports its timing
+under ``"tick"``.
 """
 
 from __future__ import annotations
@@ -58,6 +61,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "lockstep: one cycle per SYNC/read, exact, for algorithm tests",
     )
     p.add_argument(
+        "--tick",
+        type=float,
+        default=None,
+        metavar="S",
+        help="--clock real: the drive's own control tick [s], asynchronous to the host from a "
+        "random phase: it samples at its ticks and a command acts from the next tick (0: none, "
+        "sample and act at each request; default the --sim URL's tick=, else 0)",
+    )
+    p.add_argument(
         "--no-timestamp",
         action="store_true",
         help="serve a drive that gives no time stamp: CANopen without 0x1013 (EDS cia402-nostamp), "
@@ -81,11 +93,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import math
     import sys
 
     from servobench.drivers.url import parse_drive_url
     from servobench.errors import UsageError
-    from servobench.sim_backend.device import clock_mode_from_url
+    from servobench.sim_backend.device import REAL, clock_mode_from_url
+    from servobench.sim_backend.drive_tick import tick_from_url
     from servobench.sim_backend.servers.rt_priority import FIFO_MAX, FIFO_MIN, request_priority
     from servobench.sim_backend.servers.serve import no_timestamp_options
 
@@ -93,7 +107,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--eds applies to --transport canopen only, not {args.transport}")
     if args.rt_priority is not None and not FIFO_MIN <= args.rt_priority <= FIFO_MAX:
         raise UsageError(f"--rt-priority must be {FIFO_MIN}..{FIFO_MAX}, got {args.rt_priority}")
-    clock_mode = args.clock or clock_mode_from_url(parse_drive_url(args.sim), default="real")
+    sim = parse_drive_url(args.sim)
+    clock_mode = args.clock or clock_mode_from_url(sim, default="real")
+    if args.tick is not None and not (math.isfinite(args.tick) and args.tick >= 0):
+        raise UsageError(f"--tick must be a finite number of seconds >= 0, got {args.tick}")
+    tick_s = args.tick if args.tick is not None else tick_from_url(sim)
+    if tick_s > 0 and clock_mode != REAL:
+        raise UsageError(f"--tick / tick= {tick_s:g} needs --clock real, not {clock_mode}")
     options = {
         "host": args.host,
         "port": str(args.port),
@@ -112,5 +132,12 @@ def run(args: argparse.Namespace) -> int:
         options = no_timestamp_options(args.transport, options)
     if args.rt_priority is not None:  # before any thread starts: they inherit it
         print(f"serve-sim: {request_priority(args.rt_priority).describe()}", file=sys.stderr, flush=True)
-    run_server(args.transport, args.sim, options, state_file=args.state_file, clock_mode=clock_mode)
+    run_server(
+        args.transport,
+        args.sim,
+        options,
+        state_file=args.state_file,
+        clock_mode=clock_mode,
+        tick_s=tick_s,
+    )
     return 0

@@ -18,7 +18,8 @@ simulated drive ``sim://`` has no address: a simulated axis *is* its plant,
 so its name is its plant file (``sim://?plant=press7.toml``), else its
 physics, effect and device keys in a fixed order
 (``sim://?B=1&M=0.1&fc_neg=0.4&fc_pos=0.5&seed=3``), without the safety and
-pace keys; two ``sim://`` logs of different plants are two axes. The time is ISO
+pace keys and the drive's control tick (``tick``: how the drive samples, not
+what the plant is); two ``sim://`` logs of different plants are two axes. The time is ISO
 8601 with the local UTC offset, to the second.
 
 A log without these lines (written by another tool, or before they existed)
@@ -40,9 +41,10 @@ AXIS_KEY = "axis"
 TIME_KEY = "time"
 #: Query keys that select one axis on a link shared by several.
 ADDRESS_KEYS = ("channel", "node", "unit", "axis")
-#: Keys every drive URL takes that do not tell one simulated plant from another
-#: (limits, watchdog, pace: servobench.drivers.base.COMMON_QUERY_KEYS).
-NOT_PLANT_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace"})
+#: Keys that do not tell one simulated plant from another: those every drive URL takes
+#: (limits, watchdog, pace: servobench.drivers.base.COMMON_QUERY_KEYS) and the simulated
+#: drive's own control tick (``tick``, a property of the drive, not of the plant).
+NOT_PLANT_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace", "tick"})
 #: The scheme of the in-process simulated drive, named by its plant.
 SIM_SCHEME = "sim"
 

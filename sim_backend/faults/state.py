@@ -9,13 +9,20 @@ clean-up disables the drive, so it shows what the host and the faults left)::
      "velocity": 0.12, "position": 3.4, "t_s": 0.6, "cycles": 600,
      "fault_code": 0, "fault_reason": "", "watchdog_trips": 0,
      "faults_injected": [{"kind": "drop", "cycle": 120, "arg": null}],
+     "tick": {"tick_s": 0.001, "phase_s": 0.00042, "commands": 600, "mean_delay_s": 0.001,
+              "min_delay_s": 0.001, "max_delay_s": 0.001, "reads": 600,
+              "repeated_reads": 0, "skipped_ticks": 3},
      "history": [{"state": "enabled", "cycle": 0, "fault_code": 0}, ...],
      "final": false, "pid": 1234}
 
 ``torque_off`` is true unless the power stage is enabled, ``command`` what it applies (0 unless enabled), ``velocity``
 and ``position`` the plant's true state at the last cycle (read without
 drawing sensor noise, so reporting never perturbs the lock-step run),
-``cycles`` the clocking requests the injector counted.
+``cycles`` the clocking requests the injector counted, ``tick`` the drive's
+record of its timing (:meth:`~SimulatedDevice.timing`: its control tick, the
+action delay of its commands, its reads; tick 0 and delays 0 for a drive
+without a tick of its own). Like every field it is as of the last write: the
+final report has it complete.
 """
 
 from __future__ import annotations
@@ -34,14 +41,19 @@ POLL_S = 0.02
 
 
 def snapshot(
-    device: SimulatedDevice, injector: FaultInjector | None, now: tuple[float, float, float] | None = None
+    device: SimulatedDevice,
+    injector: FaultInjector | None,
+    now: tuple[float, float, float] | None = None,
+    timing: dict[str, float | int] | None = None,
 ) -> dict[str, object]:
     """The report's fields, now (no sensor noise drawn, no clocking).
 
-    ``now``: the device's :meth:`~SimulatedDevice.true_state` taken by the caller
-    (outside any lock the device's listeners take), else taken here.
+    ``now`` and ``timing``: the device's :meth:`~SimulatedDevice.true_state` and
+    :meth:`~SimulatedDevice.timing` taken by the caller (outside any lock the
+    device's listeners take), else taken here.
     """
     t_s, v, x = now if now is not None else device.true_state()
+    timing = timing if timing is not None else device.timing()
     state = device.state
     return {
         "state": state.value,
@@ -55,6 +67,7 @@ def snapshot(
         "fault_reason": device.fault_reason,
         "watchdog_trips": device.watchdog_trips,
         "faults_injected": injector.record() if injector is not None else [],
+        "tick": timing,
     }
 
 
@@ -117,12 +130,13 @@ class StateReporter(threading.Thread):
     def _poll(self, final: bool) -> None:
         dev = self.device
         now = dev.true_state()  # not under the write lock: listeners take it under the device's
+        timing = dev.timing()
         with self._write_lock:
             key = (dev.state, dev.fault_code, dev.watchdog_trips, len(self.history))
             if key == self._key and not final:
                 return
             self._key = key
-            data = snapshot(dev, self.injector, now)
+            data = snapshot(dev, self.injector, now, timing)
             write_json_atomic(
                 self.path, {**data, "history": self.history, "final": final, "pid": os.getpid()}
             )

@@ -14,6 +14,9 @@ with a transport delay, that long after). The contract:
   (the base Coulomb plant and the piecewise-linear effects: one step per
   stretch, the zero-velocity crossing solved analytically inside it);
 * :meth:`TimedPlant.latch` makes ``u`` the command from ``t + delay_s`` on;
+  :meth:`TimedPlant.latch_at` does so from an instant still to come (a drive
+  with a control tick: the next tick), a later command for the same instant
+  replacing the earlier;
   :meth:`TimedPlant.cut` removes the torque at once (power stage off) and
   drops commands still in the delay line;
 * the transport delay of the ``delay`` effect is taken out of the model
@@ -63,6 +66,19 @@ class TimedPlant:
             self._pending.append((t_s + self.delay_s, float(u)))
         else:
             self.acting = float(u)
+
+    def latch_at(self, t_act_s: float, u: float) -> None:
+        """Command ``u`` takes force at ``t_act_s + delay_s``, an instant still to come.
+
+        For a drive with a control tick of its own: ``t_act_s`` is the tick the
+        command acts from. A command pending for that instant or a later one
+        (an earlier command that arrived in the same tick) is replaced: the
+        later command wins, the earlier never acts.
+        """
+        t_s = float(t_act_s) + self.delay_s
+        while self._pending and self._pending[-1][0] >= t_s:
+            self._pending.pop()
+        self._pending.append((t_s, float(u)))
 
     def cut(self, t_s: float) -> None:
         """Torque off at ``t_s``: no command acts any more, none is pending."""

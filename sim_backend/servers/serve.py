@@ -13,8 +13,9 @@ until the :class:`threading.Event` ``stop`` is set, then shuts down cleanly.
 This module owns what is common: building the device from the ``sim://``
 URL in the clock mode asked for (:mod:`servobench.sim_backend.device`:
 ``real`` by default, the axis moving in wall-clock time whatever the host
-does; ``lockstep``, clocked once per cycle while enabled and coasting down
-in wall-clock time while nobody polls it), the drive without a time stamp
+does, on a control tick of its own with ``tick_s``; ``lockstep``, clocked
+once per cycle while enabled and coasting down in wall-clock time while
+nobody polls it), the drive without a time stamp
 (:func:`no_timestamp_options`), the fault injector (:mod:`servobench.sim_backend.faults`, from ``options["fault"]``),
 the watchdog thread, the state report (``state_file``), SIGINT/SIGTERM
 handling and printing the URL as the first line on stdout.
@@ -134,15 +135,18 @@ def run_server(
     announce: Callable[[str], None] | None = None,
     state_file: str | None = None,
     clock_mode: str = REAL,
+    tick_s: float | None = None,
 ) -> SimulatedDevice:
     """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device.
 
     ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
     ``clock_mode``: ``real`` (default) or ``lockstep`` (:mod:`servobench.sim_backend.device`).
+    ``tick_s``: the drive's own control tick [s] (``real`` only); ``None``: the URL's ``tick``.
     """
     serve = load_transport(transport)
     sim_url, served_keys = split_served_keys(transport, sim_url)
-    device = device_from_url(sim_url, wall_clock=True, clock_mode=clock_mode)
+    ticked = {} if tick_s is None else {"tick_s": tick_s}
+    device = device_from_url(sim_url, wall_clock=True, clock_mode=clock_mode, **ticked)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {}), "sim_keys": served_keys}
     injector = FaultInjector(device, parse_plan(opts.get("fault") or "", transport))

@@ -38,7 +38,8 @@ EtherCAT changes:
   (the same outputs in force, the inputs overwritten);
 * the timestamp object 0x10F8 (where served) is the DC system time of the
   sample: in ``real`` the ESC's system time at the frame's arrival or at
-  the SYNC0 event (the instant the inputs were sampled); in lock-step the
+  the SYNC0 event (the instant the inputs were sampled; with a drive tick,
+  ``serve-sim --tick``, the tick they were sampled at); in lock-step the
   drive clock (cycles times the cycle) on the DC time base (plus the offset
   0x0920 the master wrote);
 * the SM watchdog: when it expires the slave goes to SAFE-OP with the
@@ -280,6 +281,8 @@ class CoeSlave(Application):
 
     def _dc_time_of(self, sample: DeviceSample) -> int:
         """0x10F8: the DC system time [ns] at which ``sample`` was taken (module docstring)."""
+        if self.device.tick is not None:  # the drive's tick the sample was taken at
+            return self.esc.system_time_at(round(self.device.wall_instant_of(sample.t_s) * 1e9))
         if self.device.realtime:
             return self.esc.system_time_ns()  # the frame's arrival while a frame passes
         return self.esc.system_time_of(round(sample.t_s * 1e9))

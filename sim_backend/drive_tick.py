@@ -1,0 +1,158 @@
+"""The simulated drive's own control tick (``tick=S``, ``serve-sim --tick S``): grid and record.
+
+A real drive runs its control loop on its own tick, asynchronous to the
+host: it samples its feedback and applies a new command only at its ticks.
+:class:`~servobench.sim_backend.device.SimulatedDevice` (``clock=real``)
+does the same when given a tick ``T > 0`` [s]; this module holds what that
+needs apart from the physics:
+
+* :class:`TickGrid` (frozen): the tick instants ``phase_s + k * tick_s`` on
+  the device's wall clock [s]; :meth:`TickGrid.index_at` is the last tick at
+  or before an instant (an instant within 1e-6 tick before a tick counts as
+  on it, as :func:`~servobench.sim_backend.device.clock_counts` does);
+* :func:`draw_phase`: the phase, uniform in ``[0, tick_s)``, from the
+  plant's ``seed`` when it has one (its own stream, apart from the noise),
+  else from the operating system's entropy;
+* :func:`tick_from_url`: the ``tick`` key of a ``sim://`` URL (a drive
+  property, not a plant parameter; default 0: no tick of its own);
+* :class:`TimingRecord`: the drive's record of its timing in O(1) memory,
+  for benchmarks and tests (:meth:`TimingRecord.as_dict`): each command
+  paired with the first read at or after its arrival, and its effective
+  action delay ``action tick instant - sample tick instant`` [s] (the
+  plant's own transport delay, the ``delay`` effect, is physics and not
+  counted); reads that returned the tick the previous read returned; ticks
+  that passed unread between two reads. With ``tick_s == 0`` a command acts
+  at its arrival: every delay is 0 and no tick repeats or is skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from servobench.errors import DriveConfigError
+
+#: An instant this close before a tick [ticks] is on it (rounding in ``phase + k * tick``).
+ON_TICK = 1e-6
+#: Extra word of the phase's seed: the phase is drawn from its own stream, not the noise's.
+PHASE_STREAM = 0x7469636B  # "tick"
+
+
+@dataclass(frozen=True)
+class TickGrid:
+    """Tick instants ``phase_s + k * tick_s`` [s, the device's wall clock], ``tick_s > 0``."""
+
+    tick_s: float
+    phase_s: float
+
+    def index_at(self, t_s: float) -> int:
+        """Index of the last tick at or before ``t_s`` [s]."""
+        return math.floor((t_s - self.phase_s) / self.tick_s + ON_TICK)
+
+    def instant(self, k: int) -> float:
+        """Instant [s] of tick ``k``."""
+        return self.phase_s + k * self.tick_s
+
+
+def draw_phase(tick_s: float, seed: int | None) -> float:
+    """A phase uniform in ``[0, tick_s)`` [s]: seeded by ``seed`` (plant's), else random."""
+    if not tick_s > 0:
+        return 0.0
+    rng = np.random.default_rng(None if seed is None else [int(seed), PHASE_STREAM])
+    return min(float(rng.uniform(0.0, tick_s)), math.nextafter(tick_s, 0.0))
+
+
+def check_tick(tick_s: float, where: str = "tick") -> float:
+    """``tick_s`` as a float if finite and >= 0, else :class:`DriveConfigError` naming ``where``."""
+    value = float(tick_s)
+    if not (math.isfinite(value) and value >= 0):
+        raise DriveConfigError(f"{where} must be a finite number of seconds >= 0, got {tick_s!r}")
+    return value
+
+
+def tick_from_url(url) -> float:
+    """The ``tick`` key [s] of a parsed ``sim://`` URL (default 0: no tick of its own)."""
+    if "tick" not in url.query:
+        return 0.0
+    return check_tick(url.get_float("tick"), f"sim tick={url.query['tick']!r}")
+
+
+class TimingRecord:
+    """Running statistics of a drive's timing, O(1) memory (see the module doc).
+
+    Parameters
+    ----------
+    tick_s, phase_s : float
+        The drive's tick [s] (0: none) and its phase [s].
+    """
+
+    def __init__(self, tick_s: float = 0.0, phase_s: float = 0.0) -> None:
+        self.tick_s = float(tick_s)
+        self.phase_s = float(phase_s)
+        self.commands = 0
+        self.reads = 0
+        self.repeated_reads = 0
+        self.skipped_ticks = 0
+        self._delay_sum = 0  # [ticks]
+        self._delay_min: int | None = None
+        self._delay_max: int | None = None
+        self._pending: int | None = None  # action tick of the command awaiting its read
+        self._last_read: int | None = None  # tick the previous read returned
+
+    def command(self, action_tick: int = 0) -> None:
+        """A command that takes force at tick ``action_tick`` (tick 0: at its arrival).
+
+        A later command before the next read replaces it (it never acts).
+        """
+        self._pending = int(action_tick)
+
+    def read(self, tick: int = 0, counted: bool = True) -> None:
+        """A read that returned the sample of tick ``tick`` (tick 0: of its own instant).
+
+        ``counted=False``: another read of a request already counted (a SYNC
+        that samples for its position loop and then for its TPDOs); it only
+        pairs a command that arrived since.
+        """
+        if counted:
+            self.reads += 1
+            if self.tick_s > 0:
+                if self._last_read is not None:
+                    gap = tick - self._last_read
+                    self.repeated_reads += gap == 0
+                    self.skipped_ticks += max(0, gap - 1)
+                self._last_read = tick
+        if self._pending is not None:
+            delay = self._pending - tick if self.tick_s > 0 else 0
+            self._pending = None
+            self.commands += 1
+            self._delay_sum += delay
+            self._delay_min = delay if self._delay_min is None else min(self._delay_min, delay)
+            self._delay_max = delay if self._delay_max is None else max(self._delay_max, delay)
+
+    def exchanges(self, n: int) -> None:
+        """``n`` lock-step exchanges at once (a block): ``n`` commands and reads, no delay."""
+        if n <= 0:
+            return
+        self._pending = None
+        self.commands += int(n)
+        self.reads += int(n)
+        self._delay_min = min(self._delay_min or 0, 0)
+        self._delay_max = max(self._delay_max or 0, 0)
+
+    def as_dict(self) -> dict[str, float | int]:
+        """``tick_s``, ``phase_s``, ``commands``, ``mean/min/max_delay_s``, ``reads``,
+        ``repeated_reads``, ``skipped_ticks`` (delays 0 before the first command)."""
+        n = self.commands
+        return {
+            "tick_s": self.tick_s,
+            "phase_s": self.phase_s,
+            "commands": n,
+            "mean_delay_s": self._delay_sum / n * self.tick_s if n else 0.0,
+            "min_delay_s": (self._delay_min or 0) * self.tick_s,
+            "max_delay_s": (self._delay_max or 0) * self.tick_s,
+            "reads": self.reads,
+            "repeated_reads": self.repeated_reads,
+            "skipped_ticks": self.skipped_ticks,
+        }
