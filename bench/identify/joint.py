@@ -422,8 +422,10 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
     steep &= np.abs(acc) > 0
     if np.count_nonzero(steep) < 4:
         return math.nan
-    # an interval's error is at most the two half-widths: sqrt(6) sigma_dt (uniform instants)
-    bound = math.sqrt(6.0) * pairs.sigma_dt[steep] if pairs.sigma_dt is not None else math.inf
+    # an interval's error is at most the two half-widths: sqrt(6) sigma_dt (uniform instants),
+    # and a drive that samples at its own last tick adds up to its tick (at most its delay)
+    bound = (math.sqrt(6.0) * pairs.sigma_dt[steep] + model.delay_s
+             if pairs.sigma_dt is not None else math.inf)  # fmt: skip
     interval_error = np.clip(e[steep] / acc[steep], -bound, bound)  # never past the brackets
     return float(np.sqrt(np.mean(interval_error**2)) / math.sqrt(2.0))
 

@@ -328,10 +328,13 @@ def perturbed_spread_pct(
             if s.t_unc is None:
                 segments.append(s)
                 continue
+            # a drive that samples at its own last tick widens each bracket by up to its tick,
+            # which its action delay bounds
+            reach = s.t_unc + estimate.model.delay_s
             if math.isfinite(scatter_s):
-                t = s.t + np.clip(rng.normal(0.0, scatter_s, len(s)), -s.t_unc, s.t_unc)
+                t = s.t + np.clip(rng.normal(0.0, scatter_s, len(s)), -reach, reach)
             else:
-                t = s.t + rng.uniform(-1.0, 1.0, len(s)) * s.t_unc
+                t = s.t + rng.uniform(-1.0, 1.0, len(s)) * reach
             dt = np.diff(t)
             if not np.all(dt > 0):  # overlapping intervals (not a runner's log): move less
                 t = s.t + 0.5 * rng.uniform(-1.0, 1.0, len(s)) * np.minimum(
