@@ -11,10 +11,12 @@ Layout::
 
 ``run`` is optional for a single run (run 1 is the u1 experiment, run 2 the
 u2 experiment); ``v`` or ``x`` may be missing, not both. ``t`` is in
-seconds, ``u`` in command units, ``v`` in velocity units/s, ``x`` in
-position units. Closed-loop logs (metadata ``loop = closed``) also carry
-``u_exc``, the excitation (``u`` is then the total command applied, the
-hold loop's included), and ``x_ref``, the position the hold loop holds.
+seconds and never decreases within a run (equal consecutive instants are a
+drive's repeated sample: two reads within one tick of its clock), ``u`` in
+command units, ``v`` in velocity units/s, ``x`` in position units.
+Closed-loop logs (metadata ``loop = closed``) also carry ``u_exc``, the
+excitation (``u`` is then the total command applied, the hold loop's
+included), and ``x_ref``, the position the hold loop holds.
 Metadata lines may also follow the data (the writer appends
 a trailer with the status and timing statistics; a later line wins). The
 writer opens every log with ``# status = running``, so a log whose writer
@@ -80,7 +82,7 @@ class RunData:
     run : int
         Run number (1 = u1 experiment, 2 = u2 experiment).
     t : ndarray
-        Sample times [s].
+        Sample times [s], never decreasing (equal: a drive's repeated sample).
     u : ndarray
         Applied command [command units], held over ``[t_k, t_k+1)``; in a
         closed-loop log the total command, the hold loop's included.
@@ -369,10 +371,26 @@ def _assemble(
             )
         )
     for r in runs:
-        if len(r) >= 2 and not np.all(np.diff(r.t) > 0):
-            raise LogFormatError(f"{source}: run {r.run}: time stamps t are not increasing")
+        _check_time(r, source)
     fs_hz = _sample_rate(metadata, runs, source)
     return ExperimentLog(tuple(runs), dict(metadata), fs_hz, complete, source)
+
+
+def _check_time(r: RunData, source: str) -> None:
+    """A run's ``t`` must not decrease, and must advance over the run: equal consecutive
+    instants are a drive's repeated sample (two reads within one tick of its clock)."""
+    if len(r) < 2:
+        return
+    steps = np.diff(r.t)
+    back = np.flatnonzero(steps < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise LogFormatError(
+            f"{source}: run {r.run}: time stamps t are not increasing: t decreases at the run's "
+            f"sample {i + 1} ({r.t[i - 1]:.10g} s, then {r.t[i]:.10g} s)"
+        )
+    if not r.t[-1] > r.t[0]:
+        raise LogFormatError(f"{source}: run {r.run}: time stamps t are not increasing (all equal)")
 
 
 def _run_rows(run_col: np.ndarray) -> list[tuple[int, slice | np.ndarray]]:
@@ -403,8 +421,9 @@ def _sample_rate(metadata: Mapping[str, str], runs: list[RunData], source: str) 
         raise LogFormatError(
             f"{source}: cannot infer the sample rate from one sample; add '# fs = <Hz>'"
         )
+    steps = np.diff(longest.t)
     with np.errstate(over="ignore", divide="ignore"):
-        fs = float(1.0 / np.median(np.diff(longest.t)))
+        fs = float(1.0 / np.median(steps[steps > 0]))  # a repeated sample is no step
     if not math.isfinite(fs):
         raise LogFormatError(
             f"{source}: time steps too small to infer a sample rate; add '# fs = <Hz>'"

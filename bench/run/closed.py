@@ -26,7 +26,11 @@ Real time (``pace = "real"``): as in open loop, the calling thread takes the
 OS's best footing (:func:`servobench.realtime.realtime_thread`, the ``rt_*``
 lines), rows go through the ring to a writer thread, each sample gets its
 best instant (``# clock_source``) and its uncertainty in the extra last
-column ``t_unc``, and the trailer carries the cycle's timing.
+column ``t_unc``, and the trailer carries the cycle's timing (and, on a
+drive clock, ``repeated_samples``, ``skipped_ticks``, ``drive_tick_s``). The
+feedback is checked as in open loop
+(:class:`~servobench.bench.run.feedback_check.FeedbackCheck`, with each
+sample's host time): a repeated drive stamp is logged as read.
 
 A guard stops the axis as soon as it leaves :data:`~servobench.bench.run.travel.MARGIN`
 of the room around the held position (an unstable loop, or an excitation
@@ -46,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.log.io import LogWriter
-from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
+from servobench.bench.run.feedback_check import FROZEN_CYCLES
 from servobench.bench.run.hold import HoldLoop
 from servobench.bench.run.ring_writer import RingLogWriter
 from servobench.bench.run.runner import (
@@ -277,7 +281,7 @@ class _Cycler:
             self.drive.hold_position(self.x_ref)
 
     def run(self, number: int, u_exc: np.ndarray, done: int, host: PeriodStats, clock: PeriodStats) -> None:
-        check = FeedbackCheck(self.checked.frozen_cycles, None, self.drive.drive_clock, self.checked.dt)
+        check = self.checked.feedback_check(self.drive, None)
         nominal = self.checked.pace == "fast" and not self.drive.drive_clock
         every = max(1, len(u_exc) // 200)
         cycle_clock = CycleClock(len(u_exc)) if self.realtime else None
@@ -288,7 +292,8 @@ class _Cycler:
         acted = 0.0
         for k, uk in enumerate(u_exc.tolist()):
             fb = self.cycle(uk)
-            check.check(fb.t_s, acted, fb.velocity, fb.position)  # acted: the cycle before's
+            # acted: the command of the cycle before; the host read the sample at bracket[1]
+            check.check(fb.t_s, acted, fb.velocity, fb.position, self.bracket[1])
             acted = self.sent
             t_abs, t_unc = self.instant(fb)
             t0_drive = t_abs if t0_drive is None else t0_drive
@@ -296,7 +301,7 @@ class _Cycler:
             t = k * self.checked.dt if nominal else t_abs - t0_drive
             if cycle_clock is not None:
                 start, end = self.bracket
-                cycle_clock.mark(k, self.t0 + (self.k - 1) * self.checked.dt, start, end, t_unc)
+                cycle_clock.mark(k, self.t0 + (self.k - 1) * self.checked.dt, start, end, t_unc, fb.t_s)
             self.pending = _Row(number, t, fb.velocity, fb.position, t_host, uk, self.x_ref, acted, t_unc)
             self._guard(fb)
             host.add(t_host)

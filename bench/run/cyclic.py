@@ -7,9 +7,14 @@ the transport times the cycle itself; one exchange; the host clock just
 before the request and just after the answer; the sample's best instant and
 its uncertainty (the drive's time stamp with 0, else the transport's
 narrowed interval, else the exchange's bracket, midpoint and half-width);
-the row handed to the log ring, the instants to the run's
-:class:`~servobench.bench.run.timing_stats.CycleClock`. Nothing in it
-formats, writes a file or allocates beyond the row itself.
+the row handed to the log ring, the instants (and the drive's time stamp)
+to the run's :class:`~servobench.bench.run.timing_stats.CycleClock`. Nothing
+in it formats, writes a file or allocates beyond the row itself.
+
+A drive's stamp equal to the one before (two reads within one tick of the
+drive) is logged as read, with its equal ``t``; the run's
+:class:`~servobench.bench.run.feedback_check.FeedbackCheck` gets each
+sample's host time, to tell such a repeat from a drive clock standing still.
 """
 
 from __future__ import annotations
@@ -97,14 +102,14 @@ def stream_realtime(
         fb, applied = drive.exchange(u[k])
         end = monotonic()
         t_abs, t_unc = sample_instant(fb, start, end, by_drive)
-        check(fb.t_s, acted, fb.velocity, fb.position)
+        check(fb.t_s, acted, fb.velocity, fb.position, end)
         acted = applied
         if k == 0:
             t_first = t_abs
         t = t_abs - t_first
         t_host = end - t0_host
         append(run.number, t, applied, fb.velocity, fb.position, t_host, t_unc)
-        mark(k, start if paced_by_drive else deadline, start, end, t_unc)
+        mark(k, start if paced_by_drive else deadline, start, end, t_unc, fb.t_s)
         run.host.add(t_host)
         run.clock.add(t)
         if k % every == 0:

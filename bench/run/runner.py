@@ -15,12 +15,16 @@ Pacing: with ``pace="real"`` the host holds a fixed-rate schedule
 simulated drives and batch work).
 
 Checks on every sample, before it is logged: feedback must be finite, a
-drive clock must advance, and the feedback must not be frozen -- position
+drive clock must not go back nor stand still for longer than the watchdog
+the drive URL sets (else :data:`~servobench.bench.run.feedback_check.STAMP_STILL_S`)
+of host time, and the feedback must not be frozen -- position
 and velocity bit-identical for ``frozen_cycles`` cycles while the drive
 reports motion that should have moved the position by now, or while the
 command stays at or above ``breakaway`` when the caller knows it (see
 :class:`FeedbackCheck`). Any of them ends the run with
-:class:`~servobench.errors.DriveError`.
+:class:`~servobench.errors.DriveError`. A drive's time stamp equal to the
+one before is a repeated sample (two reads within one tick of the drive):
+logged as read, with its equal ``t``.
 
 Real time (``pace="real"``): the calling thread becomes the cyclic thread
 and takes the best footing the OS grants (:func:`servobench.realtime.realtime_thread`:
@@ -40,7 +44,11 @@ itself (:meth:`~servobench.drivers.base.Drive.start_cycle_clock`, the SYNC of
 the kernel's broadcast manager on SocketCAN) the host holds no schedule.
 The trailer carries the cycle's timing (:class:`~servobench.bench.run.timing_stats.CycleTiming`:
 ``host_jitter_p50_s``, ``host_jitter_p99_s``, ``host_jitter_max_s``,
-``missed_cycles``, ``late_cycles``, ``t_unc_p50_s`` ... overall and per run).
+``missed_cycles``, ``late_cycles``, ``t_unc_p50_s`` ... overall and per run)
+and, in a log whose ``clock_source`` is ``drive``, the drive's tick read from
+its stamps (:class:`~servobench.bench.run.timing_stats.DriveTicks`:
+``repeated_samples``, ``skipped_ticks``, ``drive_tick_s`` when the stamps show
+a tick, and ``run<n>_repeated_samples``, ``run<n>_skipped_ticks``).
 
 Lock-step drives streamed fast (``pace="fast"``) keep the exact nominal or
 drive clock, block exchange and no ``t_unc`` column, as fast as before.
@@ -67,9 +75,15 @@ from servobench.bench.log.identity import run_identity
 from servobench.bench.log.io import LogWriter
 from servobench.bench.run.cyclic import Run as _Run
 from servobench.bench.run.cyclic import stream_realtime as _stream_realtime
-from servobench.bench.run.feedback_check import FROZEN_CYCLES, FeedbackCheck
+from servobench.bench.run.feedback_check import FROZEN_CYCLES, STAMP_STILL_S, FeedbackCheck
 from servobench.bench.run.ring_writer import RingLogWriter
-from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodStats, TimingStats
+from servobench.bench.run.timing_stats import (
+    CycleClock,
+    CycleTiming,
+    DriveTicks,
+    PeriodStats,
+    TimingStats,
+)
 from servobench.clock import sleep_until
 from servobench.drivers.base import Drive
 from servobench.errors import DriveError, LimitExceededError, UsageError, add_note
@@ -264,6 +278,7 @@ class _Plan:
     frozen_cycles: int
     breakaway: float | None
     total: int  # samples of all runs
+    still_s: float = STAMP_STILL_S  # host time a drive clock's stamp may stand still [s]
 
     @classmethod
     def make(cls, drive, runs, fs_hz, pace, settle_s, progress, frozen_cycles, breakaway) -> _Plan:
@@ -275,7 +290,20 @@ class _Plan:
         if pace not in ("real", "fast"):
             raise UsageError(f"pace must be 'real' or 'fast', got {pace!r}")
         total = int(sum(len(u) for _, u in runs))
-        return cls(1.0 / fs_hz, pace, settle_s, progress, frozen_cycles, breakaway, total)
+        still = stamp_still_s(drive)
+        return cls(1.0 / fs_hz, pace, settle_s, progress, frozen_cycles, breakaway, total, still)
+
+    def feedback_check(self, drive: Drive, breakaway: float | None) -> FeedbackCheck:
+        """A run's :class:`FeedbackCheck` on this session's terms."""
+        return FeedbackCheck(self.frozen_cycles, breakaway, drive.drive_clock, self.dt, self.still_s)
+
+
+def stamp_still_s(drive: Drive) -> float:
+    """Host time the drive's time stamp may stand still while enabled [s]: the watchdog its URL
+    sets, else :data:`~servobench.bench.run.feedback_check.STAMP_STILL_S` (the default watchdog
+    of the Drive layer, half a second, is not taken: it would leave half a second of stale
+    feedback unseen)."""
+    return getattr(drive, "watchdog_s", STAMP_STILL_S) if "watchdog" in drive.url.query else STAMP_STILL_S
 
 
 def _stream_all(
@@ -297,7 +325,7 @@ def _stream_all(
             u = np.asarray(u, dtype=float)
             if index:
                 _settle(drive, plan.dt, plan.settle_s, "fast" if paced_by_drive else plan.pace)
-            check = FeedbackCheck(plan.frozen_cycles, plan.breakaway, drive.drive_clock, plan.dt)
+            check = plan.feedback_check(drive, plan.breakaway)
             run = _Run(number, writer, check, plan.progress, done, plan.total)
             try:
                 if plan.pace == "fast" and drive.supports_block:
@@ -342,6 +370,11 @@ def _trailer(
         extra.update(CycleTiming.of(clocks, dt).as_metadata())
         for name, count in drive.cycle_counts().items():
             extra[name] = count
+        if drive.clock_source() == "drive":
+            stamps = [(s.run, c.stamp[: c.count]) for s, c in zip(timing, clocks, strict=False)]
+            ticks = DriveTicks.of(stamps)
+            if ticks is not None:
+                extra.update(ticks.as_metadata())
     achieved = achieved_rate_hz(timing)
     if math.isfinite(achieved):
         extra["fs_achieved"] = round(achieved, 4)
@@ -366,7 +399,7 @@ def _stream_samples(drive: Drive, u: np.ndarray, dt: float, pace: str, run: _Run
             sleep_until(t0_host + k * dt)
         fb, applied = drive.exchange(u[k])
         now = time.monotonic()
-        run.check.check(fb.t_s, acted, fb.velocity, fb.position)
+        run.check.check(fb.t_s, acted, fb.velocity, fb.position, now)
         acted = applied
         if t0_drive is None:
             t0_drive = fb.t_s
@@ -398,19 +431,20 @@ def _stream_blocks(drive: Drive, u: np.ndarray, run: _Run) -> None:
             t0_drive = float(block.t_s[0])
         td = block.t_s - t0_drive
         prev_u = np.concatenate(([last_u], block.applied[:-1]))
-        good = run.check.first_failure(block.t_s, prev_u, block.velocity, block.position)
+        t_host = np.full(len(td), now)
+        good = run.check.first_failure(block.t_s, prev_u, block.velocity, block.position, t_host)
         if (
             good < len(td)
         ):  # an earlier failed feedback check wins over a later limit breach  # log the good head, then fail with the check's message
             try:
                 run.check.check(
                     float(block.t_s[good]), float(prev_u[good]),
-                    float(block.velocity[good]), float(block.position[good]),
+                    float(block.velocity[good]), float(block.position[good]), now,
                 )  # fmt: skip
                 failure = DriveError(f"feedback check failed at sample {start + good}")
             except DriveError as err:
                 failure = err
-        th = np.full(good, now)
+        th = t_host[:good]
         run.writer.append_block(
             np.full(good, run.number), td[:good], block.applied[:good], block.velocity[:good],
             block.position[:good], th,

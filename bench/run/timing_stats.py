@@ -1,11 +1,23 @@
-"""Achieved timing of a streamed run: periods of the host and drive clocks, streamed.
+"""Achieved timing of a streamed run: periods of the host and drive clocks, and the drive's tick.
 
-Memory is O(1) in the run length (Welford / Chan updates of the moments).
+Memory is O(1) in the run length (Welford / Chan updates of the moments);
+:class:`CycleClock` holds a real-time run's per-cycle instants in arrays
+allocated before the run.
+
+A drive samples on its own control tick ``T``, asynchronous to the host: a
+read returns the state latched at its last tick, stamped with that tick's
+instant (CiA 402 0x1013, a Modbus time-stamp register, EtherCAT DC time). Two
+reads within one tick return the same stamp (a *repeated* sample), and a tick
+may pass unread (a *skipped* tick: the stamp jumps by ``n T``, ``n - 1``
+skipped). :func:`estimate_tick_s` reads ``T`` from the stamps and
+:class:`DriveTicks` counts both per run, for the log's trailer
+(``repeated_samples``, ``skipped_ticks``, ``drive_tick_s``: a log contract).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,7 +109,9 @@ class CycleClock:
 
     For cycle ``k``: its deadline, the host clock just before the request went
     out (``start``) and just after the answer came in (``end``) [s, on
-    ``time.monotonic``]. :meth:`mark` stores one cycle and allocates nothing.
+    ``time.monotonic``], and the drive's time stamp of the sample (``stamp``
+    [s, drive clock], NaN when not given). :meth:`mark` stores one cycle and
+    allocates nothing.
     """
 
     def __init__(self, cycles: int) -> None:
@@ -105,13 +119,17 @@ class CycleClock:
         self.start = np.zeros(cycles)
         self.end = np.zeros(cycles)
         self.t_unc = np.zeros(cycles)
+        self.stamp = np.full(cycles, math.nan)
         self.count = 0
 
-    def mark(self, k: int, deadline: float, start: float, end: float, t_unc: float) -> None:
+    def mark(
+        self, k: int, deadline: float, start: float, end: float, t_unc: float, stamp_s: float = math.nan
+    ) -> None:
         self.deadline[k] = deadline
         self.start[k] = start
         self.end[k] = end
         self.t_unc[k] = t_unc
+        self.stamp[k] = stamp_s
         self.count = k + 1
 
 
@@ -180,3 +198,149 @@ class CycleTiming:
             p + "t_unc_p99_s": self.t_unc_p99_s,
             p + "t_unc_max_s": self.t_unc_max_s,
         }
+
+
+#: Fewest positive stamp steps that can show a drive's tick.
+MIN_TICK_STEPS = 4
+#: Sub-multiples ``s / k`` of the smallest stamp step ``s`` tried as the tick, ``k`` up to this
+#: (a host that never read two neighbouring ticks sees only multiples of the tick).
+MAX_TICK_DIVISOR = 16
+#: The finest stamp resolution considered [s] (EtherCAT DC time counts nanoseconds).
+STAMP_FLOOR_S = 1e-9
+
+
+def stamp_resolution_s(steps_s: np.ndarray) -> float:
+    """The stamps' resolution [s]: the greatest common divisor of positive steps, in whole
+    nanoseconds (1 ns for stamps on no coarser grid, e.g. floats of a continuous clock)."""
+    ns = np.round(np.asarray(steps_s, dtype=float) / STAMP_FLOOR_S)
+    ns = ns[(ns > 0) & (ns < 2.0**62)].astype(np.int64)
+    return max(1, int(np.gcd.reduce(ns))) * STAMP_FLOOR_S if ns.size else STAMP_FLOOR_S
+
+
+def _fit_tick_s(steps_s: np.ndarray, guess_s: float) -> float:
+    """Least squares ``steps ~ m T`` with ``m`` the steps rounded to multiples of the tick:
+    first on the short steps (``m`` surely right), then on all, rounded again."""
+    short = steps_s[steps_s <= 4.0 * steps_s.min()]
+    m = np.round(short / guess_s)
+    tick = float(np.dot(m, short) / np.dot(m, m))
+    for _ in range(2):
+        m = np.round(steps_s / tick)
+        if np.any(m < 1):
+            return math.nan
+        tick = float(np.dot(m, steps_s) / np.dot(m, m))
+    return tick
+
+
+def estimate_tick_s(steps_s: np.ndarray, magnitude_s: float = 0.0) -> float:
+    """The drive's tick [s] from the steps between consecutive time stamps; NaN when none shows.
+
+    Every positive step must be a whole multiple of one tick within the stamps'
+    resolution (:func:`stamp_resolution_s`, capped at a quarter tick) and the
+    float rounding of stamps of size ``magnitude_s`` [s]. The tick tried
+    first is the smallest positive step, then its sub-multiples up to
+    :data:`MAX_TICK_DIVISOR`; each is refined by least squares on all positive
+    steps over their rounded multiples (:func:`_fit_tick_s`). A drive that
+    stamps at the request instant (steps of the host's jitter, not whole ticks)
+    gives NaN. Zero, negative and non-finite steps are left out. The tick
+    read is the coarsest grid the steps show: a host that reads every ``n``-th
+    tick, never one more or one less, sees a tick ``n`` times the drive's.
+
+    Parameters
+    ----------
+    steps_s : ndarray
+        Differences of consecutive stamps of one clock [s].
+    magnitude_s : float
+        Largest ``|stamp|`` [s], for the rounding error of the differences.
+
+    Returns
+    -------
+    float
+        The tick [s], or NaN.
+    """
+    d = np.asarray(steps_s, dtype=float)
+    d = d[np.isfinite(d) & (d > 0)]
+    if d.size < MIN_TICK_STEPS:
+        return math.nan
+    rounding = 4.0 * float(np.spacing(max(abs(magnitude_s), float(d.max()))))
+    resolution = stamp_resolution_s(d)
+    smallest = float(d.min())
+    for k in range(1, MAX_TICK_DIVISOR + 1):
+        tick = _fit_tick_s(d, smallest / k)
+        if not tick > 0:
+            continue
+        tolerance = min(1.05 * resolution, 0.25 * tick) + rounding
+        if float(np.max(np.abs(d - np.round(d / tick) * tick))) <= tolerance:
+            return tick
+    return math.nan
+
+
+@dataclass(frozen=True)
+class StampCounts:
+    """One run's drive time stamps: rows, repeated samples, skipped ticks."""
+
+    run: int
+    rows: int
+    repeated_samples: int  #: rows whose stamp equals the row before's
+    skipped_ticks: int  #: ticks unread between consecutive distinct stamps (0 without a tick)
+
+
+@dataclass(frozen=True)
+class DriveTicks:
+    """The drive's tick read from the stamps of all runs, and the counts of each run.
+
+    Attributes
+    ----------
+    tick_s : float
+        The drive's tick [s] (:func:`estimate_tick_s` on the steps of every run;
+        steps across runs are left out), NaN when the stamps show no grid.
+    runs : tuple of StampCounts
+        Per run; skipped ticks counted with ``tick_s`` (none without it).
+    """
+
+    tick_s: float
+    runs: tuple[StampCounts, ...]
+
+    @classmethod
+    def of(cls, stamps: Sequence[tuple[int, np.ndarray]]) -> DriveTicks | None:
+        """From ``(run, stamps [s])`` pairs; NaN stamps (none given) are left out. None when no
+        run has a stamp."""
+        runs = []
+        for run, given in stamps:
+            s = np.asarray(given, dtype=float)
+            if np.isfinite(s).any():
+                runs.append((run, s[np.isfinite(s)]))
+        if not runs:
+            return None
+        steps = [np.diff(s) for _, s in runs]
+        magnitude = max(float(np.max(np.abs(s))) for _, s in runs)
+        tick = estimate_tick_s(np.concatenate(steps), magnitude)
+        counts = []
+        for (run, s), d in zip(runs, steps, strict=True):
+            skipped = 0
+            if math.isfinite(tick):
+                m = np.round(d[d > 0] / tick)
+                skipped = int(np.sum(m - 1))
+            counts.append(StampCounts(run, int(s.size), int(np.count_nonzero(d == 0)), skipped))
+        return cls(tick, tuple(counts))
+
+    @property
+    def repeated_samples(self) -> int:
+        return sum(c.repeated_samples for c in self.runs)
+
+    @property
+    def skipped_ticks(self) -> int:
+        return sum(c.skipped_ticks for c in self.runs)
+
+    def as_metadata(self, per_run: bool = True) -> dict[str, object]:
+        """``repeated_samples``, ``skipped_ticks`` and ``drive_tick_s`` (only when the stamps
+        show a tick) over all runs, and ``run<n>_repeated_samples``, ``run<n>_skipped_ticks``."""
+        out: dict[str, object] = {}
+        if per_run:
+            for c in self.runs:
+                out[f"run{c.run}_repeated_samples"] = c.repeated_samples
+                out[f"run{c.run}_skipped_ticks"] = c.skipped_ticks
+        out["repeated_samples"] = self.repeated_samples
+        out["skipped_ticks"] = self.skipped_ticks
+        if math.isfinite(self.tick_s):
+            out["drive_tick_s"] = self.tick_s
+        return out
