@@ -31,6 +31,8 @@ def test_sidbe_as_published_at_60():
     assert_allclose([r.model.coulomb_pos, r.model.coulomb_neg], [0.5, 0.4], rtol=0.05)
     assert r.fit_percent > 99.0
     assert r.frf is not None and r.frf.periods_averaged == 3
+    # no action delay in the plant: what friction leaves in the phase is far below a sample
+    assert 0.0 <= r.model.delay_s < 1e-3 / 1000.0 and "delay_s" in r.std
 
 
 def test_sidbe_is_biased_at_the_friction_level_and_joint_is_not():
@@ -72,6 +74,7 @@ def test_resonance_fit_recovers_the_series_mode():
     assert_allclose(
         [fit.M, fit.B, fit.wn_rad_s, fit.zeta], [0.1, 1.0, 2 * math.pi * 25.0, 0.08], rtol=1e-4
     )
+    assert fit.delay_s == 0.0 and fit.delay_separable
 
 
 def test_sidbe_needs_the_pair_and_the_design():
@@ -91,6 +94,7 @@ def test_position_only_sidbe_fits_the_position_frf_exactly():
     )
     r = identify(log, "sidbe")
     assert_allclose([r.model.M, r.model.B], [0.1, 1.0], rtol=1e-6)
+    assert r.model.delay_s == 0.0  # delay-free data: the fitted delay ends on its bound
     expected = model_frf(r.model, r.frf.f_hz, r.frf.dt_s)
     assert_allclose(r.frf.G, expected, rtol=1e-5)  # the plotted FRF is velocity over command
 

@@ -12,6 +12,22 @@ block ``1/(M s + B)`` (optionally times the series resonance
 zero-order-hold sampled response: feedback ``v[k]`` is sampled before
 ``u[k]`` acts, so the first-order block is ``b / (z - a)`` with
 ``a = exp(-B dt/M)`` and ``b = (1 - a)/B``. Frequencies in Hz.
+
+The drive's action delay ``d = (m + f) dt`` (``0 <= f < 1``; ``u[k]`` acts
+over ``[t_k + d, t_{k+1} + d)``, :attr:`~servobench.bench.model.servo.ServoModel.delay_s`)
+is fitted with them, as the phase term. Over ``[t_k, t_{k+1})`` the command
+``u[k-m-1]`` acts for ``f dt``, then ``u[k-m]``, so the sampled block is::
+
+    V/U = z^-m (c0 z + c1) / (z (z - a)),
+    c0 = (1 - a^(1-f))/B,  c1 = (a^(1-f) - a)/B       (c0 + c1 = b)
+
+-- exact, continuous in ``d``, with a kink in its slope at whole samples
+(:func:`zoh_first_order`; position: :func:`zoh_position`; with the resonance
+the same two-piece hold in state space).
+
+Each line's noise variance comes from the spread of the steady periods
+(``FrequencyResponse.var_G``); the fit's standard deviations use it, since
+the relative misfit does not weight the lines by their noise.
 """
 
 from __future__ import annotations
@@ -41,6 +57,9 @@ class FrequencyResponse:
     dt_s : float
         Sample interval [s] (the FRF is that of the sampled system).
     periods_averaged : int
+    var_G : ndarray or None
+        Noise variance of ``G`` at each line (``E|dG|^2``), from the spread of the
+        steady-state periods of each run; None with fewer than two of them.
     """
 
     f_hz: np.ndarray
@@ -51,6 +70,7 @@ class FrequencyResponse:
     V2: np.ndarray
     dt_s: float
     periods_averaged: int
+    var_G: np.ndarray | None = None
 
 
 def steady_average(
@@ -108,49 +128,174 @@ def differential_frf(
     if np.any(np.abs(dU) <= 1e-12 * np.max(np.abs(U1))):
         raise IdentificationError("u1 and u2 do not differ at the excited lines; is ratio < 1?")
     periods = len(u1) // n - first
+    G = (V1 - V2) / dU
+    var_num = _frf_variance(G, (u1, v1), (u2, v2), n, lines, first)
+    var_G = None if var_num is None else var_num / np.abs(dU) ** 2
     return FrequencyResponse(
-        lines * design.fs_hz / n, (V1 - V2) / dU, U1, U2, V1, V2, 1.0 / design.fs_hz, periods
+        lines * design.fs_hz / n, G, U1, U2, V1, V2, 1.0 / design.fs_hz, periods, var_G
     )
 
 
-def zoh_first_order(M: float, B: float, z: np.ndarray, dt_s: float) -> np.ndarray:
-    """``b / (z - a)``: the ZOH-sampled ``1/(M s + B)`` at points ``z``."""
+def _frf_variance(
+    G: np.ndarray,
+    run1: tuple[np.ndarray, np.ndarray],
+    run2: tuple[np.ndarray, np.ndarray],
+    n: int,
+    lines: np.ndarray,
+    first: int,
+) -> np.ndarray | None:
+    """Noise variance of the averaged ``V1 - V2 - G (U1 - U2)`` at the lines (None: too few periods).
+
+    Per run, ``e_p = V_p - G U_p`` over its steady periods ``p``: its sample
+    variance over the periods, divided by their number, is the variance of the
+    run's share of the averaged numerator (noise on ``u`` included, to first order).
+    """
+    total = np.zeros(lines.size)
+    for u, y in (run1, run2):
+        count = min(len(u), len(y)) // n - first
+        if count < 2:
+            return None
+        span = slice(first * n, (first + count) * n)
+        per = [np.fft.rfft(np.asarray(w[span], dtype=float).reshape(count, n), axis=1)[:, lines] / n
+               for w in (u, y)]  # fmt: skip
+        e = per[1] - G * per[0]
+        total += np.sum(np.abs(e - e.mean(axis=0)) ** 2, axis=0) / (count - 1) / count
+    return total
+
+
+def split_delay(delay_samples: float) -> tuple[int, float]:
+    """``(m, f)``: the whole samples and the fraction ``0 <= f < 1`` of a delay in samples."""
+    m = int(math.floor(delay_samples))
+    return m, float(delay_samples - m)
+
+
+def zoh_first_order(
+    M: float, B: float, z: np.ndarray, dt_s: float, delay_s: float = 0.0
+) -> np.ndarray:
+    """The ZOH-sampled ``1/(M s + B)`` at points ``z``: ``b / (z - a)``, and with the
+    action delay ``delay_s`` [s] ``z^-m (c0 z + c1) / (z (z - a))`` (module docstring)."""
     a = math.exp(-B * dt_s / M)
-    return (1.0 - a) / B / (z - a)
+    if delay_s <= 0:
+        return (1.0 - a) / B / (z - a)
+    m, f = split_delay(delay_s / dt_s)
+    rate = B * dt_s / M
+    af = math.exp(-rate * (1.0 - f))
+    c0 = -math.expm1(-rate * (1.0 - f)) / B  # (1 - a^(1-f))/B without cancellation
+    c1 = -af * math.expm1(-rate * f) / B  # (a^(1-f) - a)/B
+    return z ** (-m) * (c0 * z + c1) / (z * (z - a))
+
+
+def zoh_position(
+    M: float, B: float, z: np.ndarray, dt_s: float, delay_s: float = 0.0
+) -> np.ndarray:
+    """``X(z)/U(z)`` [position units per command unit] of the ZOH-sampled ``1/(s (M s + B))``.
+
+    ``1/(s (M s + B)) = (1/B)/s - tau/(M s + B)`` (``tau = M/B``); under the
+    delayed hold the integrator's part is ``z^-m dt ((1-f) z + f) / (B z (z - 1))``
+    and the first-order part ``tau`` times :func:`zoh_first_order`.
+    """
+    if delay_s <= 0:
+        return zoh_first_order(M, B, z, dt_s) * position_over_velocity(M, B, z, dt_s)
+    m, f = split_delay(delay_s / dt_s)
+    integrator = z ** (-m) * dt_s * ((1.0 - f) * z + f) / (B * z * (z - 1.0))
+    return integrator - M / B * zoh_first_order(M, B, z, dt_s, delay_s)
 
 
 def model_frf(model, f_hz: np.ndarray, dt_s: float | None = None) -> np.ndarray:
     """Linear-block response of a :class:`~servobench.bench.model.servo.ServoModel` at ``f_hz`` [Hz].
 
-    Continuous ``1/(M s + B)`` (times the resonance) without ``dt_s``; the
-    exact ZOH-sampled response (feedback before command) with it.
+    Continuous ``exp(-s delay_s)/(M s + B)`` (times the resonance) without
+    ``dt_s``; the exact ZOH-sampled response (feedback before command, the
+    command acting ``model.delay_s`` after its instant) with it.
     """
     f_hz = np.asarray(f_hz, dtype=float)
+    delay_s = model.delay_s
     if dt_s is None:
         s = 2j * np.pi * f_hz
-        g = 1.0 / (model.M * s + model.B)
+        g = np.exp(-s * delay_s) / (model.M * s + model.B)
         return g if model.resonance is None else g * model.resonance.response(s)
     z = np.exp(2j * np.pi * f_hz * dt_s)
     if model.resonance is None:
-        return zoh_first_order(model.M, model.B, z, dt_s)
+        return zoh_first_order(model.M, model.B, z, dt_s, delay_s)
     r = model.resonance
-    return _zoh_third_order(model.M, model.B, r.wn_rad_s, r.zeta, z, dt_s)
+    return _zoh_third_order(model.M, model.B, r.wn_rad_s, r.zeta, z, dt_s, delay_s)
 
 
 def _zoh_third_order(
-    M: float, B: float, wn: float, zeta: float, z: np.ndarray, dt_s: float
+    M: float, B: float, wn: float, zeta: float, z: np.ndarray, dt_s: float, delay_s: float = 0.0
 ) -> np.ndarray:
     from scipy import signal
 
+    if delay_s > 0:
+        # states v, y, y'/wn (output y: the mode's response to v), all of one scale
+        A = np.array([[-B / M, 0.0, 0.0], [0.0, 0.0, wn], [wn, -wn, -2.0 * zeta * wn]])
+        Bi = np.array([[1.0 / M], [0.0], [0.0]])
+        return _delayed_hold(A, Bi, np.array([[0.0, 1.0, 0.0]]), z, dt_s, delay_s)
     num = [wn**2]
     den = np.polymul([M, B], [1.0, 2 * zeta * wn, wn**2])
     bd, ad, _ = signal.cont2discrete((num, den), dt_s, method="zoh")
     return np.polyval(np.ravel(bd), z) / np.polyval(ad, z)
 
 
+def _delayed_hold(
+    A: np.ndarray, Bi: np.ndarray, C: np.ndarray, z: np.ndarray, dt_s: float, delay_s: float
+) -> np.ndarray:
+    """``z^-m C (z I - Phi)^-1 (G0 + G1 / z)``: a strictly proper state-space block
+    ``(A, Bi, C)`` under the hold delayed by ``(m + f) dt``, where ``u[k-m-1]`` acts for
+    ``f dt`` (``G1``), then ``u[k-m]`` for ``(1 - f) dt`` (``G0``)."""
+    from scipy.linalg import expm
+
+    n = A.shape[0]
+    m, f = split_delay(delay_s / dt_s)
+
+    def hold(h: float) -> tuple[np.ndarray, np.ndarray]:
+        aug = np.zeros((n + 1, n + 1))
+        aug[:n, :n], aug[:n, n:] = A * h, Bi * h
+        e = expm(aug)
+        return e[:n, :n], e[:n, n:]
+
+    phi = expm(A * dt_s)
+    late, g0 = hold((1.0 - f) * dt_s)
+    g1 = late @ hold(f * dt_s)[1]
+    zz = z[:, None, None]
+    x = np.linalg.solve(zz * np.eye(n) - phi, g0[None] + g1[None] / zz)
+    return z ** (-m) * (C @ x)[:, 0, 0]
+
+
+#: Largest action delay the fit considers [samples]: the scan's range and the fit's bound.
+MAX_DELAY_SAMPLES = 8.0
+#: Step of the delay scan that starts the fit [samples] (well inside a phase wrap at Nyquist).
+DELAY_SCAN_STEP = 0.25
+#: A fitted delay below this [samples] is the bound: the delay-free fit stands.
+DELAY_ZERO = 1e-6
+#: Largest |correlation| of the delay with another parameter for the delay to be separable.
+DELAY_CORRELATION_LIMIT = 0.99
+
+
 @dataclass(frozen=True)
 class LinearFit:
-    """Fitted linear block: ``M``, ``B``, optional resonance ``(wn [rad/s], zeta)``, 1-sigma stds, rms relative misfit."""
+    """Fitted linear block, 1-sigma stds, rms relative misfit.
+
+    Attributes
+    ----------
+    M, B : float
+    wn_rad_s, zeta : float or None
+        Series resonance [rad/s], damping; None without one.
+    std_M, std_B : float
+    misfit : float
+    resonance_at_bound : bool
+        The mode ended on a bound of its search range.
+    delay_s : float
+        Action delay [s] (0 when it ended on its bound 0, or was not fitted).
+    std_delay_s : float
+        Its 1-sigma [s]; nan when it was not fitted.
+    delay_correlation : float
+        Largest |correlation| of the delay with another parameter (nan: not fitted).
+    delay_separable : bool
+        False when the excited band cannot tell the delay from the plant: its
+        correlation exceeds :data:`DELAY_CORRELATION_LIMIT`, its sigma exceeds
+        one sample, or it ended on :data:`MAX_DELAY_SAMPLES`.
+    """
 
     M: float
     B: float
@@ -160,27 +305,46 @@ class LinearFit:
     std_B: float
     misfit: float
     resonance_at_bound: bool = False
+    delay_s: float = 0.0
+    std_delay_s: float = math.nan
+    delay_correlation: float = math.nan
+    delay_separable: bool = True
 
 
-def position_over_velocity(M: float, B: float, z: np.ndarray, dt_s: float) -> np.ndarray:
+def position_over_velocity(
+    M: float, B: float, z: np.ndarray, dt_s: float, delay_s: float = 0.0
+) -> np.ndarray:
     """``X(z)/V(z)`` [s] of the ZOH-sampled first-order plant (position is the integral of velocity).
 
-    From ``X/U = (1/B) (dt/(z-1) - tau (1-a)/(z-a))`` and ``V/U = (1-a)/(B (z-a))``.
+    From ``X/U = (1/B) (dt/(z-1) - tau (1-a)/(z-a))`` and ``V/U = (1-a)/(B (z-a))``;
+    with an action delay ``delay_s`` [s], :func:`zoh_position` over :func:`zoh_first_order`.
     """
+    if delay_s > 0:
+        return zoh_position(M, B, z, dt_s, delay_s) / zoh_first_order(M, B, z, dt_s, delay_s)
     tau = M / B
     a = math.exp(-dt_s / tau)
     return dt_s * (z - a) / ((z - 1.0) * (1.0 - a)) - tau
 
 
 def fit_linear_block(
-    frf: FrequencyResponse, resonance: bool = False, of_position: bool = False
+    frf: FrequencyResponse,
+    resonance: bool = False,
+    of_position: bool = False,
+    delay: bool = True,
 ) -> LinearFit:
-    """Fit ``1/(M s + B)`` (and a resonance) to the FRF, as its exact ZOH-sampled response.
+    """Fit ``1/(M s + B)`` (and a resonance, and the action delay) to the FRF, as its
+    exact ZOH-sampled response.
 
     A linear least-squares fit of ``G (z - a) = b`` starts a nonlinear fit of
     the relative error ``(G_model - G) / |G|`` over ``log M, log B`` (and
-    ``log wn, log zeta``). With ``of_position`` the FRF is position over
-    command, and the model's ``X(z)/U(z)`` is fitted.
+    ``log wn, log zeta``): the delay-free fit. With ``delay`` the delay ``q``
+    [samples] is then scanned over ``0 .. MAX_DELAY_SAMPLES`` in steps of
+    :data:`DELAY_SCAN_STEP` (``log M, log B`` refitted at each, the mode held),
+    and from the best point all parameters and ``q`` in ``[0, MAX_DELAY_SAMPLES]``
+    are fitted jointly (trust-region reflective). A delay ending within
+    :data:`DELAY_ZERO` of 0 leaves the delay-free fit unchanged. With
+    ``of_position`` the FRF is position over command, and the model's
+    ``X(z)/U(z)`` is fitted.
     """
     from scipy.optimize import least_squares
 
@@ -198,9 +362,46 @@ def fit_linear_block(
             sol, bounds = _fit_with_resonance(frf.f_hz, G_start, z, dt, (M0, B0), args)
         else:
             sol, bounds = least_squares(_relative_misfit, p0, method="lm", args=args), None
-    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as err:
+        x = np.append(sol.x, 0.0)
+        if delay:
+            joint = _fit_delay(sol.x, args, bounds)
+            if joint.x[-1] >= DELAY_ZERO and joint.cost < sol.cost:
+                x = joint.x
+    except (ValueError, np.linalg.LinAlgError, ArithmeticError) as err:
         raise IdentificationError(f"the FRF fit failed: {err}") from None
-    return _linear_fit(sol, frf.G.size, bounds)
+    return _linear_fit(x, args, bounds, delay, frf.var_G)
+
+
+def _fit_delay(p_free: np.ndarray, args: tuple, bounds: tuple | None) -> Any:
+    """The joint fit of ``p = (log M, log B[, log wn, log zeta], q)``, ``q`` the delay
+    [samples], started at the best point of a scan over ``q`` from the delay-free ``p_free``."""
+    from scipy.optimize import least_squares
+
+    def at(q: float):
+        def fun(mb: np.ndarray) -> np.ndarray:
+            return _relative_misfit(np.concatenate((mb, p_free[2:], [q])), *args)
+
+        return fun
+
+    best_q, best_cost, best_p = 0.0, math.inf, p_free
+    mb = p_free[:2]
+    for q in np.arange(0.0, MAX_DELAY_SAMPLES + 1e-9, DELAY_SCAN_STEP):
+        try:
+            local = least_squares(at(float(q)), mb, method="lm")
+        except (ValueError, ArithmeticError):  # this delay drove M or B out of range
+            continue
+        mb = local.x  # continuation: the next delay starts here
+        if local.cost < best_cost:
+            best_q, best_cost = float(q), float(local.cost)
+            best_p = np.concatenate((local.x, p_free[2:]))
+    lo = list(bounds[0]) if bounds else [-np.inf, -np.inf]
+    hi = list(bounds[1]) if bounds else [np.inf, np.inf]
+    lo, hi = lo + [0.0], hi + [MAX_DELAY_SAMPLES]
+    x0 = np.clip(np.append(best_p, best_q), lo, hi)
+    return least_squares(
+        _relative_misfit, x0, bounds=(lo, hi), method="trf", args=args,
+        xtol=1e-12, ftol=1e-12, gtol=1e-12,
+    )  # fmt: skip
 
 
 def _start_values(G: np.ndarray, z: np.ndarray, dt: float) -> tuple[float, float]:
@@ -228,14 +429,19 @@ def _relative_misfit(
     resonance: bool,
     of_position: bool,
 ) -> np.ndarray:
-    """``(G_model - G) / |G|`` (real parts, then imaginary) at ``p = log (M, B[, wn, zeta])``."""
+    """``(G_model - G) / |G|`` (real parts, then imaginary) at ``p = log (M, B[, wn, zeta])``,
+    then optionally the delay ``q`` [samples] (0 without it)."""
     M, B = math.exp(p[0]), math.exp(p[1])
+    base = 4 if resonance else 2
+    delay_s = float(p[base]) * dt if len(p) > base else 0.0
     if resonance:
-        g = _zoh_third_order(M, B, math.exp(p[2]), math.exp(p[3]), z, dt)
+        g = _zoh_third_order(M, B, math.exp(p[2]), math.exp(p[3]), z, dt, delay_s)
+        if of_position:
+            g = g * position_over_velocity(M, B, z, dt, delay_s)
+    elif of_position:
+        g = zoh_position(M, B, z, dt, delay_s)
     else:
-        g = zoh_first_order(M, B, z, dt)
-    if of_position:
-        g = g * position_over_velocity(M, B, z, dt)
+        g = zoh_first_order(M, B, z, dt, delay_s)
     e = (g - G) / np.abs(G)
     return np.concatenate((e.real, e.imag))
 
@@ -273,26 +479,49 @@ def _fit_with_resonance(
     return best, (lo, hi)
 
 
-def _linear_fit(sol: Any, lines: int, bounds: tuple[list[float], list[float]] | None) -> LinearFit:
-    """:class:`LinearFit` from a least-squares solution in ``log (M, B[, wn, zeta])``:
-    stds from the Jacobian, and whether the resonance ended on a bound."""
-    p, r = sol.x, sol.fun
-    s2 = float(r @ r) / max(1, r.size - p.size)
-    try:
-        cov = s2 * np.linalg.inv(sol.jac.T @ sol.jac)
-    except np.linalg.LinAlgError:
-        cov = np.full((p.size, p.size), np.nan)
+def _linear_fit(
+    p: np.ndarray,
+    args: tuple,
+    bounds: tuple[list[float], list[float]] | None,
+    delay: bool,
+    var_G: np.ndarray | None = None,
+) -> LinearFit:
+    """:class:`LinearFit` at ``p = log (M, B[, wn, zeta]), q``.
+
+    The covariance comes from a forward-difference Jacobian ``J`` (over ``q`` too
+    when the delay was fitted). The relative misfit does not weight the lines by
+    their noise, so with the FRF's noise variance ``var_G`` it is the sandwich
+    ``H^-1 J' W J H^-1`` (``H = J'J``, ``W`` the residuals' noise variances) plus
+    ``s_x^2 H^-1`` for the residual's excess ``s_x^2`` over that noise (a
+    systematic misfit, such as friction's at low amplitude); without ``var_G``,
+    ``s^2 H^-1``. Also: whether the resonance
+    ended on a bound, and whether the delay is separable.
+    """
+    fun_p = p if delay else p[:-1]
+    r = _relative_misfit(fun_p, *args)
+    jac = _jacobian(fun_p, args, r)
+    cov = _covariance(jac, r, args[2], var_G)
+    lines = r.size // 2
     M, B = math.exp(p[0]), math.exp(p[1])
     misfit = math.sqrt(float(r @ r) / max(1, lines))
     wn = zeta = None
     at_bound = False
     if bounds is not None:
         wn, zeta = math.exp(p[2]), math.exp(p[3])
-        lo, hi = bounds
-        at_bound = bool(
-            np.any(np.abs(p[2:] - np.array(lo[2:])) < 1e-6)
-            or np.any(np.abs(p[2:] - np.array(hi[2:])) < 1e-6)
-        )
+        lo, hi = np.array(bounds[0][2:4]), np.array(bounds[1][2:4])
+        at_bound = bool(np.any(np.abs(p[2:4] - lo) < 1e-6) or np.any(np.abs(p[2:4] - hi) < 1e-6))
+    dt = args[1]
+    q = float(p[-1])
+    std_q, corr = math.nan, math.nan
+    separable = True
+    if delay:
+        std_q = math.sqrt(max(cov[-1, -1], 0.0))
+        d = np.sqrt(np.abs(np.diag(cov)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = float(np.max(np.abs(cov[-1, :-1] / (d[-1] * d[:-1]))))
+        separable = bool(
+            corr <= DELAY_CORRELATION_LIMIT and std_q <= 1.0 and q < MAX_DELAY_SAMPLES - DELAY_ZERO
+        )  # a nan correlation is not separable
     return LinearFit(
         M,
         B,
@@ -302,4 +531,38 @@ def _linear_fit(sol: Any, lines: int, bounds: tuple[list[float], list[float]] | 
         B * math.sqrt(max(cov[1, 1], 0)),
         misfit,
         at_bound,
+        q * dt,
+        std_q * dt,
+        corr,
+        separable,
     )
+
+
+def _covariance(
+    jac: np.ndarray, r: np.ndarray, G: np.ndarray, var_G: np.ndarray | None
+) -> np.ndarray:
+    """Parameter covariance of the relative-misfit fit (see :func:`_linear_fit`)."""
+    size = jac.shape[1]
+    try:
+        h_inv = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((size, size), np.nan)
+    dof = max(1, r.size - size)
+    if var_G is not None and np.all(np.isfinite(var_G)):
+        # noise (known per line) plus whatever the residual holds beyond it, as relative misfit
+        w = np.tile(var_G / (2.0 * np.abs(G) ** 2), 2)  # per real and imaginary part
+        excess = max(0.0, float(r @ r) - float(w.sum()) * dof / r.size) / dof
+        return h_inv @ (jac.T @ (w[:, None] * jac)) @ h_inv + excess * h_inv
+    return float(r @ r) / dof * h_inv
+
+
+def _jacobian(p: np.ndarray, args: tuple, r: np.ndarray) -> np.ndarray:
+    """Forward-difference Jacobian of :func:`_relative_misfit` at ``p`` (residual ``r``);
+    forward keeps a delay on its bound 0 feasible."""
+    jac = np.empty((r.size, p.size))
+    for i in range(p.size):
+        step = 1.49e-8 * max(1.0, abs(float(p[i])))
+        q = p.copy()
+        q[i] += step
+        jac[:, i] = (_relative_misfit(q, *args) - r) / step
+    return jac

@@ -220,7 +220,7 @@ def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
     best = grid[int(np.argmin(costs))]
     for _ in range(2):
         lo, hi = max(0.0, best - DELAY_GRID), best + DELAY_GRID
-        res = minimize_scalar(lambda c: rss(c, tau), bounds=(lo, hi), method="bounded",
+        res = minimize_scalar(rss, args=(tau,), bounds=(lo, hi), method="bounded",
                               options={"xatol": 1e-7})  # fmt: skip
         best = float(res.x)
         try:

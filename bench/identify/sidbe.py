@@ -5,10 +5,15 @@
    ``(V1 - V2)/(U1 - U2)`` at the excited lines (:mod:`servobench.bench.identify.frequency`).
 2. Fit the linear block ``1/(M s + B)`` -- optionally with the series
    resonance of the paper's eq. (2)-(3) -- to that FRF.
-3. With ``M`` and ``B`` fixed, estimate the Coulomb level of each direction
-   by least squares of the friction force ``u - M dv/dt - B v`` over the
-   intervals of each sign, in both runs, using the exact sampled form
-   ``u[k] - (v[k+1] - a v[k]) / b``.
+   The drive's action delay ``delay_s`` is fitted jointly, as the phase term
+   (the exact delayed hold of :mod:`~servobench.bench.identify.frequency`).
+3. With ``M``, ``B`` and the delay fixed, estimate the Coulomb level of each
+   direction by least squares of the friction force ``u - M dv/dt - B v``
+   over the intervals of each sign, in both runs, using the exact sampled
+   form ``u_eff[k] - (v[k+1] - a v[k]) / b``; ``u_eff[k]`` is the constant
+   command that moves the block over ``[t_k, t_{k+1})`` as the delayed ones do
+   (``u[k]`` without delay). Position-only logs use the filtered command
+   shifted by the delay.
 
 The differential pair does not cancel friction exactly (the zero-crossing
 times of the two runs differ), so at amplitudes close to the friction level
@@ -29,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.delay import effective_command
 from servobench.bench.identify.derivative import filter_command, settle_samples
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import (
@@ -38,7 +44,7 @@ from servobench.bench.identify.frequency import (
     position_over_velocity,
 )
 from servobench.bench.identify.regression import noise_std_from_residual, select_pairs
-from servobench.bench.model.servo import Resonance, ServoModel
+from servobench.bench.model.servo import DELAY_KEY, Resonance, ServoModel
 from servobench.errors import IdentificationError
 
 #: Pairs closer to zero velocity than this many noise sigmas are not used for friction.
@@ -96,28 +102,49 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         if fit.wn_rad_s is not None and fit.zeta is not None
         else None
     )
+    dt = frf.dt_s
+    if fit.delay_s > 0:
+        notes.append(
+            f"drive action delay {fit.delay_s * 1e3:.3g} ms ({fit.delay_s / dt:.3g} samples, "
+            f"1-sigma {fit.std_delay_s / dt:.2g}) identified from the FRF phase"
+        )
+    if not fit.delay_separable:
+        notes.append(
+            "the excited band cannot separate the drive's action delay from the plant "
+            f"(correlation {fit.delay_correlation:.3f}, 1-sigma {fit.std_delay_s / dt:.2g} samples)"
+        )
     if data.derived:
-        fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B)
+        fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B, fit.delay_s)
     else:
-        fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B)
+        fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B, fit.delay_s)
     if fp < 0 or fn < 0:
         notes.append("a negative Coulomb level was estimated and clipped to 0")
     if of_position:  # keep the velocity FRF for the plot
-        z = np.exp(2j * np.pi * frf.f_hz * frf.dt_s)
-        frf = replace(frf, G=frf.G / position_over_velocity(fit.M, fit.B, z, frf.dt_s))
-    model = ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res)
-    std = {"M": fit.std_M, "B": fit.std_B, "coulomb_pos": sp, "coulomb_neg": sn}
+        z = np.exp(2j * np.pi * frf.f_hz * dt)
+        ratio = position_over_velocity(fit.M, fit.B, z, dt, fit.delay_s)
+        var_G = None if frf.var_G is None else frf.var_G / np.abs(ratio) ** 2
+        frf = replace(frf, G=frf.G / ratio, var_G=var_G)
+    model = ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res, fit.delay_s)
+    std = {
+        "M": fit.std_M,
+        "B": fit.std_B,
+        "coulomb_pos": sp,
+        "coulomb_neg": sn,
+        DELAY_KEY: fit.std_delay_s,
+    }
     return MethodEstimate(model, "sidbe", std, "frf", sigma, tuple(notes), frf)
 
 
 def _friction_sampled(
-    data: Dataset, M: float, B: float
+    data: Dataset, M: float, B: float, delay_s: float = 0.0
 ) -> tuple[float, float, float, float, float]:
     dt = data.dt_s
     a = math.exp(-B * dt / M)
     b = (1.0 - a) / B
     vs = [s.v for s in data.segments]
-    us = [s.u for s in data.segments]
+    # the command held over each interval that moves the block as the delayed ones do
+    # (padded to n: the pairs read u[k] for k < n - 1 only)
+    us = [_pad(effective_command(s.u, dt, delay_s, M / B)) for s in data.segments]
     ints = [np.full(len(s) - 1, dt) for s in data.segments]
     pairs = select_pairs(vs, us, ints, max_pairs=MAX_PAIRS)
     force = pairs.u - (pairs.v1 - a * pairs.v0) / b
@@ -132,15 +159,25 @@ def _friction_sampled(
     return (*_levels(force, pairs.pos, pairs.neg), sigma)
 
 
+def _pad(u_eff: np.ndarray) -> np.ndarray:
+    return np.append(u_eff, u_eff[-1:] if u_eff.size else 0.0)
+
+
 def _friction_derived(
-    data: Dataset, M: float, B: float
+    data: Dataset, M: float, B: float, delay_s: float = 0.0
 ) -> tuple[float, float, float, float, float]:
+    """Friction from filtered position-derived motion; the filtered command is shifted
+    by ``delay_s`` by linear interpolation between samples (the filtered command is
+    smooth at the sample rate, so a fractional shift by interpolation is accurate)."""
     forces, pos_l, neg_l = [], [], []
     vmax = max(float(np.max(np.abs(s.v))) for s in data.segments)
     for s in data.segments:
         assert s.motion is not None
         edge = settle_samples(data.fs_hz, s.motion.cutoff_hz)
         uf = filter_command(s.u, data.fs_hz, s.motion.cutoff_hz)
+        if delay_s > 0:
+            k = np.arange(len(uf), dtype=float)
+            uf = np.interp(k - delay_s * data.fs_hz, k, uf)
         f = uf - M * s.motion.a - B * s.v
         pos = s.v > 1e-3 * vmax
         neg = s.v < -1e-3 * vmax
