@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from servobench.bench.identify.dataset import Dataset, Segment, merge_repeated
+from servobench.bench.identify.dataset import Dataset, Segment, merge_repeated, merge_unchanged
 from servobench.bench.identify.delay import effective_command, merged_grid, split_delay
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.simulation import simulate_velocity
@@ -108,3 +108,17 @@ def test_a_tick_read_twice_is_one_sample_with_the_last_command():
     assert merged.u.tolist() == [0.0, 2.0, 3.0, 6.0, 7.0]  # the last command of each tick acts
     assert merged.extra["t_unc"].size == 5
     assert merge_repeated(RunData(1, np.arange(4.0), u[:4], v[:4]))[1] == 0
+
+
+def test_a_stale_read_of_a_moving_axis_is_one_sample_without_stamps():
+    t = np.arange(6) * 1e-3
+    v = np.array([1.0, 1.0, 1.0, 1.0, 2.0, 2.0])
+    x = np.array([0.0, 0.001, 0.001, 0.002, 0.003, 0.005])  # row 2 repeats row 1 while moving
+    run = RunData(1, t, np.arange(6.0), v, x, {"t_unc": np.full(6, 1e-4)})
+    merged, stale = merge_unchanged(run)
+    assert stale == 1
+    assert merged.t.tolist() == [0.0, 0.001, 0.003, 0.004, 0.005]
+    assert merged.u.tolist() == [0.0, 2.0, 3.0, 4.0, 5.0]
+    # at rest, or slower than two encoder steps per interval, equal reads are kept
+    slow = RunData(1, t, np.zeros(6), np.full(6, 0.1), np.array([0, 0, 0, 1e-3, 1e-3, 2e-3]))
+    assert merge_unchanged(slow)[1] == 0

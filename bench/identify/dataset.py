@@ -314,6 +314,14 @@ def _segment(
             f"{repeated} repeated samples (a drive tick read twice: the same time stamp) kept once, "
             "with the last command sent in that tick"
         )
+    if r.extra.get("t_unc") is not None:
+        r, unchanged = merge_unchanged(r)
+        if unchanged:
+            notes.append(
+                f"{unchanged} reads returned the sample before unchanged while the axis moved (a drive "
+                "that refreshes its feedback on a tick slower than the host's reads): each kept once, "
+                "with the last command sent before the next fresh sample"
+            )
     t = np.asarray(r.t, dtype=float)
     dt = np.diff(t)
     nominal = 1.0 / fs_hz
@@ -361,16 +369,48 @@ def merge_repeated(r: RunData) -> tuple[RunData, int]:
     keep = np.concatenate(([True], ~same))
     first = np.flatnonzero(keep)
     last = np.concatenate((first[1:] - 1, [t.size - 1]))  # each group's last row
+    return _pick_rows(r, first, last), int(t.size - first.size)
+
+
+def merge_unchanged(r: RunData) -> tuple[RunData, int]:
+    """A run without drive time stamps with each stale read kept once, and how many were merged.
+
+    A read whose velocity and position are bit-identical to the previous
+    read's, while the axis moves far enough over the interval to have changed
+    the position by at least two of its smallest steps, is the same drive
+    sample read again (its feedback registers refresh on the drive's tick):
+    it is merged into the first read of that sample as :func:`merge_repeated`
+    merges equal stamps. Logs without position are returned as they are (a
+    noise-free velocity can repeat in a steady state).
+    """
+    if r.v is None or r.x is None or len(r) < 3:
+        return r, 0
+    v, x, t = np.asarray(r.v, float), np.asarray(r.x, float), np.asarray(r.t, float)
+    dx = np.abs(np.diff(x))
+    steps = dx[dx > 0]
+    if steps.size == 0:
+        return r, 0
+    step = float(steps.min())
+    stale = (v[1:] == v[:-1]) & (x[1:] == x[:-1]) & (v[1:] != 0) & (np.abs(v[1:]) * np.diff(t) >= 2 * step)
+    if not stale.any():
+        return r, 0
+    keep = np.concatenate(([True], ~stale))
+    first = np.flatnonzero(keep)
+    last = np.concatenate((first[1:] - 1, [t.size - 1]))
+    return _pick_rows(r, first, last), int(t.size - first.size)
+
+
+def _pick_rows(r: RunData, first: np.ndarray, last: np.ndarray) -> RunData:
+    """``r`` with the feedback and instants of rows ``first`` and the commands of rows ``last``."""
 
     def pick(a, rows):
         return None if a is None else np.asarray(a)[rows]
 
     extra = {k: pick(a, first) for k, a in r.extra.items()}
-    merged = replace(
-        r, t=t[first], u=pick(r.u, last), v=pick(r.v, first), x=pick(r.x, first),
+    return replace(
+        r, t=np.asarray(r.t)[first], u=pick(r.u, last), v=pick(r.v, first), x=pick(r.x, first),
         u_exc=pick(r.u_exc, last), x_ref=pick(r.x_ref, last), extra=extra,
     )  # fmt: skip
-    return merged, int(t.size - first.size)
 
 
 def _moves(s: Segment) -> bool:

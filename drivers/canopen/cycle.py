@@ -5,9 +5,12 @@ torque offset, target position), sends them with the SYNC, waits for the
 TPDOs of that SYNC and turns them into a :class:`~servobench.drivers.base.Feedback`
 in the drive's SI units. It also keeps the drive clock: the time stamp
 0x1013 of each TPDO pair when the layout maps it (unwrapped across its 32-bit
-roll-over), else the SYNC count times the cycle period. A pair whose time
-stamp was already consumed (a duplicate, or a late answer to an earlier SYNC)
-is dropped; without 0x1013 such a pair cannot be told from the answer.
+roll-over), else the SYNC count times the cycle period. A pair that began
+to arrive before this cycle's SYNC went out (a duplicate, or a late answer
+to an earlier SYNC) is dropped. A pair that answers this SYNC with the stamp
+of the pair before is a repeated sample: a drive whose control tick is
+slower than the SYNC latched nothing new since (it is kept, and the log's
+trailer counts it); without 0x1013 repeats cannot be told.
 
 The host instant of each sample (``Feedback.t_host_s``, ``t_unc_s``): the
 midpoint and half-width of SYNC out (host clock just before the write) to
@@ -90,6 +93,8 @@ class CycleIO:
         self._rx2: bytes | None = None
         self._rx_event = threading.Event()
         self._last_stamp: int | None = None  # 0x1013 of the last TPDO pair consumed
+        self._sent_s = -math.inf  # host clock when this cycle's SYNC went out
+        self._rx1_s = math.inf  # host clock when the last TPDO1 came in
         self._position, self._clock = CounterUnwrap(32), CounterUnwrap(32)
         self._sync_time_s = 0.0  # SYNC count x cycle period, when the drive has no 0x1013
         self._rx_host_s = math.nan  # host clock when the last TPDO pair was complete
@@ -161,7 +166,7 @@ class CycleIO:
         self._rx_event.clear()
         t_sync = self._sync_time_s
         self._sync_time_s += self.period_s or DEFAULT_CYCLE_S
-        sent = time.monotonic()
+        sent = self._sent_s = time.monotonic()
         with self.sdo.translated("RPDO + SYNC"):
             self.network.send_messages(self._frames(holding, sync=not self.kernel_sync))
         if not self._rx_event.wait(timeout_s):
@@ -220,12 +225,13 @@ class CycleIO:
     # ------------------------------------------------------------ reception
     def on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
         self._rx1 = bytes(data)
+        self._rx1_s = time.monotonic()
 
     def on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
         rx1, layout = self._rx1, self.layout
         if rx1 is not None and layout is not None and layout.has_clock:
             state = layout.tpdo_state.unpack(rx1)
-            if state is not None and state[0x1013] == self._last_stamp:
+            if state is not None and state[0x1013] == self._last_stamp and self._rx1_s < self._sent_s:
                 self._rx1 = None  # a duplicate or a late pair of a SYNC already answered
                 return
         self._rx2 = bytes(data)

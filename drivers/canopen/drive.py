@@ -51,9 +51,11 @@ RPDOs and a SYNC, and waits for the SYNC's TPDOs (the layout is in
 :func:`servobench.drivers.cia402.plan`, each step under a deadline; failures
 raise, never log. :meth:`read` uses SDO and sends no SYNC, so it does not
 clock a lock-step simulated drive. Position and the time stamp are unwrapped
-across their 32-bit roll-over. A TPDO pair whose time stamp was already
-consumed (a duplicate, or a late answer to an earlier SYNC) is dropped;
-without 0x1013 a late pair cannot be told from the answer. An EMCY with a
+across their 32-bit roll-over. A TPDO pair that repeats the time stamp
+before it and began to arrive before this cycle's SYNC (a duplicate, or a
+late answer to an earlier SYNC) is dropped; one that answers this SYNC with
+the stamp before is a repeated sample of a drive whose tick is slower than
+the SYNC. Without 0x1013 a late pair cannot be told from the answer. An EMCY with a
 non-zero error code ends the next cycle with :class:`~servobench.errors.DriveFaultError`.
 
 Drive-side hold (:meth:`hold_position`): where the drive offers cyclic
