@@ -112,7 +112,7 @@ def test_a_tick_read_twice_is_one_sample_with_the_last_command():
 
 def test_a_stale_read_of_a_moving_axis_is_one_sample_without_stamps():
     t = np.arange(6) * 1e-3
-    v = np.array([1.0, 1.0, 1.0, 1.0, 2.0, 2.0])
+    v = np.array([5.0, 5.0, 5.0, 5.0, 6.0, 6.0])
     x = np.array([0.0, 0.001, 0.001, 0.002, 0.003, 0.005])  # row 2 repeats row 1 while moving
     run = RunData(1, t, np.arange(6.0), v, x, {"t_unc": np.full(6, 1e-4)})
     merged, stale = merge_unchanged(run)
