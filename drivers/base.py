@@ -478,8 +478,9 @@ class Drive(ABC):
         SYNC with synchronous RPDOs, one FC23 request, a lock-step drive). A
         transport that sends the command and the feedback query one after the
         other on a free-running drive states the gap (the query's wire time):
-        the runner logs it as ``# command_lead_s`` and the identification moves
-        each sample back to its command's instant.
+        the runner logs it as ``# command_lead_s`` and the identification lets the
+        drive's action delay reach down to ``-command_lead_s`` (the command acts
+        before its logged instant where the drive has no tick of its own).
         """
         return 0.0
 

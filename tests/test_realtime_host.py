@@ -395,7 +395,7 @@ class LeadingDrive(SimDrive):
         return Feedback(s.t_s, s.velocity, s.position)
 
 
-def test_a_command_that_leads_its_sample_is_moved_back_to_its_instant(tmp_path):
+def test_a_command_that_leads_its_sample_is_identified_as_a_negative_delay(tmp_path):
     rng = np.random.default_rng(5)
     u = np.repeat(rng.choice([-3.0, -2.0, -1.0, 1.0, 2.0, 3.0], 60), 10)  # 600 samples at 200 Hz
     with LeadingDrive(f"sim://?clock=real&{PLANT}") as drive:
@@ -409,6 +409,7 @@ def test_a_command_that_leads_its_sample_is_moved_back_to_its_instant(tmp_path):
     moved = identify(log, "joint")
     ignored = identify(type(log)(log.runs, {k: v for k, v in log.metadata.items() if k != "command_lead_s"},
                                  log.fs_hz), "joint")  # fmt: skip
-    assert worst(ignored.model) > 0.05  # a fifth of the cycle of each new command in every sample
-    assert worst(moved.model) < 0.015  # a lead of a fifth of the cycle: ten times less
+    assert worst(ignored.model) > 0.05  # a delay >= 0 cannot take a command that acts early
+    assert worst(moved.model) < 0.015  # the delay free from -command_lead_s on
+    assert moved.model.delay_s == pytest.approx(-LeadingDrive.LEAD_S, abs=0.2e-3)
     assert any("command_lead_s" in note for note in moved.notes)

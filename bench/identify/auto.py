@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from servobench.bench.identify.command_lead import PASSES, back_to_commands, lead_note
 from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
@@ -81,14 +80,6 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
-    lead_s = _number(log.metadata.get("command_lead_s"))
-    if lead_s > 0 and not data.derived:
-        moved = data
-        for _ in range(PASSES):
-            moved = back_to_commands(data, result.model, lead_s)
-            result = identify_data(moved, method, resonance=resonance)
-        data = moved
-        result = replace(result, notes=(*result.notes, lead_note(lead_s)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
     timing = timing_figure(log.metadata, data, estimate)
     return result if timing is None else replace(result, timing=timing)

@@ -179,6 +179,10 @@ class Dataset:
         runs carry the excitation ``u_exc``; None when unknown.
     units : SignalUnits
         Units of the signals, from the log's ``unit_*`` metadata.
+    min_delay_s : float
+        The earliest a command may act relative to its logged instant [s]: 0, or
+        ``-command_lead_s`` where the transport sends the command ahead of its
+        sample's query (the drive's action delay is identified from there on).
     """
 
     segments: tuple[Segment, ...]
@@ -188,6 +192,7 @@ class Dataset:
     notes: tuple[str, ...] = ()
     closed_loop: bool | None = None
     units: SignalUnits = SignalUnits()
+    min_delay_s: float = 0.0
 
     @property
     def dt_s(self) -> float:
@@ -300,7 +305,19 @@ def prepare(
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
     if closed is None and all(r.u_exc is not None for r in log.runs):
         closed = True
-    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units)
+    lead_s = _lead(log.metadata.get("command_lead_s"))
+    if lead_s > 0 and not any(s.derived for s in segments):
+        notes.append(f"each command was sent {lead_s * 1e3:.3g} ms ahead of its sample's query "
+                     "(command_lead_s): the drive's action delay was identified from -command_lead_s on")  # fmt: skip
+    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units, -lead_s)
+
+
+def _lead(text: str | None) -> float:
+    try:
+        value = float(text) if text else 0.0
+    except ValueError:
+        return 0.0
+    return value if value > 0 and value == value else 0.0
 
 
 def _segment(

@@ -52,7 +52,7 @@ def merged_grid(
     dt_s : float or ndarray of shape (n - 1,)
         Sample interval(s) [s].
     delay_s : float
-        Action delay [s], >= 0.
+        Action delay [s]; negative: the command acts before its logged instant.
     u_before : float
         Command in force before ``u[0]`` acts.
 
@@ -104,13 +104,14 @@ def effective_command(
     of the step response each contributes at ``t_{k+1}``); ``u_eff[k]`` is
     their weighted mean. Exact for a first-order block of time constant
     ``tau_s`` [s] while the friction force stays constant over the interval.
-    With ``delay_s`` 0 it is ``u[:-1]``.
+    With ``delay_s`` 0 it is ``u[:-1]``. A negative delay (a command that acts before
+    its logged instant) is handled alike.
     """
     u = np.asarray(u, dtype=float)
     n = u.size
     if n < 2:
         return u[:0].copy()
-    if delay_s <= 0:
+    if delay_s == 0:
         return u[:-1].copy()
     u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before)
     grid = np.concatenate(([0.0], np.cumsum(dt_m)))

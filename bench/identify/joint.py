@@ -137,7 +137,7 @@ def identify_joint(
         return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
 
     fit = _solve(_pairs(data), data, None)
-    delay_s, fit, delay_std = scan_delay(data, fit)
+    delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
     ddata = delayed(data, delay_s, fit.M / fit.B)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
     v_rms = math.sqrt(float(np.mean(v_all**2)))
@@ -165,7 +165,7 @@ def delayed(data: Dataset, delay_s: float, tau_s: float) -> Dataset:
     per interval, to the commands acting ``delay_s`` [s] after their logged instants
     (:func:`~servobench.bench.identify.delay.effective_command`, for a time constant
     ``tau_s`` [s]): the pair regression of the delayed plant. ``data`` itself at delay 0."""
-    if delay_s <= 0:
+    if delay_s == 0:
         return data
 
     def eff(s: Segment, u: np.ndarray | None) -> np.ndarray | None:
@@ -178,11 +178,12 @@ def delayed(data: Dataset, delay_s: float, tau_s: float) -> Dataset:
                                         for s in data.segments))  # fmt: skip
 
 
-def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
+def scan_delay(data: Dataset, fit: ZohFit, min_delay_s: float = 0.0) -> tuple[float, ZohFit, float]:
     """The drive's action delay that best explains the pairs: ``(delay_s, fit at it, 1-sigma)``.
 
     The pair regression (:func:`delayed` data) is solved on a grid of
-    :data:`DELAY_GRID` cycles from 0 to :data:`DELAY_MAX_CYCLES` cycles (further while
+    :data:`DELAY_GRID` cycles from ``min_delay_s`` (0, or a command's lead before its
+    sample) to :data:`DELAY_MAX_CYCLES` cycles (further while
     the best lies at the grid's end), the sum of squared pair residuals is
     minimised around the best grid point by bounded scalar search, and the
     time constant the equivalent commands need is taken from the fit at the
@@ -211,7 +212,9 @@ def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
         return float(f.residual @ f.residual)
 
     tau = fit.M / fit.B
-    grid = list(np.arange(0.0, DELAY_MAX_CYCLES + 1e-9, DELAY_GRID))
+    lowest = min(0.0, min_delay_s / dt)
+    grid = sorted({lowest, *np.arange(0.0, DELAY_MAX_CYCLES + 1e-9, DELAY_GRID),
+                   *(-np.arange(DELAY_GRID, -lowest, DELAY_GRID))})  # fmt: skip
     costs = [rss(c, tau) for c in grid]
     while int(np.argmin(costs)) == len(grid) - 1 and grid[-1] < DELAY_LIMIT_CYCLES:
         more = list(np.arange(grid[-1] + DELAY_GRID, grid[-1] + DELAY_MAX_CYCLES + 1e-9, DELAY_GRID))
@@ -219,7 +222,7 @@ def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
         costs += [rss(c, tau) for c in more]
     best = grid[int(np.argmin(costs))]
     for _ in range(2):
-        lo, hi = max(0.0, best - DELAY_GRID), best + DELAY_GRID
+        lo, hi = max(lowest, best - DELAY_GRID), best + DELAY_GRID
         res = minimize_scalar(rss, args=(tau,), bounds=(lo, hi), method="bounded",
                               options={"xatol": 1e-7})  # fmt: skip
         best = float(res.x)
@@ -240,7 +243,7 @@ def scan_delay(data: Dataset, fit: ZohFit) -> tuple[float, ZohFit, float]:
         return 0.0, fit, 0.0
     # 1 sigma from the curvature of the residual sum (Gauss-Newton): s^2 / (0.5 d2 RSS / dd2)
     h = max(1e-3, 1e-2 * best)
-    curv = (rss(best + h, tau) - 2.0 * rss(best, tau) + rss(max(best - h, 0.0), tau)) / h**2
+    curv = (rss(best + h, tau) - 2.0 * rss(best, tau) + rss(best - h, tau)) / h**2
     s2 = full_rss / max(1, len(fit_d.residual) - 5)
     std = math.sqrt(2.0 * s2 / curv) * dt if curv > 0 else math.nan
     return best * dt, fit_d, std
@@ -356,7 +359,7 @@ def _refine(
     if note:
         notes.append(note)
     free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
-    oe = refine(model, chunks, free, free_delay=True)
+    oe = refine(model, chunks, free, free_delay=True, min_delay_s=data.min_delay_s)
     estimator = "output-error"
     if _closed(data):
         estimator = "zoh-iv (excitation as instrument) + output-error"
@@ -424,7 +427,7 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
         return math.nan
     # an interval's error is at most the two half-widths: sqrt(6) sigma_dt (uniform instants),
     # and a drive that samples at its own last tick adds up to its tick (at most its delay)
-    bound = (math.sqrt(6.0) * pairs.sigma_dt[steep] + model.delay_s
+    bound = (math.sqrt(6.0) * pairs.sigma_dt[steep] + max(model.delay_s, 0.0)
              if pairs.sigma_dt is not None else math.inf)  # fmt: skip
     interval_error = np.clip(e[steep] / acc[steep], -bound, bound)  # never past the brackets
     return float(np.sqrt(np.mean(interval_error**2)) / math.sqrt(2.0))

@@ -101,11 +101,13 @@ def measured_chunk(chunk: Chunk) -> np.ndarray:
     return chunk.v[chunk.skip : end]
 
 
-def _model(p: np.ndarray, base: ServoModel, delay_unit_s: float = 1.0) -> ServoModel:
+def _model(p: np.ndarray, base: ServoModel, delay_unit_s: float = 1.0, min_delay_s: float = 0.0) -> ServoModel:
     """The model of parameter vector ``p``: ``(log M, log B, coulomb_pos, coulomb_neg)`` and, as a
-    fifth entry, ``1 + delay / delay_unit_s`` (else the base model's delay): offset by one, so a
-    relative finite-difference step stays a step of about DIFF_STEP sample at zero delay."""
-    delay = max(float(p[4]) - 1.0, 0.0) * delay_unit_s if len(p) > 4 else base.delay_s
+    fifth entry, ``1 + (delay - min_delay_s) / delay_unit_s`` (else the base model's delay):
+    offset by one, so a relative finite-difference step stays a step of about DIFF_STEP sample
+    at the lowest delay allowed."""
+    delay = (max(float(p[4]) - 1.0, 0.0) * delay_unit_s + min_delay_s if len(p) > 4
+             else base.delay_s)  # fmt: skip
     return ServoModel(
         math.exp(p[0]), math.exp(p[1]), max(float(p[2]), 0.0), max(float(p[3]), 0.0), base.resonance,
         delay,
@@ -130,9 +132,10 @@ def refine(
     friction_scale: float | None = None,
     *,
     free_delay: bool = False,
+    min_delay_s: float = 0.0,
 ) -> OutputErrorFit:
     """Minimise the simulation error over ``(log M, log B, coulomb_pos, coulomb_neg)``, and the
-    drive's action delay ``delay_s`` (from ``model0.delay_s``, >= 0) with ``free_delay``.
+    drive's action delay ``delay_s`` (from ``model0.delay_s``, >= ``min_delay_s``) with ``free_delay``.
 
     ``free`` fixes parameters the data cannot see (e.g. friction in a direction
     never travelled) at their starting value. Zero friction is a kink of the
@@ -146,7 +149,8 @@ def refine(
     floor = FRICTION_FLOOR * friction_scale
     fp = max(model0.coulomb_pos, floor) if free[2] else model0.coulomb_pos
     fn = max(model0.coulomb_neg, floor) if free[3] else model0.coulomb_neg
-    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free, free_delay)
+    best = _refine_once(replace(model0, coulomb_pos=fp, coulomb_neg=fn), chunks, free, free_delay,
+                        min_delay_s)  # fmt: skip
     on_bound = (free[2] and best.model.coulomb_pos <= floor * 1e-3) or (
         free[3] and best.model.coulomb_neg <= floor * 1e-3
     )
@@ -161,6 +165,7 @@ def refine(
             chunks,
             free,
             free_delay,
+            min_delay_s,
         )
         if again.cost < best.cost:
             best = again
@@ -168,7 +173,8 @@ def refine(
 
 
 def _refine_once(
-    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool], free_delay: bool = False
+    model0: ServoModel, chunks: Sequence[Chunk], free: Sequence[bool], free_delay: bool = False,
+    min_delay_s: float = 0.0,
 ) -> OutputErrorFit:
     from scipy.optimize import least_squares
 
@@ -176,7 +182,7 @@ def _refine_once(
     # the delay in units of the mean sample interval: a step of DIFF_STEP is then ~1e-6 sample
     unit = float(np.mean([np.mean(c.dt_s) for c in chunks])) if chunks else 1.0
     p0 = np.array([math.log(model0.M), math.log(model0.B), model0.coulomb_pos, model0.coulomb_neg,
-                   1.0 + model0.delay_s / unit])  # fmt: skip
+                   1.0 + max(model0.delay_s - min_delay_s, 0.0) / unit])  # fmt: skip
     weights = [np.sqrt(c.weight) for c in chunks]
 
     def full(q: np.ndarray) -> np.ndarray:
@@ -185,7 +191,7 @@ def _refine_once(
         return p
 
     def residual(q: np.ndarray) -> np.ndarray:
-        m = _model(full(q), model0, unit)
+        m = _model(full(q), model0, unit, min_delay_s)
         return np.concatenate(
             [
                 w * (simulate_chunk(m, c) - measured_chunk(c))
@@ -212,7 +218,7 @@ def _refine_once(
     except (ValueError, FloatingPointError) as err:
         raise IdentificationError(f"output-error refinement failed: {err}") from None
     p = full(sol.x)
-    model = _model(p, model0, unit)
+    model = _model(p, model0, unit, min_delay_s)
     sigma2 = 2.0 * sol.cost / max(1, sol.fun.size - len(free_idx))
     # an averaged chunk's residual has variance sigma^2 / weight; the weighting undoes that
     std = _std_from_jacobian(sol.jac, sigma2, p, free_idx, unit)

@@ -43,7 +43,7 @@ def simulate_velocity(
     """
     u = np.asarray(u, dtype=float)
     params = model.to_plant_params()
-    if model.delay_s > 0:
+    if model.delay_s != 0:
         v = simulate_delayed(u, dt_s, params, model.delay_s, v0)
         if model.resonance is not None:
             v = model.resonance.filter_velocity(v, float(np.mean(dt_s)))

@@ -330,7 +330,7 @@ def perturbed_spread_pct(
                 continue
             # a drive that samples at its own last tick widens each bracket by up to its tick,
             # which its action delay bounds
-            reach = s.t_unc + estimate.model.delay_s
+            reach = s.t_unc + max(estimate.model.delay_s, 0.0)
             if math.isfinite(scatter_s):
                 t = s.t + np.clip(rng.normal(0.0, scatter_s, len(s)), -reach, reach)
             else:

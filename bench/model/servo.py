@@ -95,11 +95,14 @@ class ServoModel:
     resonance : Resonance or None
         Optional series resonance of the linear block.
     delay_s : float
-        The drive's effective action delay [s], >= 0: from a command's logged
+        The drive's effective action delay [s]: from a command's logged
         instant to the instant it acts on the plant, the sample's lag included
         (a drive that samples at its last control tick and acts at its next
         one: about one tick). ``u[k]`` logged at ``t_k`` acts over
         ``[t_k + delay_s, t_{k+1} + delay_s)``; 0 is the plain zero-order hold.
+        Negative where the command is sent ahead of its sample's query and
+        acts before the logged instant (``command_lead_s``, the ODrive ASCII
+        protocol on a drive without a tick of its own).
     """
 
     M: float
@@ -121,8 +124,8 @@ class ServoModel:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise IdentificationError(f"identified {name} = {value!r} is not >= 0")
-        if not (math.isfinite(self.delay_s) and self.delay_s >= 0):
-            raise IdentificationError(f"identified delay_s = {self.delay_s!r} is not a finite delay >= 0 s")
+        if not math.isfinite(self.delay_s):
+            raise IdentificationError(f"identified delay_s = {self.delay_s!r} is not a finite delay")
 
     @property
     def pole(self) -> float:
@@ -182,7 +185,7 @@ class ServoModel:
         if not (math.isfinite(fs_hz) and fs_hz > 0):
             raise UsageError(f"sample rate must be > 0 Hz, got {fs_hz}")
         dt = 1.0 / fs_hz
-        if self.delay_s > 0:  # u[k] acts from t_k + delay_s: simulated on the switch grid
+        if self.delay_s != 0:  # u[k] acts from t_k + delay_s: simulated on the switch grid
             u_m, dt_m, rows = merged_grid(np.asarray(u, dtype=float), dt, self.delay_s)
             v, x, _ = simulate_coulomb_steps(u_m, dt_m, self.to_plant_params(), PlantState(v0, 0.0))
             v, x = v[rows], x[rows]
