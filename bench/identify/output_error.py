@@ -35,6 +35,8 @@ DIFF_STEP = 1e-6
 MAX_NFEV = 40
 #: Free Coulomb levels start at least this fraction of the rms command above zero.
 FRICTION_FLOOR = 1e-3
+#: How far log M and log B may move from their start (e^20: eight decades either way).
+LOG_REACH = 20.0
 #: Restart level (fraction of the rms command) when a search ends on the zero bound.
 RESTART_FRACTION = 0.01
 
@@ -199,8 +201,9 @@ def _refine_once(
             ]
         )
 
-    lower = np.array([-np.inf, -np.inf, 0.0, 0.0, 1.0])[free_idx]
-    upper = np.full(len(free_idx), np.inf)
+    # log M and log B within LOG_REACH of the start: a wild trial step cannot overflow exp()
+    lower = np.array([p0[0] - LOG_REACH, p0[1] - LOG_REACH, 0.0, 0.0, 1.0])[free_idx]
+    upper = np.array([p0[0] + LOG_REACH, p0[1] + LOG_REACH, np.inf, np.inf, np.inf])[free_idx]
     q0 = np.clip(p0[free_idx], lower, upper)
     step = np.full(len(free_idx), DIFF_STEP)
     try:

@@ -205,6 +205,10 @@ MIN_TICK_STEPS = 4
 #: Sub-multiples ``s / k`` of the smallest stamp step ``s`` tried as the tick, ``k`` up to this
 #: (a host that never read two neighbouring ticks sees only multiples of the tick).
 MAX_TICK_DIVISOR = 16
+#: Beyond that, the steps' common grid (:func:`stamp_resolution_s`) is the tick where at least
+#: this many steps share a grid of at least GCD_TICK_MIN_S [s] (a 16 kHz tick is 62.5 us).
+GCD_TICK_STEPS = 20
+GCD_TICK_MIN_S = 1e-5
 #: The finest stamp resolution considered [s] (EtherCAT DC time counts nanoseconds).
 STAMP_FLOOR_S = 1e-9
 
@@ -264,6 +268,11 @@ def estimate_tick_s(steps_s: np.ndarray, magnitude_s: float = 0.0) -> float:
     rounding = 4.0 * float(np.spacing(max(abs(magnitude_s), float(d.max()))))
     resolution = stamp_resolution_s(d)
     smallest = float(d.min())
+    # the steps' common grid, where it is far coarser than any stamp register's step (many steps
+    # sharing it is no chance) and finer than the steps: the tick, however many ticks apart the
+    # host reads
+    if d.size >= GCD_TICK_STEPS and GCD_TICK_MIN_S <= resolution < smallest:
+        return resolution
     for k in range(1, MAX_TICK_DIVISOR + 1):
         tick = _fit_tick_s(d, smallest / k)
         if not tick > 0:
