@@ -91,7 +91,7 @@ def test_joint_delay_with_noise_is_within_its_error_bar():
         sigma = est.std["delay_s"]
         assert 0 < sigma < 0.05e-3
         errors.append((est.model.delay_s - true.delay_s) / sigma)
-        assert est.model.M == pytest.approx(true.M, rel=0.01)
+        assert pytest.approx(true.M, rel=0.01) == est.model.M
         assert est.model.coulomb_neg == pytest.approx(0.4, rel=0.01)
     assert max(abs(e) for e in errors) < 4.0
 

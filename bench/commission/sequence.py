@@ -62,7 +62,12 @@ from servobench.bench.commission.source import DIAGNOSE, ProgramSource, choose_s
 from servobench.bench.commission.ui import Console
 from servobench.bench.log.identity import configured_axis
 from servobench.bench.log.io import read_log
-from servobench.bench.model.program import DriveScale, integral_unit, loop_delay_cycles, program_values
+from servobench.bench.model.program import (
+    DriveScale,
+    integral_unit,
+    loop_delay_cycles,
+    program_values,
+)
 from servobench.bench.model.servo import IdentificationResult, ServoModel
 from servobench.bench.report import commission_record as document
 from servobench.bench.report.html import REPORT_FILE, write_report

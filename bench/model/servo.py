@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from servobench.bench.identify.delay import merged_grid
 from servobench.bench.identify.frequency import model_frf
 from servobench.errors import IdentificationError, UsageError
-from servobench.bench.identify.delay import merged_grid
 from servobench.sim_backend.physics.coulomb import (
     PlantParams,
     PlantState,
