@@ -77,6 +77,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "EtherCAT without 0x1013 and the timestamp object 0x10F8",
     )
     p.add_argument(
+        "--profile",
+        action="append",
+        default=[],
+        metavar="NAME[,NAME...]",
+        help="EtherCAT: emulate real drives' quirks (repeatable): no-cst, cycle-time-ro, "
+        "no-complete-access, ca-stored-wrong, quick-stop=N (0x605A, 0..8), no-quick-stop",
+    )
+    p.add_argument(
         "--rt-priority",
         type=int,
         default=None,
@@ -105,6 +113,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.eds and args.transport != "canopen":
         raise UsageError(f"--eds applies to --transport canopen only, not {args.transport}")
+    profile = ",".join(args.profile)
+    if profile and args.transport != "ethercat":
+        raise UsageError(f"--profile applies to --transport ethercat only, not {args.transport}")
+    if profile:
+        from servobench.sim_backend.servers.ethercat.profiles import parse_profiles
+
+        parse_profiles(profile)  # an unknown name is a usage error before anything starts
     if args.rt_priority is not None and not FIFO_MIN <= args.rt_priority <= FIFO_MAX:
         raise UsageError(f"--rt-priority must be {FIFO_MIN}..{FIFO_MAX}, got {args.rt_priority}")
     sim = parse_drive_url(args.sim)
@@ -127,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
         "eds": args.eds or "",
         "iface": args.iface,
         "fault": ";".join(args.fault),
+        "profile": profile,
     }
     if args.no_timestamp:
         options = no_timestamp_options(args.transport, options)

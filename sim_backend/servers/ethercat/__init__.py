@@ -14,5 +14,6 @@ Layers, each its own module, from the wire up:
 * :mod:`.objects` -- the object dictionary (the CANopen served drive's, plus CoE's
   0x1C00/0x1C12/0x1C13/0x1C32/0x1C33) and the SII description made from it;
 * :mod:`.coe_drive` -- the CiA 402 application behind the ESC;
+* :mod:`.profiles` -- real drives' quirks it can emulate (``--profile``);
 * :mod:`.serve_ethercat` -- the AF_PACKET socket loop and ``serve()``.
 """

@@ -45,7 +45,11 @@ EtherCAT changes:
 * the SM watchdog: when it expires the slave goes to SAFE-OP with the
   error flag and 0x001B, and the axis faults (0x8130, the device
   watchdog's code) with a CoE emergency;
-* EMCYs become CoE emergency mailbox messages.
+* EMCYs become CoE emergency mailbox messages;
+* a :class:`~.profiles.DriveProfile` (``serve-sim --profile``) emulates a
+  real drive's quirks (:mod:`.profiles`): its objects are edited before the
+  slave is built, the SDO server stores or refuses complete access as it
+  says, and the drive honours 0x605A or ignores the quick stop command.
 """
 
 from __future__ import annotations
@@ -58,7 +62,12 @@ from collections.abc import Callable
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from servobench.drivers.cia402 import CW_QUICK_STOP, CiA402State
+from servobench.drivers.cia402 import (
+    CW_DISABLE_VOLTAGE,
+    CW_QUICK_STOP,
+    CiA402State,
+    decode_controlword,
+)
 from servobench.sim_backend.device import (
     WATCHDOG_FAULT,
     DeviceSample,
@@ -69,7 +78,7 @@ from servobench.sim_backend.faults.injector import FaultInjector
 from servobench.sim_backend.servers.canopen import pdo as can_pdo
 from servobench.sim_backend.servers.canopen.drive import ServedCiA402Drive
 from servobench.sim_backend.servers.canopen.sync import SyncEngine
-from servobench.sim_backend.servers.ethercat import al
+from servobench.sim_backend.servers.ethercat import al, profiles
 from servobench.sim_backend.servers.ethercat import objects as O
 from servobench.sim_backend.servers.ethercat.coe_sdo import SdoServer
 from servobench.sim_backend.servers.ethercat.esc import Application, Esc
@@ -116,6 +125,26 @@ class CoeCiA402Drive(ServedCiA402Drive):
     al_state: Callable[[], al.AlState] = staticmethod(lambda: A.INIT)
     #: The DC system time [ns] of a sample (set by :class:`CoeSlave`).
     dc_time_of: Callable[[DeviceSample], int] = staticmethod(lambda sample: 0)
+    #: The real drive's quirks it emulates (set by :class:`CoeSlave`).
+    profile: profiles.DriveProfile = profiles.DriveProfile()
+
+    def _apply_controlword(self, controlword: int) -> None:
+        """The CiA 402 step, with the profile's quick stop (:mod:`.profiles`)."""
+        quirks = self.profile
+        if quirks.ignore_quick_stop and decode_controlword(controlword, self._controlword) == (
+            CW_QUICK_STOP
+        ):
+            self._controlword = controlword
+            self.sync_device()
+            return
+        super()._apply_controlword(controlword)
+        if (
+            quirks.quick_stop_option is not None
+            and self.state is CiA402State.QUICK_STOP_ACTIVE
+            and self._int(profiles.QUICK_STOP_OPTION, "h") in profiles.QUICK_STOP_TO_DISABLED
+        ):
+            self.device.disable()  # the quick stop is torque off: done at once (transition 12)
+            self.state = CiA402State.SWITCH_ON_DISABLED
 
     def _on_read(self, index: int, subindex: int, od) -> int | None:
         if index == O.TIMESTAMP:
@@ -139,6 +168,12 @@ class CoeCiA402Drive(ServedCiA402Drive):
             if kind not in (O.SYNC_FREE_RUN, O.SYNC_SM, O.SYNC_DC0) or not supported >> kind & 1:
                 raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)
             return
+        elif (
+            index == profiles.QUICK_STOP_OPTION
+            and self.profile.quick_stop_option is not None
+            and od.decode_raw(data) not in profiles.QUICK_STOP_OPTIONS
+        ):
+            raise SdoAbortedError(can_pdo.ABORT_VALUE_RANGE)  # honoured: the standard's codes
         elif index == O.SM_OUTPUT_PARAMETER and subindex == 2:
             cycle_ns = od.decode_raw(data)
             if cycle_ns and cycle_ns < O.MIN_CYCLE_NS:
@@ -254,19 +289,27 @@ class CoeSlave(Application):
         serial: int = 1,
         timestamp: bool = True,
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        profile: profiles.DriveProfile | None = None,
     ) -> None:
         self.device = device
+        profile = profile or profiles.DriveProfile()
         od = O.ethercat_od(device.cycle_s, timestamp, dc_synchronous=device.realtime)
-        complete_access = 0 not in injector.plan.setting("complete_access")
+        profiles.apply_to_od(profile, od)
+        complete_access = profile.complete_access and (
+            0 not in injector.plan.setting("complete_access")
+        )
         self.description = O.description(od, serial, complete_access)
         self.node = canopen.LocalNode(1, od)
         self.drive = CoeCiA402Drive(device, self.node, injector, keys)
+        self.drive.profile = profile
         self.drive.al_state = lambda: self.esc.al_state
         self.drive.dc_time_of = self._dc_time_of
         self.pdo = self.drive.sync = PdoCycle(self.drive)
         self.lock = threading.RLock()
         self.esc = Esc(build_image(self.description), self, clock_ns)  # the device's clock, in ns
-        self.sdo = SdoServer(self.node, O.MAILBOX_BYTES, complete_access)
+        self.sdo = SdoServer(
+            self.node, O.MAILBOX_BYTES, complete_access, profile.count_from_padding
+        )
         self.drive.attach(_CoeNetwork(self._emergency))
         # power-on: transition 1 (CANopen's boot() also sends NMT messages CoE has not)
         self.drive.sync_device()
@@ -335,7 +378,8 @@ class CoeSlave(Application):
 
     def _leave(self, current: al.AlState, target: al.AlState) -> None:
         if self.drive.state is CiA402State.OPERATION_ENABLED and target < A.OP:
-            self.node.set_data(0x6040, 0, CW_QUICK_STOP.to_bytes(2, "little"))  # as leaving NMT OP
+            stop = CW_DISABLE_VOLTAGE if self.drive.profile.ignore_quick_stop else CW_QUICK_STOP
+            self.node.set_data(0x6040, 0, stop.to_bytes(2, "little"))  # as leaving NMT OP
         if target is A.INIT:
             self.esc.reset_mailboxes()
         self._pending_op = False

@@ -18,7 +18,9 @@ response and the rest into segments, as EtherCAT masters expect (SOEM reads
 ``length - 10`` bytes there). Complete access (bit 4) reads or writes all
 subindices the object defines (not only the sub 0 value many) from
 subindex 0 (as 16 bits: 8 of value, 8 of padding) or 1, each in its own
-size; a complete write stores sub 0 = 0, the entries, then the new sub 0.
+size; a complete write stores sub 0 = 0, the entries, then the new sub 0
+(for the objects in ``count_from_padding``, as a faulty drive does, the
+padding byte after the count instead: ``--profile ca-stored-wrong``).
 """
 
 from __future__ import annotations
@@ -63,11 +65,17 @@ class SdoServer:
     """SDO over CoE for ``node``, with mailboxes of ``mailbox_bytes`` (the send SM's length)."""
 
     def __init__(
-        self, node: canopen.LocalNode, mailbox_bytes: int, complete_access: bool = True
+        self,
+        node: canopen.LocalNode,
+        mailbox_bytes: int,
+        complete_access: bool = True,
+        count_from_padding: frozenset[int] = frozenset(),
     ) -> None:
         self.node = node
         self.mailbox_bytes = mailbox_bytes
         self.complete_access = complete_access  #: False: complete access aborts 0x06010000
+        #: Objects whose complete write stores sub 0 from the padding byte (a drive's bug).
+        self.count_from_padding = count_from_padding
         self._upload: tuple[int, int, bytes, int] | None = None  # index, sub, rest, toggle
         self._download: tuple[int, int, bool, int, bytearray, int] | None = None
         self.counter = 0
@@ -120,7 +128,8 @@ class SdoServer:
             self.node.set_data(index, s, data[pos : pos + size], check_writable=True)
             pos, s = pos + size, s + 1
         if count is not None:
-            self.node.set_data(index, 0, bytes([count]), check_writable=True)
+            stored = data[1:2] if index in self.count_from_padding else bytes([count])
+            self.node.set_data(index, 0, stored, check_writable=True)
 
     # ----------------------------------------------------------- requests
     def handle(self, message: Mailbox) -> bytes | None:

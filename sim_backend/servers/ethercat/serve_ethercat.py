@@ -12,6 +12,8 @@ CAP_NET_RAW (root, or a user namespace of one's own: ``unshare -Urn``).
 
 Faults (``--fault``): ``fault@N`` and ``freeze@N`` act on the drive at
 process data cycle N, ``delay@N:MS`` returns that cycle's frame MS ms late.
+Drive profiles (``--profile``, ``options["profile"]``: names joined by
+commas) emulate real drives' quirks (:mod:`.profiles`).
 
 Between frames, and at least every :data:`POLL_S`, the loop checks the SM
 watchdog and runs the SYNC0 events due of a DC-synchronous slave
@@ -51,6 +53,7 @@ from servobench.sim_backend.servers.ethercat.frame import (
     encode_frame,
     returned_source,
 )
+from servobench.sim_backend.servers.ethercat.profiles import parse_profiles
 
 __all__ = ["SIM_KEYS", "open_raw_socket", "serve"]
 
@@ -153,7 +156,10 @@ def serve(
     if injector is None:
         injector = FaultInjector(device, parse_plan(options.get("fault") or "", "ethercat"))
     keys = dict(parse_qsl(options.get("sim_keys") or "", keep_blank_values=True))
-    slave = CoeSlave(device, injector, keys, timestamp=options.get("timestamp") != "none")
+    profile = parse_profiles(options.get("profile") or "")
+    slave = CoeSlave(
+        device, injector, keys, timestamp=options.get("timestamp") != "none", profile=profile
+    )
     with contextlib.closing(open_raw_socket(iface)) as sock:
         announce(f"ethercat://{master_side(iface)}?slave=1")
         while not stop.is_set():
