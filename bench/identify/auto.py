@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from servobench.bench.identify.dataset import Dataset, prepare
+from servobench.bench.identify.drive_grid import find_drive_grid, on_grid
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.motion import require_motion
@@ -80,8 +81,18 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
+    grid = find_drive_grid(data, result.model)
+    logged, regrid = data, None
+    if grid is not None:  # the drive's tick located on the host's clock: samples onto it
+
+        def regrid(d: Dataset) -> Dataset:
+            return on_grid(d, grid)[0]
+
+        data, merged = on_grid(data, grid)
+        result = identify_data(data, method, resonance=resonance)
+        result = replace(result, notes=(*result.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
-    timing = timing_figure(log.metadata, data, estimate)
+    timing = timing_figure(log.metadata, data, estimate, regrid, logged)
     return result if timing is None else replace(result, timing=timing)
 
 

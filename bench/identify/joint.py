@@ -258,6 +258,21 @@ def _scan_data(data: Dataset) -> Dataset:
     return replace(data, segments=tuple(s.head(per_run) for s in data.segments))
 
 
+def pair_residual_ms(data: Dataset, delay_s: float, tau_s: float) -> float:
+    """Mean squared residual [units^2/s^2] of the plain pair regression (least squares, no
+    weights) of the first :data:`DELAY_SCAN_SAMPLES` samples, the commands acting ``delay_s``
+    [s] late (equivalent commands for time constant ``tau_s`` [s]): how well a timing explains
+    the data, for comparing timings (:mod:`~servobench.bench.identify.drive_grid`)."""
+    scan = delayed(_scan_data(data), delay_s, tau_s)
+    pairs = _pairs(scan)
+    if scan.jittered:
+        start = fit_pairs(pairs, float(np.mean(pairs.dt)))
+        fit = fit_pairs_irregular(pairs, (start.M, start.B, start.coulomb_pos, start.coulomb_neg))
+    else:
+        fit = fit_pairs(pairs, data.dt_s)
+    return float(np.mean(fit.residual**2))
+
+
 def pair_regression(data: Dataset, delay_s: float = 0.0, tau_s: float = 1.0) -> ServoModel:
     """The exact pair regression alone (step 1, timing-weighted where the log gives ``t_unc``),
     for commands acting ``delay_s`` [s] late (equivalent commands for time constant ``tau_s``):

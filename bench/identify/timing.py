@@ -53,7 +53,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -83,6 +83,12 @@ METHOD_STAMPS = "drive time stamps: exact instants; the model's own 1 sigma"
 #: The delay counts as inseparable from the plant's lag when its 1 sigma exceeds this share of
 #: the longer of a cycle and the time constant.
 DELAY_SEPARABLE_SHARE = 0.25
+#: The method where the samples were moved onto the drive's tick grid located on the host's clock.
+METHOD_GRID = (
+    f"re-identification ({DRAWS} draws) with every read placed at random in its bracket t +- t_unc "
+    "and moved onto the drive's tick grid again; rms relative change, 1 sigma, with the model's own "
+    "1 sigma in quadrature"
+)
 #: The method where the residuals show no scatter to read.
 METHOD_BOUND = (
     f"re-identification ({DRAWS} draws, by the estimator that gave the model) with every instant "
@@ -248,9 +254,20 @@ def _number(text: str | None) -> float:
 
 
 def timing_figure(
-    metadata: Mapping[str, str], data: Dataset, estimate: MethodEstimate
+    metadata: Mapping[str, str],
+    data: Dataset,
+    estimate: MethodEstimate,
+    regrid: Callable[[Dataset], Dataset] | None = None,
+    logged: Dataset | None = None,
 ) -> TimingFigure | None:
     """The timing figure of a real-time log and the model identified from it.
+
+    ``regrid`` and ``logged``: the samples of ``data`` were moved onto the drive's
+    tick grid located on the host's clock
+    (:mod:`~servobench.bench.identify.drive_grid`); ``logged`` holds them as
+    logged. The draws then place each read anywhere in its bracket ``t +- t_unc``
+    (where the request really reached the drive) and move it onto the grid again,
+    so a read that could have landed on either of two ticks does so at random.
 
     None for a log without ``clock_source`` (lock-step streaming, older logs,
     files of other tools): its instants are the nominal grid or the drive's.
@@ -266,8 +283,12 @@ def timing_figure(
         from servobench.bench.identify.joint import instant_scatter_s
 
         scatter = instant_scatter_s(data, m)
-        timing = perturbed_spread_pct(data, estimate, scatter_s=scatter)
-        method = METHOD if math.isfinite(scatter) else METHOD_BOUND
+        if regrid is not None and logged is not None:
+            timing = perturbed_spread_pct(logged, estimate, regrid=regrid)
+            method = METHOD_GRID
+        else:
+            timing = perturbed_spread_pct(data, estimate, scatter_s=scatter)
+            method = METHOD if math.isfinite(scatter) else METHOD_BOUND
     statistical = {k: _relative_pct(estimate.std.get(k, math.nan), getattr(m, k)) for k in STD_KEYS}
     # the timing's share and the model's own statistical sigma, independent: added in quadrature
     error = {k: math.hypot(timing[k], statistical[k]) if math.isfinite(statistical[k]) else timing[k]
@@ -301,6 +322,7 @@ def perturbed_spread_pct(
     draws: int = DRAWS,
     seed: int = SEED,
     scatter_s: float = math.nan,
+    regrid: Callable[[Dataset], Dataset] | None = None,
 ) -> dict[str, float]:
     """RMS relative change [%] of each parameter when the instants move within ``t_unc``:
     by normal draws of ``scatter_s`` [s] clipped to ``t +- t_unc``, or uniformly within it
@@ -331,7 +353,9 @@ def perturbed_spread_pct(
             # a drive that samples at its own last tick widens each bracket by up to its tick,
             # which its action delay bounds
             reach = s.t_unc + max(estimate.model.delay_s, 0.0)
-            if math.isfinite(scatter_s):
+            if regrid is not None:  # the request reached the drive anywhere in its bracket
+                t = s.t + rng.uniform(-1.0, 1.0, len(s)) * s.t_unc
+            elif math.isfinite(scatter_s):
                 t = s.t + np.clip(rng.normal(0.0, scatter_s, len(s)), -reach, reach)
             else:
                 t = s.t + rng.uniform(-1.0, 1.0, len(s)) * reach
@@ -343,6 +367,8 @@ def perturbed_spread_pct(
             segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12)))
         moved = replace(data, segments=tuple(segments))
         try:
+            if regrid is not None:
+                moved = regrid(moved)
             m = identify_joint(moved, start=estimate).model if refine else pair_regression(moved, delay, tau)
         except IdentificationError:
             continue

@@ -1,0 +1,84 @@
+"""The drive's tick located on the host's clock from a log without stamps (issue 28).
+
+The reference is built independently of :mod:`servobench.bench.identify.drive_grid`:
+a drive that samples at its last tick before each request and acts from the
+next, simulated on its own tick grid (exact zero-order hold per tick), read by
+a host whose requests jitter across the drive's ticks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from servobench.bench.identify.auto import identify_data
+from servobench.bench.identify.dataset import Dataset, Segment
+from servobench.bench.identify.drive_grid import DriveGrid, find_drive_grid, on_grid
+from servobench.bench.model.servo import ServoModel
+
+TRUE = ServoModel(0.01, 1.0, 0.5, 0.4)
+TICK = 1e-3
+
+
+def _host_log(phase_s: float, seed: int, jitter_s: float = 0.2e-3, n: int = 4000) -> tuple[Dataset, list]:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 1e-3
+    s = sum(np.sin(2 * np.pi * f * t + p) for f, p in zip((1.0, 3.0, 7.0), rng.uniform(0, 6, 3), strict=True))
+    segments, sampled = [], []
+    for run, scale in ((1, 1.0), (2, 0.8)):
+        u = 2.0 * scale * np.sign(s)
+        arrive = t + 1.3e-3 + rng.uniform(-jitter_s, jitter_s, n)  # the request reaches the drive
+        n_sample = np.floor((arrive - phase_s) / TICK).astype(int)  # its last tick
+        ticks = int(n_sample[-1]) + 2
+        u_tick = np.zeros(ticks)  # the command in force over each tick: the last one that arrived
+        for k in range(n):
+            u_tick[n_sample[k] + 1 :] = u[k]
+        v_tick = TRUE.simulate(u_tick, 1.0 / TICK).v
+        v = v_tick[n_sample]
+        segments.append(Segment(run, arrive, u, v, 1000.0, np.diff(arrive), t_unc=np.full(n, 0.05e-3)))
+        sampled.append(n_sample)
+    return Dataset(tuple(segments), 1000.0), sampled
+
+
+# requests reach the drive 0.1-0.5 ms past each host millisecond: at 0.25 and 0.42 ms a quarter of
+# them cross one of its ticks; at 0.8 ms none does, but each sample's lag still varies by 0.4 ms
+@pytest.mark.parametrize("phase_s", [0.25e-3, 0.42e-3, 0.8e-3])
+def test_the_grid_is_found_and_the_samples_go_back_onto_their_ticks(phase_s):
+    data, sampled = _host_log(phase_s, seed=int(phase_s * 1e5))
+    first = identify_data(data, "joint")
+    grid = find_drive_grid(data, first.model)
+    assert grid is not None and grid.tick_s == TICK and abs(grid.drift) < 1e-6
+    # the grid found puts every read on the tick it was sampled at (the phase itself is known only
+    # to within the gap the reads leave between ticks)
+    for seg, ticks in zip(data.segments, sampled, strict=True):
+        offset = grid.index(seg.t) - ticks  # one whole number of ticks for every read
+        assert np.mean(offset == np.median(offset)) > 0.99
+    moved, _ = on_grid(data, grid)
+    result = identify_data(moved, "joint")
+    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
+                      (result.model.coulomb_neg, 0.4)):  # fmt: skip
+        assert got == pytest.approx(want, rel=1e-3)
+    assert result.model.delay_s == pytest.approx(TICK, abs=0.02e-3)
+    assert result.fit_percent > 99.9
+    # the constant delay alone is clearly worse on the same log
+    assert first.fit_percent < result.fit_percent
+
+
+def test_a_drive_that_samples_at_the_request_has_no_grid():
+    rng = np.random.default_rng(3)
+    n = 3000
+    t = np.arange(n) * 1e-3 + rng.uniform(-0.1e-3, 0.1e-3, n)
+    u = 2.0 * np.sign(np.sin(2 * np.pi * 2.0 * t))
+    model = ServoModel(0.01, 1.0, 0.5, 0.4, delay_s=0.3e-3)
+    from servobench.bench.identify.simulation import simulate_velocity
+
+    v = simulate_velocity(model, u, np.diff(t))
+    data = Dataset((Segment(1, t, u, v, 1000.0, np.diff(t), t_unc=np.full(n, 0.05e-3)),), 1000.0)
+    assert find_drive_grid(data, identify_data(data, "joint").model) is None  # 0.3 ms is no tick
+
+
+def test_a_grid_maps_instants_to_ticks_with_drift():
+    g = DriveGrid(1e-3, 0.2e-3, 2.0, drift=50e-6)
+    n = g.index(np.array([0.0, 0.00021, 1.0]))
+    assert n.tolist() == [-1.0, 0.0, 999.0]
+    assert g.instant(np.array([0.0]))[0] == pytest.approx(0.2e-3 / (1 - 50e-6))
