@@ -113,8 +113,9 @@ def initial_base(data: DiagnosisData) -> BaseStart:
     if not fit["M"] > 0:
         return physical(ee, scale, equation_error)
     start = physical(fit, scale, f"servobench identify ({result.method})")
-    if not start.note and ee["B"] < B_MIN_SHARE * scale:
-        # The identifier may keep B positive by construction: the free fit tells.
+    if ee["B"] < B_MIN_SHARE * scale and (not start.note or ee["B"] < 0 <= fit["B"]):
+        # The identifier may keep B positive by construction (or absorb part of the friction
+        # curve in the drive's delay): the free fit tells, the more clearly where its B is negative.
         start = BaseStart(start.base, start.source, physical(ee, scale, equation_error).note)
     return start
 
