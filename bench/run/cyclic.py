@@ -15,6 +15,16 @@ A drive's stamp equal to the one before (two reads within one tick of the
 drive) is logged as read, with its equal ``t``; the run's
 :class:`~servobench.bench.run.feedback_check.FeedbackCheck` gets each
 sample's host time, to tell such a repeat from a drive clock standing still.
+
+A drive that reads back the torque that acted over each cycle
+(``Feedback.applied``: CiA 402 torque actual 0x6077 in the TxPDO, on
+EtherCAT and CANopen) has each row wait one cycle for it: where the
+read-back lies nearer the command that acted the cycle before than the row's own
+(its frame or RPDO missed the SYNC / SYNC0, and the command before acted
+once more), the row logs the command that acted and the cycle counts as a
+late command (``late_commands`` in the trailer, ``u_read_back`` naming the
+source). The read-back decides, it is not logged itself: a real drive's
+torque actual is measured, and its noise must not reach ``u``.
 """
 
 from __future__ import annotations
@@ -94,6 +104,8 @@ def stream_realtime(
     spin_s = spin_here_s()
     t0_host = monotonic()
     t_first = math.nan
+    held: list[float] | None = None  # the row before, waiting for the drive's read-back
+    acted_before = 0.0  # the command that acted over the cycle before that row's
     for k in range(n):
         deadline = t0_host + k * dt
         if not paced_by_drive:
@@ -108,11 +120,28 @@ def stream_realtime(
             t_first = t_abs
         t = t_abs - t_first
         t_host = end - t0_host
-        append(run.number, t, applied, fb.velocity, fb.position, t_host, t_unc)
+        row = [run.number, t, applied, fb.velocity, fb.position, t_host, t_unc]
+        read_back = fb.applied
+        if held is not None:  # the drive read back the torque that acted over the held row's cycle
+            sent = held[2]
+            if read_back == read_back and sent != acted_before and abs(read_back - acted_before) < abs(read_back - sent):
+                held[2] = acted_before  # its frame came late: the command before acted once more
+                clock.late_commands += 1
+            acted_before = held[2]
+            append(*held)
+            held = None
+        if read_back == read_back:  # a drive that reads back: the row waits one cycle
+            held = row
+            clock.read_back = True
+        else:
+            acted_before = applied
+            append(*row)
         mark(k, start if paced_by_drive else deadline, start, end, t_unc, fb.t_s)
         run.host.add(t_host)
         run.clock.add(t)
         if k % every == 0:
             run.report(k + 1)
+    if held is not None:  # the last row: no cycle after it to read back
+        append(*held)
     run.report(n)
 

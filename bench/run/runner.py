@@ -370,6 +370,9 @@ def _trailer(
         extra.update(CycleTiming.of(clocks, dt).as_metadata())
         for name, count in drive.cycle_counts().items():
             extra[name] = count
+        if any(c.read_back for c in clocks):
+            extra["u_read_back"] = "torque actual 0x6077 with the next sample"
+            extra["late_commands"] = sum(c.late_commands for c in clocks)
         if drive.clock_source() == "drive":
             stamps = [(s.run, c.stamp[: c.count]) for s, c in zip(timing, clocks, strict=False)]
             ticks = DriveTicks.of(stamps)

@@ -121,6 +121,10 @@ class CycleClock:
         self.t_unc = np.zeros(cycles)
         self.stamp = np.full(cycles, math.nan)
         self.count = 0
+        #: The drive read back the torque that acted over each cycle (``Feedback.applied``: 0x6077).
+        self.read_back = False
+        #: Rows whose read-back showed the command before acting once more (a frame or RPDO late).
+        self.late_commands = 0
 
     def mark(
         self, k: int, deadline: float, start: float, end: float, t_unc: float, stamp_s: float = math.nan
