@@ -171,7 +171,8 @@ class Drive(ABC):
     ``_quick_stop``, ``_configure_watchdog``, ``_set_cycle``, ``_fault_code``,
     ``_reset_fault`` and ``_info``. Optional capabilities are declared here
     with their defaults (:attr:`realtime`, :attr:`supports_block`,
-    :attr:`supports_drive_hold`, :meth:`max_rate_hz`, :meth:`log_metadata`, :meth:`link_recoveries`,
+    :attr:`supports_drive_hold`, :attr:`hold_only`, :attr:`remarks`, :attr:`read_only`,
+    :meth:`max_rate_hz`, :meth:`log_metadata`, :meth:`link_recoveries`,
     :meth:`record_traffic`, :meth:`clock_source`, :meth:`io_threads`, :meth:`start_cycle_clock`),
     never probed.
 
@@ -197,6 +198,12 @@ class Drive(ABC):
     #: command is added as a torque offset (CiA 402 cyclic synchronous position
     #: with 0x60B2); see :meth:`hold_position`.
     supports_drive_hold: bool = False
+    #: True when the drive takes a command only as the torque offset of its own
+    #: position hold (a CiA 402 drive without cyclic synchronous torque, or one
+    #: told ``mode=csp``): enabling holds the position it stands at, and a run must
+    #: excite it under :meth:`hold_position` (the closed-loop path), where
+    #: ``Feedback.applied`` is the total command. Implies :attr:`supports_drive_hold`.
+    hold_only: bool = False
     #: Units of command, velocity and position, keys ``u``, ``v``, ``x``: SI as
     #: ``"N m"``, ``"N"``, ``"A"``, ``"rad/s"``, ``"m/s"``, ``"rad"``, ``"m"``, else
     #: the drive's own unit named as such (``"rpm"``, ``"inc"``); ``""`` when
@@ -216,6 +223,10 @@ class Drive(ABC):
         if not self.watchdog_s > 0:
             raise UsageError("watchdog must be > 0 s")
         self.cycle_s: float | None = None
+        #: What the drive did otherwise than asked, one sentence each (an optional object it
+        #: refused, a stop it did not honour); in :meth:`log_metadata` as ``remarks``.
+        self.remarks: list[str] = []
+        self._read_only = False
         self._is_open = False
         self._enabled = False
         self._holding = False
@@ -229,17 +240,38 @@ class Drive(ABC):
     def enabled(self) -> bool:
         return self._enabled
 
-    def open(self) -> Drive:
-        """Connect and arm the drive-side watchdog. Idempotent."""
+    @property
+    def read_only(self) -> bool:
+        """True when opened with ``read_only``: nothing is written to the drive."""
+        return self._read_only
+
+    def open(self, *, read_only: bool = False) -> Drive:
+        """Connect and arm the drive-side watchdog. Idempotent.
+
+        ``read_only``: only read (identity, state, faults, feedback); nothing is
+        written to the drive, no watchdog is armed and no bus state beyond what
+        reading needs is requested (EtherCAT stays in PRE-OP, CANopen gets no NMT
+        command). Backends see it as :attr:`read_only` in ``_open``. A read-only
+        drive refuses :meth:`enable`, commands and set-up; :meth:`stop` and
+        :meth:`disable` have nothing to do.
+        """
         if not self._is_open:
+            self._read_only = bool(read_only)
             self._open()
             self._is_open = True
+            if self._read_only:
+                return self
             try:
                 self._configure_watchdog(self.watchdog_s)
             except BaseException:
                 self.close()
                 raise
         return self
+
+    def _require_writable(self) -> None:
+        self._require_open()
+        if self._read_only:
+            raise UsageError(f"the {self.url.scheme} drive was opened read-only: it takes no command")
 
     def close(self) -> None:
         """Stop and disable the axis, then disconnect. Safe to call twice."""
@@ -290,13 +322,13 @@ class Drive(ABC):
     # ------------------------------------------------------------------- power
     def enable(self) -> None:
         """Bring the drive to its operational (torque-on) state with zero command."""
-        self._require_open()
+        self._require_writable()
         self._enable()
         self._enabled = True
 
     def disable(self) -> None:
         """Remove torque (zero command first). Safe when already disabled."""
-        if not self._is_open:
+        if not self._is_open or self._read_only:
             return
         try:
             self._write_command(0.0)
@@ -308,8 +340,16 @@ class Drive(ABC):
             self._disable()
 
     def stop(self) -> None:
-        """Quick stop: zero command and the drive's own stop ramp where it has one."""
+        """Quick stop: zero command and the drive's own stop ramp where it has one.
+
+        A drive that does not honour its quick stop is brought to a safe state
+        another way by the backend (CiA 402: disable voltage), which says so in
+        :attr:`remarks`; only an axis that could not be stopped at all raises.
+        Nothing to do on a drive opened read-only (it was never enabled).
+        """
         self._require_open()
+        if self._read_only:
+            return
         self._quick_stop()
 
     @property
@@ -330,7 +370,7 @@ class Drive(ABC):
         DriveUnavailableError
             The drive has no such mode (:attr:`supports_drive_hold` is False).
         """
-        self._require_open()
+        self._require_writable()
         if not self.supports_drive_hold:
             raise DriveUnavailableError(
                 f"{self.url.scheme}:// cannot hold a position with its own loop; "
@@ -352,13 +392,15 @@ class Drive(ABC):
         """Tell the drive the control cycle period [s] the host will stream at."""
         if not period_s > 0:
             raise UsageError("cycle period must be > 0 s")
+        if self._read_only:
+            self._require_writable()
         self.cycle_s = float(period_s)
         self._set_cycle(self.cycle_s)
 
     # ----------------------------------------------------------------- cycles
     def command(self, u: float) -> float:
         """Send command ``u`` (clamped to the limits); return the value applied."""
-        self._require_open()
+        self._require_writable()
         applied = self._representable(self.limits.clamp(float(u)))
         self._write_command(applied)
         return applied
@@ -373,13 +415,13 @@ class Drive(ABC):
 
         Returns the feedback and the command actually applied (after clamping).
         """
-        self._require_open()
+        self._require_writable()
         applied = self._representable(self.limits.clamp(float(u)))
         return self._checked(self._exchange(applied)), applied
 
     def exchange_block(self, u: np.ndarray) -> BlockFeedback:
         """Several cycles at once (fast simulated drives); same semantics as :meth:`exchange`."""
-        self._require_open()
+        self._require_writable()
         u = np.asarray(u, dtype=float)
         applied = np.clip(u, -self.limits.max_command, self.limits.max_command)
         block = self._exchange_block(applied)
@@ -418,7 +460,7 @@ class Drive(ABC):
 
     def reset_fault(self) -> None:
         """Acknowledge a drive fault; raises :class:`DriveFaultError` if it persists."""
-        self._require_open()
+        self._require_writable()
         self._reset_fault()
 
     def info(self) -> DriveInfo:
@@ -453,6 +495,8 @@ class Drive(ABC):
         rate_hz = self.max_rate_hz()
         if math.isfinite(rate_hz):
             meta["link_max_rate_hz"] = f"{rate_hz:.1f}"
+        if self.remarks:
+            meta["remarks"] = "; ".join(self.remarks)
         return meta
 
     def clock_source(self) -> str:

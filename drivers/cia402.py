@@ -102,6 +102,27 @@ AUTOMATIC: dict[CiA402State, CiA402State] = {
     S.FAULT_REACTION_ACTIVE: S.FAULT,  # 14, when the fault reaction is done
 }
 
+#: States in which a quick stop has done its work (CiA 402 0x605A): the drive no longer
+#: follows the host's command. Option codes 0-4 end in SWITCH ON DISABLED (1-4 through
+#: QUICK STOP ACTIVE while they brake), 5-8 stay in QUICK STOP ACTIVE.
+QUICK_STOPPED: frozenset[CiA402State] = frozenset({S.SWITCH_ON_DISABLED, S.QUICK_STOP_ACTIVE})
+
+
+def quick_stop_end(option_code: int | None) -> CiA402State:
+    """The state a quick stop ends in by the drive's quick stop option code 0x605A.
+
+    0-4 (disable drive function; stop on the slow-down ramp, the quick-stop
+    ramp, at the current or the voltage limit): SWITCH ON DISABLED; 5-8 (the
+    same four, then staying put): QUICK STOP ACTIVE. ``None`` (the drive has no
+    0x605A) and the manufacturer's negative codes: SWITCH ON DISABLED, the
+    standard's default behaviour; either state of :data:`QUICK_STOPPED` still
+    counts as stopped.
+    """
+    if option_code is not None and 5 <= option_code <= 8:
+        return S.QUICK_STOP_ACTIVE
+    return S.SWITCH_ON_DISABLED
+
+
 #: Human-readable names of the device control commands, for messages.
 COMMAND_NAMES: dict[int, str] = {
     CW_DISABLE_VOLTAGE: "disable voltage",

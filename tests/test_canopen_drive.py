@@ -216,7 +216,7 @@ def test_virtual_bus_in_process() -> None:
         ("canopen://can0?interface=socketcan&node=128", "node=1..127"),
         ("canopen://vcan0?interface=socketcand&node=2", "host= and port="),
         ("canopen://can0?interface=socketcan&node=2&host=h&port=1", "socketcand only"),
-        ("canopen://can0?node=2&mode=csp", "mode must be"),
+        ("canopen://can0?node=2&mode=foo", "mode must be"),
         ("canopen://can0?node=2&host_node=2", "host_node"),
         ("canopen://?node=2", "needs a channel"),
     ],

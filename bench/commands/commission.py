@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument(
         "--dry-run", action="store_true",
-        help="read only: check and confirm, then say what would be done; nothing is enabled",
+        help="read only: check and confirm, then say what would be done; nothing is written to the drive",
     )  # fmt: skip
     p.add_argument("--out", metavar="DIR", help="record folder (default: commission-<date>-<time>)")
     p.add_argument(

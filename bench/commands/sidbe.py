@@ -153,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
             f"closed, {h['where']}-side hold at x = {h['x_ref']:.4g}, "
             f"{h['travel_share']:.0%} of the room {h['room']:.4g} used"
         )
+    if result.remarks:  # how the axis was stopped, optional objects the drive refused
+        facts["drive remarks"] = "; ".join(result.remarks)
     print_result(result.result, "SIDBE: identified model", facts)
     print(f"output: {result.out_dir}")
     return verdict

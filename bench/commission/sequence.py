@@ -7,8 +7,10 @@
 4. SIDBE with its verification loop, then the diagnosis;
 5. design (friction feed-forward, velocity PI), simulation check, record and report.
 
-Step 1 runs on a read-only connection opened with the URL as given; the
-moving steps run on a second connection opened with the confirmed limits.
+Step 1 runs on a connection opened with the URL as given (under ``--dry-run``
+opened read-only, :meth:`~servobench.drivers.base.Drive.open`: nothing is
+written to the drive on any transport); the moving steps run on a second
+connection opened with the confirmed limits.
 Every connection is a context manager, so on any exit -- refusal, error,
 Ctrl-C -- the axis is stopped and disabled; logs are written as samples
 arrive and kept, and ``commission.json`` records how far it got.
@@ -267,7 +269,7 @@ class Commissioning:
     def _check_step(self) -> DriveCheck:
         """Step 1 on a read-only connection with the URL as given."""
         self.console.step(1, "link and drive")
-        with self._connect(self.o.drive_url, record=self.o.dry_run) as drive:
+        with self._connect(self.o.drive_url, record=self.o.dry_run, read_only=self.o.dry_run) as drive:
             check = check_drive(drive, self.console, dry_run=self.o.dry_run, allow_reset=self._allow_reset)
             self.bump = at_link_rate(self.o.config.bump, self.o.config.sidbe.get("fs_hz"), drive)
         self._done("check", drive_info=check.as_dict())
@@ -339,10 +341,11 @@ class Commissioning:
         return diag
 
     # ----------------------------------------------------------------- helpers
-    def _connect(self, url: str, *, record: bool) -> Drive:
+    def _connect(self, url: str, *, record: bool, read_only: bool = False) -> Drive:
+        """The drive at ``url``, open (``read_only``: it writes nothing to the drive, the dry run)."""
         try:
             drive = self.factory(url)
-            drive.open()
+            drive.open(read_only=read_only)
         except DriveError as err:
             raise CommissionRefused(f"cannot connect to the drive: {err}") from err
         if record and self.o.record_bus is not None:

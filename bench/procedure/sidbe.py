@@ -256,6 +256,9 @@ class SidbeResult:
     fs_achieved_hz: float = math.nan
     #: The drive's scale factors the log states (``drive_scale`` of model.json), empty when none.
     drive_scale: Mapping[str, Any] = field(default_factory=dict)
+    #: What the drive did otherwise than asked during the run (:attr:`Drive.remarks`: an optional
+    #: object refused, a stop by disable voltage), for model.json and the summary; empty when none.
+    remarks: tuple[str, ...] = ()
 
     @property
     def loop(self) -> str:
@@ -294,6 +297,8 @@ class SidbeResult:
             out["hold"] = dict(self.hold)
         if self.drive_scale:
             out["drive_scale"] = dict(self.drive_scale)
+        if self.remarks:
+            out["remarks"] = list(self.remarks)
         return out
 
     def files(self) -> dict[str, str]:
@@ -348,6 +353,7 @@ def run_sidbe(
             cap = options.amplitude_cap(drive)
             iterations, best = _rounds(drive, options, design, cap, out, progress)
     finally:
+        remarks = tuple(drive.remarks)
         if opened_here:
             drive.close()
     if best is None:
@@ -379,6 +385,7 @@ def run_sidbe(
         best_log,
         achieved_hz,
         drive_scale_json(read_log(log_path).metadata, str(log_path)),
+        remarks,
     )
     model_path.write_text(json.dumps(sr.to_json(), indent=2) + "\n", encoding="utf-8")
     return sr

@@ -66,6 +66,8 @@ from servobench.bench.run.runner import (
     _stop_quietly,
     _trailer,
     achieved_rate_hz,
+    final_stop,
+    kept_after_stop,
     note_partial_log,
 )
 from servobench.bench.run.timing_stats import CycleClock, CycleTiming, PeriodStats, TimingStats
@@ -162,6 +164,7 @@ def stream_closed_runs(
         try:
             with _sigterm_as_interrupt():
                 cycler.session(runs, timing)
+                stop_error = final_stop(drive)
         except BaseException as err:
             try:
                 _stop_quietly(drive)
@@ -175,6 +178,8 @@ def stream_closed_runs(
         writer.finish("complete", samples=writer.rows, travel_excursion=cycler.excursion,
                       travel_share=cycler.excursion / plan.room,
                       **_trailer(drive, timing, cycler.clocks, checked.dt))  # fmt: skip
+    if stop_error is not None:
+        raise kept_after_stop(stop_error, log_path)
     cycle = CycleTiming.of(cycler.clocks, checked.dt) if realtime else None
     return ClosedRunResult(Path(log_path), writer.rows, tuple(timing), cycler.excursion, plan.room,
                            cycle, drive.clock_source() if realtime else "")  # fmt: skip
@@ -239,8 +244,6 @@ class _Cycler:
         self.cycle(0.0)  # brings the read-back of the last row
         if drive.holding:
             drive.release_hold()
-        drive.stop()
-        drive.disable()
 
     # ----------------------------------------------------------------- phases
     def move(self, x_start: float) -> None:

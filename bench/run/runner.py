@@ -229,6 +229,7 @@ def stream_runs(
         try:
             with _sigterm_as_interrupt():
                 _stream_all(drive, runs, plan, sink, timing, clocks)
+                stop_error = final_stop(drive)
         except BaseException as err:
             try:
                 _stop_quietly(drive)
@@ -242,6 +243,8 @@ def stream_runs(
             raise
         _drain(sink)
         writer.finish("complete", samples=writer.rows, **_trailer(drive, timing, clocks, plan.dt))
+    if stop_error is not None:
+        raise kept_after_stop(stop_error, log_path)
     cycle = CycleTiming.of(clocks, plan.dt) if realtime else None
     source = drive.clock_source() if realtime else ""
     return RunResult(Path(log_path), writer.rows, tuple(timing), True, cycle, source)
@@ -341,8 +344,30 @@ def _stream_all(
             done += len(u)
     finally:
         drive.stop_cycle_clock()
-    drive.stop()
-    drive.disable()
+
+
+def final_stop(drive: Drive) -> DriveError | None:
+    """Stop and disable the axis after the last sample; a failure is returned, not raised.
+
+    The Drive layer already brings a drive that ignores its quick stop to rest by
+    disabling it, and says so in :attr:`~servobench.drivers.base.Drive.remarks`; what
+    reaches here is an axis that could not be stopped at all. Every sample was
+    received by then: the caller keeps the complete log (the remark in its
+    trailer) and raises the error afterwards (:func:`kept_after_stop`).
+    """
+    try:
+        drive.stop()
+        drive.disable()
+    except DriveError as err:
+        drive.remarks.append(f"the axis did not stop after the last sample: {err}")
+        return err
+    return None
+
+
+def kept_after_stop(err: DriveError, log_path: str | Path) -> DriveError:
+    """The error of a failed final stop, naming the complete log that was kept."""
+    return type(err)(f"{err}; every sample was received and the complete log is kept in {log_path} "
+                     "(servobench identify can read it)")  # fmt: skip
 
 
 def _reason(err: BaseException) -> str:
@@ -384,6 +409,8 @@ def _trailer(
     for name, count in drive.link_recoveries().items():
         if count:
             extra[f"link_{name}"] = count
+    if drive.remarks:  # how the axis was stopped, objects it refused
+        extra["remarks"] = "; ".join(drive.remarks)
     return extra
 
 

@@ -2,6 +2,7 @@
 
 Every step writes only objects the drive has (:class:`~servobench.drivers.canopen.sdo.DriveObjects`)
 and raises a typed error when the drive refuses, never logs and carries on.
+:func:`read_up` is the read-only open: SDO uploads only, no NMT command.
 The PDO procedure is CiA 301's: invalidate the PDO (COB-ID bit 31), set the
 transmission type, clear the map (sub-index 0), write the entries, set their
 number, validate. COB-IDs are read, modified and written back: bit 30 (no RTR
@@ -12,12 +13,19 @@ from __future__ import annotations
 
 import threading
 import time
+from typing import TYPE_CHECKING
 
-from servobench.drivers.canopen.mapping import SYNCHRONOUS, Layout, Pdo
+import canopen
+
+from servobench.drivers.canopen.cycle import CycleIO
+from servobench.drivers.canopen.mapping import SYNCHRONOUS, Layout, Pdo, plan_layout
 from servobench.drivers.canopen.sdo import DriveObjects, SdoAccess, aborted_with
 from servobench.drivers.cia402 import interpolation_period
-from servobench.drivers.cia402_units import FactorObjects
+from servobench.drivers.cia402_units import FactorObjects, derive_scaling
 from servobench.errors import DriveConfigError, StateTransitionError, UsageError
+
+if TYPE_CHECKING:
+    from servobench.drivers.canopen.session import CanopenSession
 
 #: COB-ID bit 31: PDO not valid. Bit 30: no RTR allowed on this PDO (kept as the drive has it).
 COB_INVALID = 0x80000000
@@ -162,3 +170,40 @@ def write_cycle(sdo: SdoAccess, objects: DriveObjects, period_s: float) -> None:
     if interpolation:
         sdo.write(0x60C2, 1, value)
         sdo.write(0x60C2, 2, index)
+
+
+def read_up(session: CanopenSession) -> None:
+    """A read-only open of ``session`` (connected): what the bring-up learns, by SDO upload only.
+
+    The object dictionary, identity profile, factor group and units, the
+    modes, the PDO layout the bring-up would map (planned, not written) and
+    max torque 0x6072; no SDO download, no NMT command, no heartbeat: the
+    node stays in the NMT state it is in.
+    """
+    o, n = session.options, session.options.node_id
+    od, from_eds = session._object_dictionary()
+    session.node = canopen.RemoteNode(n, od)
+    session.network.add_node(session.node)
+    sdo = session.sdo = SdoAccess(session.node, o.sdo_timeout_s)
+    objects = session.objects = DriveObjects(od, from_eds, sdo)
+    io = session.io = CycleIO(o, session.network, sdo)
+    profile = sdo.read(0x1000) & 0xFFFF
+    if profile != 402:
+        raise DriveConfigError(f"node {n} is no CiA 402 drive (0x1000 profile {profile})")
+    session.factors = read_factors(objects)
+    session.scaling = io.scaling = derive_scaling(session.factors, o.overrides)
+    session.hold_reason = session._hold_capability(objects.value(0x6502))
+    try:
+        session.layout = io.layout = plan_layout(
+            n, lambda i: objects.mappable(i, receive=True), lambda i: objects.mappable(i, receive=False),
+            hold=session.hold_reason is None, clock=True,
+        )  # fmt: skip
+    except ValueError as err:
+        raise DriveConfigError(f"node {n}: {err}") from None
+    if objects.has(0x6072):
+        io.max_lsb = lsb = min(sdo.read(0x6072), 0x7FFF)
+        u = session.scaling.u
+        session.notes["max_torque"] = f"0x6072 = {lsb} ({lsb * u.scale:.6g} {u.unit})"
+    else:
+        session.notes["max_torque"] = "host-side clamping only (the drive has no 0x6072)"
+    session.notes["watchdog_action"] = "none armed (read-only)"

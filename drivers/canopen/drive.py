@@ -84,20 +84,26 @@ import warnings
 import canopen
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
-from servobench.drivers.canopen.bringup import set_mode
+from servobench.drivers.canopen.bringup import read_up, set_mode
 from servobench.drivers.canopen.link import load_eds
-from servobench.drivers.canopen.options import QUERY_KEYS, CanopenOptions
+from servobench.drivers.canopen.options import AUTO, QUERY_KEYS, CanopenOptions
 from servobench.drivers.canopen.session import CanopenSession
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
+    CW_QUICK_STOP,
     MODE_CSP,
+    MODE_CST,
+    QUICK_STOPPED,
     CiA402State,
     Step,
     decode_statusword,
     plan,
+    quick_stop_end,
+    supports_mode,
 )
 from servobench.drivers.link_budget import canopen_cycle_s
 from servobench.errors import (
+    DriveConfigError,
     DriveFaultError,
     DriveWarning,
     StateTransitionError,
@@ -135,6 +141,8 @@ class CANopen402Drive(Drive):
         self.supports_drive_hold = False  # set at open, from the drive's objects
         self.torque_actual = 0.0  #: last 0x6077 [command units]
         self._expected: CiA402State | None = None
+        self._quick_stop_option: int | None = None
+        self._command = "not open"
 
     # --------------------------------------------------------------- plumbing
     @property
@@ -154,18 +162,60 @@ class CANopen402Drive(Drive):
         session = CanopenSession(self.options, self.limits)
         session.connect()
         try:
-            session.bring_up()
+            if self.read_only:  # SDO uploads only: no download, no NMT command
+                read_up(session)
+            else:
+                session = self._bring_up(session)
             self.session = session
             self.units = session.scaling.units
             self.supports_drive_hold = session.hold_reason is None
-            state = self._state()
-            if state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):  # left enabled by someone else
-                self._goto(S.SWITCH_ON_DISABLED)
+            self._quick_stop_option = session.optional(0x605A, 0, None)
+            if not self.read_only and self._state() in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
+                self._goto(S.SWITCH_ON_DISABLED)  # left enabled by someone else
         except BaseException:
             self.session = None
             session.disconnect()
             raise
         self._expected = None
+
+    def _bring_up(self, session: CanopenSession) -> CanopenSession:
+        """Bring the node up in the URL's mode; ``mode`` unset on a drive without cyclic
+        synchronous torque: again, in cyclic synchronous position with the torque offset
+        (:attr:`hold_only`). Returns the session brought up."""
+        o = self.options
+        try:
+            session.bring_up()
+        except DriveConfigError:
+            modes = None if session.objects is None else session.optional(0x6502, 0, None)
+            if o.mode_key != AUTO or modes is None or supports_mode(modes, MODE_CST):
+                raise
+            session.disconnect()
+            self.options = o.with_mode("csp")
+            session = CanopenSession(self.options, self.limits)
+            session.connect()
+            try:
+                self._bring_up_hold_only(session, f"no cyclic synchronous torque (0x6502 = 0x{modes:08X}, "
+                                         "bit 9 clear)")  # fmt: skip
+            except BaseException:
+                session.disconnect()
+                raise
+            return session
+        if o.mode_key == "csp":
+            self._bring_up_hold_only(session, "mode=csp", brought_up=True)
+        else:
+            self._command = f"{o.mode_name}: target torque 0x6071"
+        return session
+
+    def _bring_up_hold_only(self, session: CanopenSession, why: str, brought_up: bool = False) -> None:
+        if not brought_up:
+            session.bring_up()
+        if session.hold_reason is not None:
+            head = f"node {self.node_id}: mode=csp, but " if why == "mode=csp" else (
+                f"node {self.node_id} cannot be identified: {why}, and ")
+            raise DriveConfigError(f"{head}no torque offset under its position hold: {session.hold_reason}")
+        self.hold_only = True
+        self._command = ("torque offset 0x60B2 under the drive's own cyclic synchronous position hold, "
+                         f"0x6077 read back ({why})")  # fmt: skip
 
     def _configure_watchdog(self, timeout_s: float) -> None:
         """Host heartbeats every ``timeout_s / 4``; the drive consumes them (0x1016) and
@@ -180,7 +230,9 @@ class CANopen402Drive(Drive):
 
     def _close(self) -> None:
         session, self.session = self.session, None
-        if session is not None:
+        if session is not None and self.read_only:
+            session.disconnect()
+        elif session is not None:
             session.close(self.options.mode if session.mode != self.options.mode else None)
 
     def _record_traffic(self, path: str) -> None:
@@ -225,7 +277,9 @@ class CANopen402Drive(Drive):
         if self._state() in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             raise self._fault_error("cannot enable; reset the fault first")
         self.session.io.emcy = None  # what the drive reported before this enable is not news
-        self.session.io.set_torque(0.0, holding=self.holding)
+        if self.hold_only:  # the drive's own loop holds where the axis stands
+            self.session.io.set_target(self.session.io.read_feedback().position)
+        self.session.io.set_torque(0.0, holding=self._offset)
         self._sdo().write(0x6071, 0, 0)
         self._goto(S.OPERATION_ENABLED)
         self._expected = S.OPERATION_ENABLED
@@ -242,13 +296,47 @@ class CANopen402Drive(Drive):
             if self.session.mode != self.options.mode:  # leave a hold: back to the torque mode
                 self._leave_hold()
 
+    @property
+    def _offset(self) -> bool:
+        """The command goes out as the torque offset 0x60B2 (a hold, or a hold-only drive)."""
+        return self.holding or self.hold_only
+
     def _quick_stop(self) -> None:
-        self.session.io.set_torque(0.0, holding=self.holding)
-        if self._state() is S.OPERATION_ENABLED:
-            self._goto(S.QUICK_STOP_ACTIVE)
-            self._expected = S.QUICK_STOP_ACTIVE
-        else:
+        """Quick stop as 0x605A says it ends; disable voltage where the drive stays enabled."""
+        self.session.io.set_torque(0.0, holding=self._offset)
+        if self._state() is not S.OPERATION_ENABLED:
             self._sdo().write(0x6071, 0, 0)
+            return
+        self._expected = None
+        state = self._await(CW_QUICK_STOP, quick_stop_end(self._quick_stop_option))
+        if state in QUICK_STOPPED:
+            self._expected = state
+            return
+        seen = state
+        state = self._await(CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED)  # transition 9 (12 from QSA)
+        option = "none" if self._quick_stop_option is None else str(self._quick_stop_option)
+        if state is not S.SWITCH_ON_DISABLED:
+            raise StateTransitionError(
+                f"node {self.node_id} did not stop: it stayed in {seen.value} after the quick stop "
+                f"(0x605A = {option}) and in {state.value} after disable voltage, {STATE_TIMEOUT_S} s each"
+            )
+        self._expected = state
+        remark = (f"stopped by disable voltage: the drive did not honour the quick stop "
+                  f"(0x605A = {option}; it stayed in {seen.value} for {STATE_TIMEOUT_S} s)")  # fmt: skip
+        if remark not in self.remarks:
+            self.remarks.append(remark)
+
+    def _await(self, controlword: int, target: CiA402State) -> CiA402State:
+        """Send ``controlword`` and poll until ``target`` or the deadline; the state reached."""
+        self._controlword_write(controlword)
+        deadline = time.monotonic() + STATE_TIMEOUT_S
+        while (state := self._state()) is not target:
+            if state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+                raise self._fault_error(f"while stopping (controlword 0x{controlword:04X})")
+            if time.monotonic() > deadline:
+                break
+            time.sleep(STATE_POLL_S)
+        return state
 
     def _reset_fault(self) -> None:
         if self._state() not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
@@ -265,14 +353,23 @@ class CANopen402Drive(Drive):
     def _representable(self, u: float) -> float:
         return u if self.session is None else self.session.io.representable(u)
 
+    def _set_command(self, u: float) -> None:
+        if self.hold_only and not self.holding and u:
+            raise UsageError(
+                f"node {self.node_id} takes a command only as the torque offset of its own position "
+                f"hold ({self._command.split('(')[-1].rstrip(')')}): excite it under hold_position, as "
+                "sidbe does in closed loop"
+            )
+        self.session.io.set_torque(u, holding=self._offset)
+
     def _write_command(self, u: float) -> None:
-        self.session.io.set_torque(u, holding=self.holding)
-        self.session.io.send_rpdos(holding=self.holding)
+        self._set_command(u)
+        self.session.io.send_rpdos(holding=self._offset)
 
     def _exchange(self, u: float) -> Feedback:
         io = self.session.io
-        io.set_torque(u, holding=self.holding)
-        cycle = io.cycle(holding=self.holding)
+        self._set_command(u)
+        cycle = io.cycle(holding=self._offset)
         self._check_state(cycle.statusword)
         if io.emcy is not None:
             code, register = io.emcy
@@ -317,16 +414,18 @@ class CANopen402Drive(Drive):
             )
         self.session.io.set_target(x_ref)
         self.session.io.set_torque(0.0, holding=True)
-        set_mode(self._sdo(), MODE_CSP, "cyclic synchronous position")
-        self.session.mode = MODE_CSP
+        if self.session.mode != MODE_CSP:  # a hold-only drive is in CSP since open
+            set_mode(self._sdo(), MODE_CSP, "cyclic synchronous position")
+            self.session.mode = MODE_CSP
 
     def _release_hold(self) -> None:
         self._leave_hold()
 
     def _leave_hold(self) -> None:
-        self.session.io.set_torque(0.0, holding=False)
-        set_mode(self._sdo(), self.options.mode, self.options.mode_name)
-        self.session.mode = self.options.mode
+        self.session.io.set_torque(0.0, holding=self.hold_only)
+        if self.session.mode != self.options.mode:  # a hold-only drive goes on holding its target
+            set_mode(self._sdo(), self.options.mode, self.options.mode_name)
+            self.session.mode = self.options.mode
 
     # ------------------------------------------------------------ real time
     def clock_source(self) -> str:
@@ -371,6 +470,10 @@ class CANopen402Drive(Drive):
         meta = super().log_metadata()
         if self.session is not None:
             meta.update(self.session.metadata())
+            option = self._quick_stop_option
+            meta["command"] = self._command
+            meta["quick_stop_option"] = "none (no 0x605A)" if option is None else (
+                f"0x605A = {option}: ends in {quick_stop_end(option).value}")
         return meta
 
     def _info(self) -> DriveInfo:

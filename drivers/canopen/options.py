@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from servobench.drivers.cia402 import MODE_CST, MODE_PROFILE_TORQUE
+from servobench.drivers.cia402 import MODE_CSP, MODE_CST, MODE_PROFILE_TORQUE
 from servobench.drivers.cia402_units import Overrides
 from servobench.drivers.url import DriveURL
 from servobench.errors import DriveConfigError
@@ -21,11 +21,15 @@ QUERY_KEYS = frozenset(
 SDO_TIMEOUT_S = 1.0
 #: Wait for the TPDOs of one SYNC unless the URL sets ``pdo_timeout`` [s].
 PDO_TIMEOUT_S = 0.1
-#: Torque modes by URL name: (0x6060 value, description).
+#: Command modes by URL name: (0x6060 value, description). ``csp``: the torque offset
+#: 0x60B2 under the drive's own cyclic synchronous position hold (``Drive.hold_only``).
 MODES = {
     "cst": (MODE_CST, "cyclic synchronous torque"),
     "pt": (MODE_PROFILE_TORQUE, "profile torque"),
+    "csp": (MODE_CSP, "cyclic synchronous position"),
 }
+#: ``mode`` unset: CST where 0x6502 announces it, else CSP with the torque offset 0x60B2.
+AUTO = "auto"
 #: COB-ID of the SYNC the host produces (0x1005) unless the URL sets ``sync_cob``.
 SYNC_COB_ID = 0x80
 #: CiA 301 restricted 11-bit COB-IDs, which no SYNC may use (inclusive ranges).
@@ -52,6 +56,8 @@ class CanopenOptions:
     overrides: Overrides
     eds_path: str | None
     sync_cob: int
+    #: The URL's ``mode``: a key of :data:`MODES`, or :data:`AUTO` (``mode`` unset).
+    mode_key: str = "cst"
 
     @classmethod
     def from_url(cls, q: DriveURL) -> CanopenOptions:
@@ -64,9 +70,10 @@ class CanopenOptions:
             raise DriveConfigError("canopen:// needs node=1..127, the drive's node id")
         if not 1 <= host_node <= 127 or host_node == node_id:
             raise DriveConfigError(f"host_node must be 1..127 and not the drive's node {node_id}")
-        mode = q.get_str("mode", "cst")
-        if mode not in MODES:
-            raise DriveConfigError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+        mode_key = q.get_str("mode", AUTO)
+        if mode_key not in (*MODES, AUTO):
+            raise DriveConfigError(f"mode must be one of {', '.join(MODES)}, got {mode_key!r}")
+        mode = "cst" if mode_key == AUTO else mode_key
         timeouts = (
             q.get_float("sdo_timeout", SDO_TIMEOUT_S),
             q.get_float("pdo_timeout", PDO_TIMEOUT_S),
@@ -91,8 +98,12 @@ class CanopenOptions:
             bitrate=bitrate, server=_server(q, interface),
             mode=MODES[mode][0], mode_name=MODES[mode][1], sdo_timeout_s=timeouts[0],
             pdo_timeout_s=timeouts[1], overrides=overrides, eds_path=q.get_str("eds") or None,
-            sync_cob=_sync_cob(q, node_id),
+            sync_cob=_sync_cob(q, node_id), mode_key=mode_key,
         )  # fmt: skip
+
+    def with_mode(self, key: str) -> CanopenOptions:
+        """These options commanding in mode ``key`` (of :data:`MODES`)."""
+        return replace(self, mode=MODES[key][0], mode_name=MODES[key][1], mode_key=key)
 
 
 def _server(q: DriveURL, interface: str) -> tuple[str, int] | None:

@@ -4,15 +4,38 @@
 
 Needs pysoem (``pip install 'servobench[ethercat]'``) and CAP_NET_RAW. At open
 (:class:`~servobench.drivers.ethercat.master.EthercatMaster`): scan, the
-slave's identity, the CiA 402 check (0x1000 profile 402; 0x6502 must announce
-cyclic synchronous torque), the factor group read as on CANopen
-(:mod:`servobench.drivers.cia402_units`), max torque 0x6072 from ``max_u``
-where the slave has it, mode 0x6060 = 10 (CST), the PDO mapping
-(:mod:`.layout`), then SAFE-OP and OP with DC SYNC0 at the cycle period where
-the slave has distributed clocks, DC-synchronous (0x1C32:01 = 2) where the
-slave announces it in 0x1C32:04. :meth:`set_cycle` (before enabling) takes
-the slave back to PRE-OP, writes 0x1C32:02 [ns] and 0x60C2 where it has them,
-and comes back to OP with SYNC0 at the new period.
+slave's identity, the CiA 402 check (0x1000 profile 402), the command mode
+from 0x6502 and ``mode`` (below), the factor group read as on CANopen
+(:mod:`servobench.drivers.cia402_units`), the quick stop option code 0x605A,
+max torque 0x6072 from ``max_u`` where the slave has it, mode 0x6060, the PDO
+mapping (:mod:`.layout`), then SAFE-OP and OP with DC SYNC0 at the cycle
+period where the slave has distributed clocks, DC-synchronous (0x1C32:01 = 2)
+where the slave announces it in 0x1C32:04. :meth:`set_cycle` (before
+enabling) takes the slave back to PRE-OP, sets 0x1C32:02 [ns] and 0x60C2
+where it has them, and comes back to OP with SYNC0 at the new period.
+
+Required are only what the run cannot work without: the PDO mapping, the
+mode of operation 0x6060 and the DC settings. The optional objects (0x6072,
+0x1C32:01, 0x1C32:02, 0x60C2) are read first and written only where they
+differ; one the slave refuses (read-only 0x1C32:02, abort 0x06010002, as on
+many drives) is a remark (``Drive.remarks``, the log's ``remarks``), not an
+error. ``open(read_only=True)`` (``commission --dry-run``) only reads: the
+identity, the objects, state and feedback over SDO, in PRE-OP; no SDO
+download, no state beyond PRE-OP, no watchdog.
+
+Command mode (``mode``): cyclic synchronous torque, the target torque 0x6071
+(``cst``; ``auto``, the default, where 0x6502 announces it); else, or with
+``mode=csp``, the torque offset 0x60B2 under the drive's own cyclic
+synchronous position loop (``Drive.hold_only``): enabling holds the position
+the axis stands at (0x607A), :meth:`hold_position` moves the hold, and
+0x6077 reads back the total torque applied. Neither: one line naming what
+is missing.
+
+Quick stop (:meth:`stop`) follows 0x605A: SWITCH ON DISABLED (codes 0-4) and
+QUICK STOP ACTIVE (5-8) both count as stopped; a drive still OPERATION
+ENABLED (or elsewhere) after :data:`STATE_TIMEOUT_S` gets "disable voltage"
+(transition 9/12) and is checked disabled, and the remark says so; only if
+that fails too does the stop raise.
 
 Each :meth:`exchange` is one frame (two with a DC-synchronous slave, whose
 outputs take force and inputs are sampled at its SYNC0 events: the outputs,
@@ -42,7 +65,8 @@ on any error.
 
 Log metadata beside the units: ``scale_u``/``scale_v``/``scale_x`` and their
 ``_source``, ``drive_clock``, ``distributed_clocks``, ``complete_access``,
-``drive_hold``; the trailer counts ``link_wkc_errors``.
+``drive_hold``, ``command``, ``quick_stop_option``, ``remarks``; the trailer
+counts ``link_wkc_errors``.
 """
 
 from __future__ import annotations
@@ -59,14 +83,16 @@ from servobench.drivers.cia402 import (
     CW_QUICK_STOP,
     MODE_CSP,
     MODE_CST,
+    QUICK_STOPPED,
     CiA402State,
     decode_statusword,
     interpolation_period,
     plan,
+    quick_stop_end,
     supports_mode,
 )
 from servobench.drivers.cia402_units import FactorObjects, Scaling, derive_scaling
-from servobench.drivers.ethercat.layout import TIMESTAMPS
+from servobench.drivers.ethercat.layout import REQUIRED_RX, TIMESTAMPS
 from servobench.drivers.ethercat.master import EthercatMaster
 from servobench.drivers.ethercat.options import QUERY_KEYS, EthercatOptions
 from servobench.errors import (
@@ -78,8 +104,10 @@ from servobench.errors import (
 )
 
 S = CiA402State
-#: Deadline of each CiA 402 state transition [s].
+#: Deadline of each CiA 402 state transition, and of the quick stop [s].
 STATE_TIMEOUT_S = 1.0
+#: The RxPDO objects a drive commanded under its own hold (``hold_only``) needs.
+HOLD_RX = (0x6040, 0x607A, 0x60B2)
 #: A DC-synchronous exchange: margin after the SYNC0 event before the inputs are read [s],
 #: and how many cycles (beyond 1 s) it waits for the slave's DC clock to pass the event.
 SYNC0_MARGIN_S = 50e-6
@@ -108,37 +136,41 @@ class EthercatDrive(Drive):
         self._dc0: int | None = None
         self._expected: CiA402State | None = None
         self._hold_reason = "not checked"
+        self._command = "not open"
         self._identity: dict[str, object] = {}
+        self._quick_stop_option: int | None = None
 
     # -------------------------------------------------------------- lifecycle
     def _open(self) -> None:
         bus = self.bus = EthercatMaster(self.options)
         try:
             bus.open()
-            self._bring_up(bus)
+            if self.read_only:
+                self._read_up(bus)
+            else:
+                self._bring_up(bus)
         except BaseException:
             self.bus = None
-            bus.close()
+            bus.close(read_only=self.read_only)
             raise
 
-    def _bring_up(self, bus: EthercatMaster) -> None:
+    def _remark(self, text: str | None) -> None:
+        if text and text not in self.remarks:
+            self.remarks.append(text)
+
+    def _objects(self, bus: EthercatMaster) -> tuple[int, list[int], list[int]]:
+        """The checks and reads of any open: 0x1000, 0x6502, identity, factor group, 0x605A, the
+        command mode; the supported modes and the RxPDO/TxPDO objects the slave has."""
         device_type = bus.sdo_read(0x1000, 0, "I")
         if device_type & 0xFFFF != 402:
             raise DriveConfigError(
                 f"{bus.name} is no CiA 402 drive: device type 0x{device_type:08X} (0x1000)"
             )
         modes = bus.sdo_read(0x6502, 0, "I")
-        if not supports_mode(modes, MODE_CST):
-            raise DriveConfigError(
-                f"{bus.name} does not announce cyclic synchronous torque (0x6502 = 0x{modes:08X})"
-            )
         self._identity = {**bus.identity(), "device_type": device_type, "modes": modes}
         self.scaling = derive_scaling(self._factors(bus), self.options.overrides)
         self.units = self.scaling.units
-        if math.isfinite(self.limits.max_command) and bus.sdo_optional(0x6072, 0, "H") is not None:
-            lsb = min(0xFFFF, int(self.limits.max_command / abs(self.scaling.u.scale)))
-            bus.sdo_write(0x6072, 0, struct.pack("<H", lsb))
-        bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CST))
+        self._quick_stop_option = bus.sdo_optional(0x605A, 0, "h")
         rx = [
             i for i in (0x6040, 0x6071, 0x607A, 0x60B2) if bus.sdo_optional(i, 0, "h") is not None
         ]
@@ -146,10 +178,57 @@ class EthercatDrive(Drive):
               if bus.sdo_optional(i, 0, "H") is not None]  # fmt: skip
         stamp = next((i for i in TIMESTAMPS if bus.sdo_optional(i, 0, "H") is not None), None)
         tx += [stamp] if stamp is not None else []
+        self.hold_only = self._command_mode(bus.name, modes, rx, tx)
+        return modes, rx, tx
+
+    def _command_mode(self, name: str, modes: int, rx: list[int], tx: list[int]) -> bool:
+        """True: commanded as torque offset under the drive's own CSP hold; False: CST. Raises
+        the one line naming what is missing where neither is there."""
+        want = self.options.mode
+        cst = supports_mode(modes, MODE_CST) and 0x6071 in rx
+        lacking = [f"0x{i:04X}" for i, have in ((0x607A, rx), (0x60B2, rx), (0x6077, tx))
+                   if i not in have]  # fmt: skip
+        csp = supports_mode(modes, MODE_CSP) and not lacking
+        no_cst = (f"no cyclic synchronous torque (0x6502 = 0x{modes:08X}, bit 9 clear)"
+                  if not supports_mode(modes, MODE_CST) else "no target torque 0x6071")  # fmt: skip
+        if want == "cst" and not cst:
+            raise DriveConfigError(f"{name}: mode=cst, but it has {no_cst}")
+        if want == "cst" or (want == "auto" and cst):
+            self._command = "cyclic synchronous torque: target torque 0x6071"
+            return False
+        if not csp:
+            missing = ("no cyclic synchronous position (0x6502 bit 7 clear)"
+                       if not supports_mode(modes, MODE_CSP)
+                       else f"lacks {', '.join(lacking)} for a torque offset under its position hold")  # fmt: skip
+            head = (f"{name}: mode=csp, but it has " if want == "csp"
+                    else f"{name} cannot be identified: {no_cst}, and ")  # fmt: skip
+            raise DriveConfigError(head + missing)
+        why = "mode=csp" if want == "csp" else no_cst
+        self._command = (f"torque offset 0x60B2 under the drive's own cyclic synchronous position "
+                         f"hold, 0x6077 read back ({why})")  # fmt: skip
+        return True
+
+    def _read_up(self, bus: EthercatMaster) -> None:
+        """A read-only open: identity and objects over SDO in PRE-OP, nothing written."""
+        modes, rx, tx = self._objects(bus)
+        bus.plan_pdos(rx, tx, HOLD_RX if self.hold_only else REQUIRED_RX)
+        self._hold_reason = None if self.hold_only else self._hold_check(bus, modes)
+        self.supports_drive_hold = self._hold_reason is None
+        self._clock_description = "read-only: feedback over SDO (no process data)"
+        self.drive_clock = False
+
+    def _bring_up(self, bus: EthercatMaster) -> None:
+        modes, rx, tx = self._objects(bus)
+        if math.isfinite(self.limits.max_command) and bus.sdo_optional(0x6072, 0, "H") is not None:
+            lsb = min(0xFFFF, int(self.limits.max_command / abs(self.scaling.u.scale)))
+            refused = bus.sdo_write_optional(0x6072, 0, "H", lsb)
+            self._remark(refused and f"max torque {refused}: max_u is enforced by the host alone")
+        mode = MODE_CSP if self.hold_only else MODE_CST
+        bus.sdo_write(0x6060, 0, struct.pack("<b", mode))  # required: refused, the run cannot work
         self._write_cycle(bus, self._cycle_s)
-        bus.choose_dc_synchronous()  # in PRE-OP: map_pdos ends with the request for SAFE-OP
-        bus.map_pdos(rx, tx)  # SOEM's config_map ends with the request for SAFE-OP
-        self._hold_reason = self._hold_check(bus, modes)
+        self._remark(bus.choose_dc_synchronous())  # in PRE-OP: map_pdos ends in SAFE-OP
+        bus.map_pdos(rx, tx, HOLD_RX if self.hold_only else REQUIRED_RX)  # config_map: SAFE-OP
+        self._hold_reason = None if self.hold_only else self._hold_check(bus, modes)
         self.supports_drive_hold = self._hold_reason is None
         bus.go_op(self._cycle_s)
         self._clock_description = (
@@ -190,15 +269,16 @@ class EthercatDrive(Drive):
                                                   (0x6077, bus.tx)) if not layout.has(i)]  # fmt: skip
         return f"the slave lacks {', '.join(lacking)}" if lacking else None
 
-    @staticmethod
-    def _write_cycle(bus: EthercatMaster, period_s: float) -> None:
-        ns = round(period_s * 1e9)
-        if bus.sdo_optional(0x1C32, 2, "I") is not None:
-            bus.sdo_write(0x1C32, 2, struct.pack("<I", ns))
+    def _write_cycle(self, bus: EthercatMaster, period_s: float) -> None:
+        """0x1C32:02 [ns] and 0x60C2 where the slave has them, writable and different; a
+        refusal is a remark (the slave runs its cycle as it is set, SYNC0 paces it)."""
+        refused = bus.sdo_write_optional(0x1C32, 2, "I", round(period_s * 1e9))
+        self._remark(refused and f"SM2 cycle time {refused}")
         if bus.sdo_optional(0x60C2, 1, "B") is not None:
             value, index = interpolation_period(period_s)
-            bus.sdo_write(0x60C2, 1, struct.pack("<B", value))
-            bus.sdo_write(0x60C2, 2, struct.pack("<b", index))
+            refused = (bus.sdo_write_optional(0x60C2, 1, "B", value)
+                       or bus.sdo_write_optional(0x60C2, 2, "b", index))  # fmt: skip
+            self._remark(refused and f"interpolation period {refused}")
 
     def _configure_watchdog(self, timeout_s: float) -> None:
         self.bus.set_watchdog(timeout_s)
@@ -206,7 +286,7 @@ class EthercatDrive(Drive):
     def _close(self) -> None:
         bus, self.bus = self.bus, None
         if bus is not None:
-            bus.close()
+            bus.close(read_only=self.read_only)
 
     def _set_cycle(self, period_s: float) -> None:
         if self.enabled:
@@ -258,8 +338,11 @@ class EthercatDrive(Drive):
         return DriveFaultError(f"{self.bus.name} in FAULT 0x{code:04X} {context}", code)
 
     def _enable(self) -> None:
-        if self._state() in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+        values = self._frame()
+        if decode_statusword(values[0x6041]) in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             raise self._fault_error("cannot enable; reset the fault first")
+        if self.hold_only:  # the drive's own loop holds where the axis stands
+            self._values[0x607A] = values[0x6064]
         self._values.update({0x6071: 0, 0x60B2: 0})
         self._goto(S.OPERATION_ENABLED)
         self._expected = S.OPERATION_ENABLED
@@ -280,11 +363,40 @@ class EthercatDrive(Drive):
             self.bus.keep_alive = True
 
     def _quick_stop(self) -> None:
+        """Quick stop as 0x605A says it ends; disable voltage where the drive stays enabled."""
         self._values.update({0x6071: 0, 0x60B2: 0})
-        if self._state() is S.OPERATION_ENABLED:
-            self._values[0x6040] = CW_QUICK_STOP
-            self._goto(S.QUICK_STOP_ACTIVE)
-            self._expected = S.QUICK_STOP_ACTIVE
+        if self._state() is not S.OPERATION_ENABLED:
+            return
+        self._expected = None
+        end = quick_stop_end(self._quick_stop_option)
+        state = self._await(CW_QUICK_STOP, end)
+        if state in QUICK_STOPPED:
+            self._expected = state
+            return
+        seen = state
+        state = self._await(CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED)  # transition 9 (12 from QSA)
+        option = "none" if self._quick_stop_option is None else str(self._quick_stop_option)
+        if state is not S.SWITCH_ON_DISABLED:
+            raise StateTransitionError(
+                f"{self.bus.name} did not stop: it stayed in {seen.value} after the quick stop "
+                f"(0x605A = {option}) and in {state.value} after disable voltage, "
+                f"{STATE_TIMEOUT_S} s each"
+            )
+        self._expected = state
+        self._remark(f"stopped by disable voltage: the drive did not honour the quick stop "
+                     f"(0x605A = {option}; it stayed in {seen.value} for {STATE_TIMEOUT_S} s)")  # fmt: skip
+
+    def _await(self, controlword: int, target: CiA402State) -> CiA402State:
+        """Send ``controlword`` and cycle until ``target`` or the deadline; the state reached
+        (a quick stop's target, else any of :data:`QUICK_STOPPED` at the deadline)."""
+        self._values[0x6040] = controlword
+        deadline = time.monotonic() + STATE_TIMEOUT_S
+        while (state := self._state()) is not target:
+            if state in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+                raise self._fault_error(f"while stopping (controlword 0x{controlword:04X})")
+            if time.monotonic() > deadline:
+                break
+        return state
 
     def _reset_fault(self) -> None:
         if self._state() not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
@@ -303,16 +415,26 @@ class EthercatDrive(Drive):
         scale = self.scaling.u.scale
         return max(-_I16, min(_I16, round(u / scale))) * scale
 
-    def _write_command(self, u: float) -> None:
+    def _set_command(self, u: float) -> None:
+        """``u`` into the target torque, or under a hold the torque offset."""
         raw = round(u / self.scaling.u.scale)
-        self._values[0x60B2 if self._holding else 0x6071] = raw
-        if self._holding:
+        offset = self._holding or self.hold_only
+        if self.hold_only and not self._holding and raw:
+            raise UsageError(
+                f"{self.bus.name} takes a command only as the torque offset of its own position "
+                f"hold ({self._command.split('(')[-1].rstrip(')')}): excite it under hold_position, as "
+                "sidbe does in closed loop"
+            )
+        self._values[0x60B2 if offset else 0x6071] = raw
+        if offset:
             self._values[0x6071] = 0
+
+    def _write_command(self, u: float) -> None:
+        self._set_command(u)
         self._frame()
 
     def _exchange(self, u: float) -> Feedback:
-        raw = round(u / self.scaling.u.scale)
-        self._values[0x60B2 if self._holding else 0x6071] = raw
+        self._set_command(u)
         values = self._frame()
         if self.bus.dc_synchronous:
             values = self._sample_at_sync0(values["dc"])
@@ -394,14 +516,16 @@ class EthercatDrive(Drive):
             )
         target = round(x_ref / self.scaling.x.scale)
         self._values.update({0x607A: (target + 2**31) % 2**32 - 2**31, 0x60B2: 0, 0x6071: 0})
-        self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CSP))
+        if not self.hold_only:  # hold-only: in CSP since open
+            self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CSP))
 
     def _release_hold(self) -> None:
         self._leave_hold()
 
     def _leave_hold(self) -> None:
         self._values.update({0x60B2: 0, 0x6071: 0})
-        self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CST))
+        if not self.hold_only:  # hold-only: the drive goes on holding the last target
+            self.bus.sdo_write(0x6060, 0, struct.pack("<b", MODE_CST))
 
     # ---------------------------------------------------------------- status
     def link_recoveries(self) -> Mapping[str, int]:
@@ -415,12 +539,17 @@ class EthercatDrive(Drive):
             factor = getattr(self.scaling, key)
             meta[f"scale_{key}"] = f"{factor.scale:.12g}"
             meta[f"scale_{key}_source"] = factor.source
+        option = self._quick_stop_option
         meta.update(
+            command=self._command,
+            quick_stop_option="none (no 0x605A)" if option is None else (
+                f"0x605A = {option}: ends in {quick_stop_end(option).value}"),
             drive_clock=self._clock_description,
             distributed_clocks=(f"SYNC0 every {self._cycle_s * 1e6:.0f} µs"
                                 + (", DC-synchronous (0x1C32:01 = 2)" if self.bus.dc_synchronous
                                    else "")) if self.bus.has_dc else "none",
-            complete_access="yes" if self.bus.complete_access else "refused: mapped entry by entry",
+            complete_access="not mapped (read-only)" if self.read_only else "yes"
+            if self.bus.complete_access else self.bus.complete_access_note or "refused: mapped entry by entry",
             drive_hold="cyclic synchronous position: target 0x607A, offset 0x60B2, 0x6077 read back"
             if self._hold_reason is None else f"unavailable: {self._hold_reason}",
         )  # fmt: skip

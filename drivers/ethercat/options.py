@@ -11,7 +11,11 @@ has distributed clocks, default), ``on`` (required) or ``off``;
 frames in a row lost or with a wrong working counter (each is sent again)
 before the link counts as lost (default 10); ``pos_scale``, ``vel_scale``,
 ``torque_constant`` override the factor group as on CANopen
-(:mod:`servobench.drivers.cia402_units`).
+(:mod:`servobench.drivers.cia402_units`); ``mode`` how the drive is
+commanded: ``cst`` cyclic synchronous torque (target torque 0x6071),
+``csp`` the torque offset 0x60B2 under the drive's own cyclic synchronous
+position hold (``Drive.hold_only``), ``auto`` (default) CST where 0x6502
+announces it, else CSP with 0x60B2.
 """
 
 from __future__ import annotations
@@ -24,11 +28,12 @@ from servobench.errors import UsageError
 
 QUERY_KEYS = frozenset(
     {"iface", "slave", "dc", "frame_timeout", "max_wkc_errors", "pos_scale", "vel_scale",
-     "torque_constant"}
+     "torque_constant", "mode"}
 )  # fmt: skip
 FRAME_TIMEOUT_S = 0.1
 MAX_WKC_ERRORS = 10
 DC_CHOICES = ("auto", "on", "off")
+MODE_CHOICES = ("auto", "cst", "csp")
 
 
 @dataclass(frozen=True)
@@ -39,6 +44,7 @@ class EthercatOptions:
     frame_timeout_s: float
     max_wkc_errors: int
     overrides: Overrides
+    mode: str = "auto"
 
     @classmethod
     def from_url(cls, q: DriveURL) -> EthercatOptions:
@@ -54,6 +60,9 @@ class EthercatOptions:
         timeout = q.get_float("frame_timeout", FRAME_TIMEOUT_S)
         if not timeout > 0:
             raise UsageError("frame_timeout must be > 0 s")
+        mode = q.get_str("mode", "auto")
+        if mode not in MODE_CHOICES:
+            raise UsageError(f"mode={mode!r}: choose one of {', '.join(MODE_CHOICES)}")
         max_wkc = q.get_int("max_wkc_errors", MAX_WKC_ERRORS)
         if max_wkc < 1:
             raise UsageError("max_wkc_errors must be >= 1")
@@ -61,4 +70,5 @@ class EthercatOptions:
             iface, slave, dc, timeout, max_wkc,
             Overrides(q.get_float("pos_scale"), q.get_float("vel_scale"),
                       q.get_float("torque_constant")),
+            mode,
         )  # fmt: skip
