@@ -122,3 +122,18 @@ def test_a_stale_read_of_a_moving_axis_is_one_sample_without_stamps():
     # at rest, or slower than two encoder steps per interval, equal reads are kept
     slow = RunData(1, t, np.zeros(6), np.full(6, 0.1), np.array([0, 0, 0, 1e-3, 1e-3, 2e-3]))
     assert merge_unchanged(slow)[1] == 0
+
+
+def test_a_delay_that_only_zero_crossing_intervals_show_is_read_from_the_simulation():
+    # a slow cycle against the plant: every command switch reverses the axis inside its own
+    # interval, so no sample pair of one velocity sign holds a switch and the pairs fit any delay
+    fs, n = 100.0, 2400
+    true = ServoModel(**PLANT, delay_s=1.0e-3)
+    segments = []
+    for run, scale in ((1, 1.0), (2, 0.8)):
+        t = np.arange(n) / fs
+        u = 2.0 * scale * np.sign(np.sin(2 * np.pi * 1.0 * t) + 0.5 * np.sin(2 * np.pi * 3.0 * t + 1.0))
+        segments.append(Segment(run, t, u, simulate_velocity(true, u, 1 / fs), fs))
+    est = identify_joint(Dataset(tuple(segments), fs))
+    assert est.model.delay_s == pytest.approx(1.0e-3, abs=1e-7)
+    assert est.model.M == pytest.approx(0.01, rel=1e-6) and est.model.coulomb_neg == pytest.approx(0.4, rel=1e-6)

@@ -81,7 +81,7 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
-    grid = find_drive_grid(data, result.model)
+    grid = find_drive_grid(data, result.model, float(result.std.get("delay_s", 0.0) or 0.0))
     logged, regrid = data, None
     if grid is not None:  # the drive's tick located on the host's clock: samples onto it
 

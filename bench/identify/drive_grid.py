@@ -132,18 +132,29 @@ def applicable(data: Dataset, delay_s: float) -> bool:
     )
 
 
-def nominal_tick_s(delay_s: float) -> float | None:
-    """The nominal tick nearest ``delay_s`` [s] within :data:`SNAP_SHARE`, or None."""
-    best = min(NICE_TICKS_S, key=lambda t: abs(t - delay_s))
-    return best if abs(best - delay_s) <= SNAP_SHARE * best else None
+def nominal_ticks_s(delay_s: float, delay_std_s: float = 0.0) -> list[float]:
+    """The nominal ticks [s] the delay ``delay_s`` [s] (1 sigma ``delay_std_s``) may stand for,
+    nearest first: within :data:`SNAP_SHARE`, or three sigma, of it."""
+    reach = max(SNAP_SHARE * delay_s, 3.0 * delay_std_s)
+    near = [t for t in NICE_TICKS_S if abs(t - delay_s) <= max(reach, SNAP_SHARE * t)]
+    return sorted(near, key=lambda t: abs(t - delay_s))
 
 
-def find_drive_grid(data: Dataset, model) -> DriveGrid | None:
-    """The drive's tick grid on the host's clock that best explains ``data`` under ``model`` (whose
-    ``delay_s`` is about one tick), or None where no grid explains it clearly better than the
-    model's constant delay.
+def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0) -> DriveGrid | None:
+    """The best of :func:`find_grid_at` over the nominal ticks the model's delay may stand for
+    (:func:`nominal_ticks_s`), or None where none explains the data clearly better."""
+    if not applicable(data, model.delay_s):
+        return None
+    found = [g for t in nominal_ticks_s(model.delay_s, delay_std_s) if (g := find_grid_at(data, model, t))]
+    return max(found, key=lambda g: g.gain) if found else None
 
-    The nominal tick is the delay snapped to :data:`NICE_TICKS_S`. In each
+
+def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
+    """The drive's tick grid with nominal tick ``tick`` [s] on the host's clock that best explains
+    ``data`` under ``model`` (whose ``delay_s`` is about one tick), or None where no grid explains it
+    clearly better than the model's constant delay.
+
+    In each
     window of :data:`WINDOW_S` the phase is the one of :data:`PHASES` (refined
     between its neighbours) whose grid leaves the model's pair residual
     smallest, the command acting one tick after its sample; the phases,
@@ -154,16 +165,12 @@ def find_drive_grid(data: Dataset, model) -> DriveGrid | None:
     """
     from servobench.bench.identify.joint import pair_residual_ms
 
-    if not applicable(data, model.delay_s):
-        return None
-    tick = nominal_tick_s(model.delay_s)
-    if tick is None:
-        return None
     tau = model.time_constant_s
     try:
-        baseline = pair_residual_ms(data, model.delay_s, tau)
+        baseline = pair_residual_ms(data, model.delay_s, tau)  # the constant delay identified
     except IdentificationError:
         return None
+    model = replace(model, delay_s=tick)
     t_end = max(float(s.t[-1]) for s in data.segments)
     edges = np.arange(0.0, t_end + WINDOW_S, WINDOW_S)
     phases = np.arange(PHASES) * tick / PHASES
