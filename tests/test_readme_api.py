@@ -18,6 +18,6 @@ def test_the_readme_python_example_runs(tmp_path, monkeypatch):
     scope: dict = {}
     exec(compile(block.group(1), "README.md", "exec"), scope)  # noqa: S102 - the documented example
     assert str(scope["result"].verdict.name) == "PASS"
-    assert scope["model"].M == pytest.approx(0.1, rel=1e-6) and scope["same"] == scope["model"]
+    assert pytest.approx(0.1, rel=1e-6) == scope["model"].M and scope["same"] == scope["model"]
     assert scope["report"].verdict == "explained" and scope["check"].fit_percent > 99.9
     assert (tmp_path / "run" / "log.csv").exists() and (tmp_path / "model.json").exists()
