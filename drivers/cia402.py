@@ -28,6 +28,7 @@ Statusword bits (0x6041) used for the state: 0 ready to switch on,
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from enum import Enum
 from typing import NamedTuple
 
@@ -121,6 +122,44 @@ def quick_stop_end(option_code: int | None) -> CiA402State:
     if option_code is not None and 5 <= option_code <= 8:
         return S.QUICK_STOP_ACTIVE
     return S.SWITCH_ON_DISABLED
+
+
+#: How long each step of :func:`stop_axis` may take [s].
+STOP_STEP_S = 1.0
+
+
+def stop_axis(
+    await_state: Callable[[int, CiA402State], CiA402State], option_code: int | None, who: str,
+    step_s: float = STOP_STEP_S,
+) -> tuple[CiA402State, str]:
+    """Stop an enabled axis the CiA 402 way, on any transport: the state reached and a remark.
+
+    The quick stop (transition 11) ends as 0x605A says (:func:`quick_stop_end`);
+    either state of :data:`QUICK_STOPPED` counts as stopped (remark ``""``). A
+    drive still enabled after the quick stop gets disable voltage (transitions
+    9 and 12) and must reach SWITCH ON DISABLED; the remark then says it did not
+    honour the quick stop. ``await_state(controlword, target)`` sends the
+    controlword and returns the state reached by ``target`` or its deadline
+    (``step_s`` [s]); ``who`` names the drive in messages.
+
+    Raises
+    ------
+    StateTransitionError
+        The axis stayed enabled after disable voltage too.
+    """
+    state = await_state(CW_QUICK_STOP, quick_stop_end(option_code))
+    if state in QUICK_STOPPED:
+        return state, ""
+    seen = state
+    state = await_state(CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED)
+    option = "none" if option_code is None else str(option_code)
+    if state is not S.SWITCH_ON_DISABLED:
+        raise StateTransitionError(
+            f"{who} did not stop: it stayed in {seen.value} after the quick stop (0x605A = {option}) "
+            f"and in {state.value} after disable voltage, {step_s} s each"
+        )
+    return state, (f"stopped by disable voltage: the drive did not honour the quick stop "
+                   f"(0x605A = {option}; it stayed in {seen.value} for {step_s} s)")  # fmt: skip
 
 
 #: Human-readable names of the device control commands, for messages.

@@ -90,15 +90,14 @@ from servobench.drivers.canopen.options import AUTO, QUERY_KEYS, CanopenOptions
 from servobench.drivers.canopen.session import CanopenSession
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
-    CW_QUICK_STOP,
     MODE_CSP,
     MODE_CST,
-    QUICK_STOPPED,
     CiA402State,
     Step,
     decode_statusword,
     plan,
     quick_stop_end,
+    stop_axis,
     supports_mode,
 )
 from servobench.drivers.link_budget import canopen_cycle_s
@@ -308,22 +307,9 @@ class CANopen402Drive(Drive):
             self._sdo().write(0x6071, 0, 0)
             return
         self._expected = None
-        state = self._await(CW_QUICK_STOP, quick_stop_end(self._quick_stop_option))
-        if state in QUICK_STOPPED:
-            self._expected = state
-            return
-        seen = state
-        state = self._await(CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED)  # transition 9 (12 from QSA)
-        option = "none" if self._quick_stop_option is None else str(self._quick_stop_option)
-        if state is not S.SWITCH_ON_DISABLED:
-            raise StateTransitionError(
-                f"node {self.node_id} did not stop: it stayed in {seen.value} after the quick stop "
-                f"(0x605A = {option}) and in {state.value} after disable voltage, {STATE_TIMEOUT_S} s each"
-            )
-        self._expected = state
-        remark = (f"stopped by disable voltage: the drive did not honour the quick stop "
-                  f"(0x605A = {option}; it stayed in {seen.value} for {STATE_TIMEOUT_S} s)")  # fmt: skip
-        if remark not in self.remarks:
+        self._expected, remark = stop_axis(self._await, self._quick_stop_option, f"node {self.node_id}",
+                                           STATE_TIMEOUT_S)  # fmt: skip
+        if remark and remark not in self.remarks:
             self.remarks.append(remark)
 
     def _await(self, controlword: int, target: CiA402State) -> CiA402State:

@@ -80,15 +80,14 @@ from servobench.drivers.base import Drive, DriveInfo, Feedback
 from servobench.drivers.canopen.link import CounterUnwrap
 from servobench.drivers.cia402 import (
     CW_DISABLE_VOLTAGE,
-    CW_QUICK_STOP,
     MODE_CSP,
     MODE_CST,
-    QUICK_STOPPED,
     CiA402State,
     decode_statusword,
     interpolation_period,
     plan,
     quick_stop_end,
+    stop_axis,
     supports_mode,
 )
 from servobench.drivers.cia402_units import FactorObjects, Scaling, derive_scaling
@@ -368,23 +367,10 @@ class EthercatDrive(Drive):
         if self._state() is not S.OPERATION_ENABLED:
             return
         self._expected = None
-        end = quick_stop_end(self._quick_stop_option)
-        state = self._await(CW_QUICK_STOP, end)
-        if state in QUICK_STOPPED:
-            self._expected = state
-            return
-        seen = state
-        state = self._await(CW_DISABLE_VOLTAGE, S.SWITCH_ON_DISABLED)  # transition 9 (12 from QSA)
-        option = "none" if self._quick_stop_option is None else str(self._quick_stop_option)
-        if state is not S.SWITCH_ON_DISABLED:
-            raise StateTransitionError(
-                f"{self.bus.name} did not stop: it stayed in {seen.value} after the quick stop "
-                f"(0x605A = {option}) and in {state.value} after disable voltage, "
-                f"{STATE_TIMEOUT_S} s each"
-            )
-        self._expected = state
-        self._remark(f"stopped by disable voltage: the drive did not honour the quick stop "
-                     f"(0x605A = {option}; it stayed in {seen.value} for {STATE_TIMEOUT_S} s)")  # fmt: skip
+        self._expected, remark = stop_axis(self._await, self._quick_stop_option, self.bus.name,
+                                           STATE_TIMEOUT_S)  # fmt: skip
+        if remark:
+            self._remark(remark)
 
     def _await(self, controlword: int, target: CiA402State) -> CiA402State:
         """Send ``controlword`` and cycle until ``target`` or the deadline; the state reached
