@@ -136,4 +136,4 @@ def test_a_delay_that_only_zero_crossing_intervals_show_is_read_from_the_simulat
         segments.append(Segment(run, t, u, simulate_velocity(true, u, 1 / fs), fs))
     est = identify_joint(Dataset(tuple(segments), fs))
     assert est.model.delay_s == pytest.approx(1.0e-3, abs=1e-7)
-    assert est.model.M == pytest.approx(0.01, rel=1e-6) and est.model.coulomb_neg == pytest.approx(0.4, rel=1e-6)
+    assert pytest.approx(0.01, rel=1e-6) == est.model.M and est.model.coulomb_neg == pytest.approx(0.4, rel=1e-6)

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         amplitude=args.amplitude, ratio=args.ratio, fs_hz=fs_hz, periods=args.periods,
         period_s=args.period, freqs_hz=parse_freqs(args.freqs), loop=args.loop,
     )  # fmt: skip
-    if args.amplitude is not None or not options.closed(drive.limits):
+    if args.amplitude is not None or not options.closed(drive):
         check_amplitude(design.amplitude, drive.limits.max_command)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     hold = None
     with drive, stream_progress() as progress:
         tick = lambda done, total: progress(1, done, total)  # noqa: E731
-        if options.closed(drive.limits):
+        if options.closed(drive):
             res, design, hold = _closed(drive, options, out, tick)
         else:
             meta = {**design.metadata(), "loop": "open"}

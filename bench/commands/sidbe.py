@@ -16,6 +16,8 @@ above the sensor noise gets no model: one error line (exit status 1).
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 import time
 from pathlib import Path
 
@@ -97,7 +99,12 @@ def note_lowered_rate(requested_hz: float | None, drive) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.procedure.sidbe import SidbeOptions, check_run_folder, run_sidbe
+    from servobench.bench.procedure.sidbe import (
+        SidbeOptions,
+        check_run_folder,
+        loop_note,
+        run_sidbe,
+    )
     from servobench.bench.report.summary import print_json, print_result, rate_text
     from servobench.bench.run.runner import default_pace
     from servobench.drivers.registry import open_drive
@@ -126,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
     options.validate(drive)
     note_lowered_rate(args.fs, drive)
     with drive, stream_progress() as progress:
+        if note := loop_note(options, drive):
+            print(f"servobench: note: {note}", file=sys.stderr)
         try:
             result = run_sidbe(drive, options, out_dir, progress=progress)
         except IdentificationError as err:  # no model: say where the logs of the rounds are
@@ -151,7 +160,8 @@ def run(args: argparse.Namespace) -> int:
         h = result.hold
         facts["loop"] = (
             f"closed, {h['where']}-side hold at x = {h['x_ref']:.4g}, "
-            f"{h['travel_share']:.0%} of the room {h['room']:.4g} used"
+            + (f"{h['travel_share']:.0%} of the room {h['room']:.4g} used" if h["room"] is not None
+               and math.isfinite(h["room"]) else "no travel window: the drive's hold keeps the axis where it stood")
         )
     if result.remarks:  # how the axis was stopped, optional objects the drive refused
         facts["drive remarks"] = "; ".join(result.remarks)

@@ -307,7 +307,7 @@ class Commissioning:
             moved_at = max(bump.breakaway_pos, bump.breakaway_neg)
             options = integration.sidbe_options(config.sidbe, limits.max_u, moved_at, _finite(limits))
             options = replace(options, axis=configured_axis(config.identity.machine, config.identity.axis))
-            closed = options.closed(drive.limits)
+            closed = options.closed(drive)
             known = integration.bump_model(bump.log_path) if closed else None
             c.say(f"closed loop: a hold loop keeps the axis in [{limits.xmin:g}, {limits.xmax:g}], the "
                   f"excitation fitted to it ({'from the bump test' if known else 'after a relay probe'})"

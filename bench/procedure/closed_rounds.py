@@ -1,7 +1,15 @@
 """The SIDBE procedure on an axis with limited travel: excite in closed loop, inside the window.
 
 1. Learn the axis: from what is known already (a bump test's model), else a
-   relay probe (:mod:`servobench.bench.run.probe`, ``probe.csv``).
+   relay probe (:mod:`servobench.bench.run.probe`, ``probe.csv``). A drive
+   that takes a command only under its own hold (:attr:`~servobench.drivers.base.Drive.hold_only`),
+   or one that holds with its own loop where no travel window is set, has no
+   free torque for a relay: it learns the axis from a first trial under its
+   hold instead (``hold-trial.csv``: one period of ``u1`` and of ``u2`` at the
+   amplitude given, else the default, doubled while it yields no model), and
+   the drive's gains are fitted to the same trial. Such a drive holds where the
+   axis stands, and its window may be unbounded: the hold keeps the axis near
+   its start, and step 6 then grows the amplitude up to its cap.
 2. Plan (:mod:`servobench.bench.run.travel`): the hold loop's gains, the
    amplitude (unless given: from twice the larger Coulomb level, at least
    the relay level that swung, up to what the window allows) and the lowest
@@ -38,7 +46,13 @@ from servobench.bench.model.servo import IdentificationResult, ServoModel
 from servobench.bench.procedure import excitation as exc
 from servobench.bench.procedure.run_folder import HOLD_TRIAL_LOG, round_log_name
 from servobench.bench.run.closed import stream_closed_runs
-from servobench.bench.run.hold import HoldGains, fit_hold_gains
+from servobench.bench.run.hold import (
+    LINE_OVER_BANDWIDTH,
+    HoldController,
+    HoldGains,
+    design_hold,
+    fit_hold_gains,
+)
 from servobench.bench.run.probe import PROBE_LOG, probe_start, run_probe
 from servobench.bench.run.runner import default_pace
 from servobench.bench.run.travel import (
@@ -62,6 +76,10 @@ PROBE_DOUBLINGS = 10
 UNLIMITED = 8.0
 #: The trial under a drive's own hold: this share of the first round's u1, one period.
 TRIAL_SCALE = 0.5
+#: A trial that learns the axis under the drive's hold stands in for its unknown loop with the
+#: host's design for this plant [command units s^2 / position unit, command units s / position
+#: unit] (the log says the drive's own gains are not known; nothing else uses them).
+NOMINAL_M, NOMINAL_B = 1.0, 1.0
 
 #: The best round: its result, design, log and the cycle rate achieved streaming it [Hz].
 Best = tuple[IdentificationResult, exc.ExcitationDesign, Path, float]
@@ -119,13 +137,15 @@ def prepare(
     the rounds may reach.
     """
     window = TravelWindow.of(drive.limits)
-    if not window.finite:
+    if not window.finite and not drive.supports_drive_hold:
         raise UsageError(
             "closed loop holds the axis inside its travel, and the drive sets none: "
             "give xmin/xmax in the drive URL, or run with --loop open"
         )
     base = options.design()
     learnt: dict[str, Any]
+    if known is None and (drive.hold_only or not window.finite):
+        return _prepare_under_hold(drive, options, base, window, trial_log, pace)
     if known is None:
         cap = options.max_amplitude or drive.limits.max_command
         start = probe_start(options.amplitude, drive.limits.max_command)
@@ -173,13 +193,87 @@ def _first_plan(
 ) -> ClosedLoopPlan:  # fmt: skip
     """The first round's plan (see :func:`~servobench.bench.run.travel.plan_closed_loop`)."""
     limits = drive.limits
-    x_ref = window.hold_point(x0)
+    x_ref = x0 if drive.hold_only else window.hold_point(x0)  # hold-only: no free torque to move it
     where = "drive" if drive.supports_drive_hold else "host"
     return plan_closed_loop(
         model, base, window.room(x_ref), where=where, x_ref=x_ref, max_u=limits.max_command,
         max_v=limits.max_velocity, cap=cap, amplitude_given=options.amplitude is not None,
         freqs_given=options.freqs_hz is not None, gains=gains,
     )  # fmt: skip
+
+
+def _prepare_under_hold(
+    drive: Drive, options: SidbeOptions, base: exc.ExcitationDesign, window: TravelWindow,
+    trial_log: Path, pace: str,
+) -> tuple[ClosedLoopPlan, dict[str, Any], float]:  # fmt: skip
+    """:func:`prepare` where the axis is learnt from a trial under the drive's own hold (see
+    the module docstring): the model and the drive's gains from ``trial_log``, then the plan."""
+    x0 = drive.read().position
+    start = options.amplitude if options.amplitude is not None else base.amplitude
+    cap = _cap(drive, options, start)
+    amplitude = min(start, cap)
+    tries = 0 if options.amplitude is not None else PROBE_DOUBLINGS
+    for attempt in range(tries + 1):
+        try:
+            model, gains = _hold_trial(drive, options, base.with_amplitude(amplitude), window, x0,
+                                       trial_log, pace)  # fmt: skip
+            break
+        except IdentificationError as err:
+            if attempt == tries or amplitude >= cap:
+                raise IdentificationError(
+                    f"the trial under the drive's own hold yielded no model at ±{amplitude:.4g} "
+                    f"({err}); log kept in {trial_log}. Give a larger --amplitude (within max_u)"
+                ) from None
+            amplitude = min(2.0 * amplitude, cap)
+    learnt: dict[str, Any] = {
+        "trial": {"amplitude": amplitude, "log": trial_log.name, "model": model.as_dict()},
+        "drive_loop": f"gains fitted to {trial_log.name}" if gains else (
+            f"the drive reported no applied torque in {trial_log.name}: its travel predicted with "
+            "the host's design"),
+    }  # fmt: skip
+    if options.amplitude is None:
+        friction = max(model.coulomb_pos, model.coulomb_neg)
+        chosen = max(AMPLITUDE_OVER_FRICTION * friction, amplitude)
+        base = base.with_amplitude(min(chosen, _cap(drive, options, chosen)))
+    cap = _cap(drive, options, base.amplitude)
+    try:
+        plan = _first_plan(drive, options, base, model, window, x0, cap, gains)
+    except UsageError as err:
+        raise UsageError(f"{err}; trial log kept in {trial_log}") from None
+    return plan, learnt, cap
+
+
+def _hold_trial(
+    drive: Drive, options: SidbeOptions, design: exc.ExcitationDesign, window: TravelWindow,
+    x0: float, log: Path, pace: str,
+) -> tuple[ServoModel, HoldGains | None]:  # fmt: skip
+    """One period of ``u1`` and of ``u2`` of ``design`` under the drive's hold at ``x0``, logged
+    to ``log``: the model identified from it (closed loop: the excitation as instrument) and the
+    drive's gains fitted to it (None when it reports no applied torque).
+
+    Raises
+    ------
+    IdentificationError
+        The trial yields no model (the axis did not break away, say).
+    """
+    n = design.samples_per_period
+    e = exc.design_excitation(design)
+    stand_in = ServoModel(NOMINAL_M, NOMINAL_B, 0.0, 0.0)
+    low = max(min(design.freqs_hz), design.fs_hz / n)
+    ctrl = HoldController(design_hold(NOMINAL_M, NOMINAL_B, low / LINE_OVER_BANDWIDTH), "drive", x0,
+                          1.0 / design.fs_hz, drive.limits.max_command)  # fmt: skip
+    plan = ClosedLoopPlan(design, ctrl, window.room(x0), math.nan, stand_in)
+    meta = {"experiment": "trial under the drive's own hold: the axis and the drive's gains are "
+                          f"learnt from it (one period of u1 and of u2 at ±{design.amplitude:g})"}  # fmt: skip
+    run = stream_closed_runs(drive, [(1, e.u1[:n]), (2, e.u2[:n])], design.fs_hz, log, plan,
+                             metadata=meta, pace=pace, settle_s=options.settle_s)  # fmt: skip
+    trial = read_log(run.log_path)
+    model = identify(trial, "joint").model
+    r = trial.run(1)
+    gains = None
+    if r.u_exc is not None and r.x_ref is not None and r.v is not None and r.x is not None:
+        gains = fit_hold_gains(r.u - r.u_exc, r.x_ref - r.x, r.v, 1.0 / design.fs_hz)
+    return model, gains
 
 
 def _drive_gains(
@@ -231,6 +325,9 @@ def _grow(
     if amplitude >= cap:
         return "stopped: threshold not reached within the drive limits", None
     bigger = plan.design.with_amplitude(min(amplitude * growth, cap))
+    if not math.isfinite(plan.room):  # no window: the drive's hold alone bounds the travel
+        action = f"fit below threshold: amplitude raised to {bigger.amplitude:g}"
+        return action, replace(plan, design=bigger)
     model = result.model if result is not None else None
     ratio = bigger.amplitude / amplitude
     if model is not None:

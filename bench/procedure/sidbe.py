@@ -15,7 +15,10 @@ An axis with limited travel (``xmin``/``xmax`` of the drive, ``loop =
 auto``, the default) is excited in closed loop instead
 (:mod:`servobench.bench.procedure.closed_rounds`): a hold loop keeps it inside its
 window, the excitation is designed to fit, and step 6 raises the amplitude
-only while the measured travel still fits.
+only while the measured travel still fits. So is any axis of a drive that
+takes a command only under its own position hold (:attr:`Drive.hold_only`:
+a CiA 402 drive without cyclic synchronous torque, or told ``mode=csp``),
+window or not (:func:`loop_note` says so).
 
 The run folder (:mod:`servobench.bench.procedure.run_folder`): each round streams to
 ``log-<i>.csv`` as its samples arrive; the round whose model is accepted is
@@ -24,7 +27,7 @@ already holds a run is refused, never overwritten.
 
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
 :class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
-:func:`check_run_folder`.
+:func:`check_run_folder`, :func:`loop_note`.
 """
 
 from __future__ import annotations
@@ -82,7 +85,8 @@ class SidbeOptions:
         in open loop, chosen to fit the travel in closed loop.
     loop : {"auto", "open", "closed"}
         Excite in open loop, or in closed loop under a hold loop; ``auto``
-        closes the loop whenever the drive's travel (``xmin``/``xmax``) is finite.
+        closes the loop whenever the drive's travel (``xmin``/``xmax``) is finite,
+        and on a drive that takes a command only under its own hold (always).
     method : {"auto", "sidbe", "joint"}
     fit_threshold : float
         Verification fit [%] that ends the procedure.
@@ -159,9 +163,14 @@ class SidbeOptions:
             raise UsageError("growth must be > 1")
         if not math.isfinite(self.fit_threshold) or self.fit_threshold > 100:
             raise UsageError("fit threshold must be a number <= 100 %")
+        if drive is not None and drive.hold_only and self.loop == "open":
+            raise UsageError(
+                f"--loop open cannot excite this {drive.url.scheme} drive: it takes a command only as "
+                "the torque offset of its own position hold; use --loop auto (or closed)"
+            )
         # without an amplitude, closed loop chooses one within the limits: nothing to check
         chosen = self.amplitude is None and (
-            self.loop == "closed" or (drive is not None and self.closed(drive.limits))
+            self.loop == "closed" or (drive is not None and self.closed(drive))
         )
         if drive is not None and not chosen and design.amplitude > drive.limits.max_command:
             raise UsageError(
@@ -180,11 +189,28 @@ class SidbeOptions:
             cap = limit if math.isfinite(limit) else UNLIMITED_GROWTH_CAP * first
         return min(cap, limit)
 
-    def closed(self, limits: Limits) -> bool:
-        """Whether to excite in closed loop on a drive with ``limits``."""
+    def closed(self, drive: Drive | Limits) -> bool:
+        """Whether to excite in closed loop on ``drive`` (or on a drive with these limits): on
+        an open :attr:`~Drive.hold_only` drive unless ``loop = open`` (which :meth:`validate`
+        refuses), else with ``loop = auto`` where the travel is finite."""
+        if isinstance(drive, Drive) and drive.hold_only:
+            return self.loop != "open"  # open: refused by validate()
         if self.loop == "auto":
-            return TravelWindow.of(limits).finite
+            return TravelWindow.of(drive if isinstance(drive, Limits) else drive.limits).finite
         return self.loop == "closed"
+
+
+def loop_note(options: SidbeOptions, drive: Drive) -> str:
+    """One line for the terminal when closed loop was chosen for the drive, not for its travel
+    (a :attr:`~Drive.hold_only` drive with ``loop = auto``); ``""`` otherwise."""
+    if not drive.hold_only or options.loop != "auto":
+        return ""
+    window = TravelWindow.of(drive.limits)
+    where = "inside xmin/xmax" if window.finite else "near where it stands (no xmin/xmax needed)"
+    return (
+        f"closed loop: the {drive.url.scheme} drive takes a command only as the torque offset of its "
+        f"own position hold, so the excitation runs under that hold, {where}"
+    )
 
 
 @dataclass(frozen=True)
@@ -293,8 +319,9 @@ class SidbeResult:
                 "files": self.files(),
             }
         )
-        if self.hold is not None:
-            out["hold"] = dict(self.hold)
+        if self.hold is not None:  # no window: the room is unbounded, null in JSON
+            out["hold"] = {k: None if isinstance(v, float) and math.isinf(v) else v
+                           for k, v in self.hold.items()}  # fmt: skip
         if self.drive_scale:
             out["drive_scale"] = dict(self.drive_scale)
         if self.remarks:
@@ -347,7 +374,9 @@ def run_sidbe(
         drive.open()
     hold = None
     try:
-        if options.closed(drive.limits):
+        if opened_here and drive.hold_only:  # known only now: refuse --loop open on it
+            options.validate(drive)
+        if options.closed(drive):
             iterations, best, hold = closed_rounds(drive, options, out, progress, known, Iteration)
         else:
             cap = options.amplitude_cap(drive)

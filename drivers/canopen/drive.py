@@ -186,7 +186,8 @@ class CANopen402Drive(Drive):
             session.bring_up()
         except DriveConfigError:
             modes = None if session.objects is None else session.optional(0x6502, 0, None)
-            if o.mode_key != AUTO or modes is None or supports_mode(modes, MODE_CST):
+            no_cst = modes is not None and not supports_mode(modes, MODE_CST)
+            if o.mode_key != AUTO or modes is None or not (no_cst or not session.has_target_torque):
                 raise
             session.disconnect()
             self.options = o.with_mode("csp")
@@ -194,7 +195,7 @@ class CANopen402Drive(Drive):
             session.connect()
             try:
                 self._bring_up_hold_only(session, f"no cyclic synchronous torque (0x6502 = 0x{modes:08X}, "
-                                         "bit 9 clear)")  # fmt: skip
+                                         "bit 9 clear)" if no_cst else "no target torque 0x6071")  # fmt: skip
             except BaseException:
                 session.disconnect()
                 raise
@@ -279,7 +280,7 @@ class CANopen402Drive(Drive):
         if self.hold_only:  # the drive's own loop holds where the axis stands
             self.session.io.set_target(self.session.io.read_feedback().position)
         self.session.io.set_torque(0.0, holding=self._offset)
-        self._sdo().write(0x6071, 0, 0)
+        self.session.zero_target_torque()
         self._goto(S.OPERATION_ENABLED)
         self._expected = S.OPERATION_ENABLED
 
@@ -304,7 +305,7 @@ class CANopen402Drive(Drive):
         """Quick stop as 0x605A says it ends; disable voltage where the drive stays enabled."""
         self.session.io.set_torque(0.0, holding=self._offset)
         if self._state() is not S.OPERATION_ENABLED:
-            self._sdo().write(0x6071, 0, 0)
+            self.session.zero_target_torque()
             return
         self._expected = None
         self._expected, remark = stop_axis(self._await, self._quick_stop_option, f"node {self.node_id}",

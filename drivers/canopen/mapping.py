@@ -4,7 +4,7 @@ Pure: no I/O. :func:`plan_layout` chooses what each PDO carries; the drive
 writes it over SDO (:mod:`servobench.drivers.canopen.bringup`) and packs and
 unpacks the cyclic frames with :meth:`Pdo.pack` / :meth:`Pdo.unpack`::
 
-    RPDO1  0x200+n  controlword 0x6040, target torque 0x6071 [, torque offset 0x60B2]
+    RPDO1  0x200+n  controlword 0x6040 [, target torque 0x6071] [, torque offset 0x60B2]
     RPDO2  0x300+n  target position 0x607A                      (drive-side hold only)
     TPDO1  0x180+n  statusword 0x6041 [, torque actual 0x6077] [, time stamp 0x1013]
     TPDO2  0x280+n  velocity actual 0x606C, position actual 0x6064
@@ -13,7 +13,9 @@ Every TPDO is synchronous (transmission type 1: on each SYNC), so one cycle
 on the wire is the RPDOs, a SYNC and the TPDOs (:meth:`Layout.cycle_frames`).
 The bracketed objects are mapped when the drive has them and can map them:
 the time stamp gives the drive clock, the torque actual value ``Feedback.applied``,
-and the torque offset with the target position the drive-side hold.
+and the torque offset with the target position the drive-side hold. A drive
+commanded only under its own hold (``Drive.hold_only``) gets no target
+torque: its command is the torque offset alone.
 """
 
 from __future__ import annotations
@@ -117,8 +119,9 @@ class Layout:
 
 
 def plan_layout(
-    node_id: int, receive: Mappable, transmit: Mappable, *, hold: bool, clock: bool
-) -> Layout:
+    node_id: int, receive: Mappable, transmit: Mappable, *, hold: bool, clock: bool,
+    torque: bool | None = None,
+) -> Layout:  # fmt: skip
     """The PDOs for node ``node_id`` given what it can map.
 
     Parameters
@@ -130,8 +133,23 @@ def plan_layout(
         caller checked the drive offers cyclic synchronous position).
     clock : bool
         Map the time stamp 0x1013 when the drive can.
+    torque : bool or None
+        Map the target torque 0x6071: True always (a torque mode), False never
+        (a drive commanded by the torque offset under its own hold alone, which
+        needs ``hold``), None (default) where the drive can, or where nothing
+        else would carry the command (the plan of a read-only open).
+
+    Raises
+    ------
+    ValueError
+        An object the layout needs cannot be mapped, or nothing would carry the command.
     """
-    command = (0x6040, 0x6071) + ((0x60B2,) if hold else ())
+    if torque is False and not hold:
+        raise ValueError(
+            "without the target torque 0x6071 only the torque offset 0x60B2 can carry the command"
+        )
+    with_torque = (receive(0x6071) or not hold) if torque is None else torque
+    command = (0x6040,) + ((0x6071,) if with_torque else ()) + ((0x60B2,) if hold else ())
     state = (0x6041,) + tuple(
         i for i, wanted in ((0x6077, True), (0x1013, clock)) if wanted and transmit(i)
     )

@@ -53,7 +53,8 @@ HOST_HEARTBEAT_FRACTION = 0.25
 #: Objects the drive-side hold needs mapped: (index, into an RPDO, name).
 HOLD_OBJECTS = ((0x60B2, True, "torque offset"), (0x607A, True, "target position"),
                 (0x6077, False, "torque actual value"))  # fmt: skip
-#: Objects every layout maps; a drive that refuses them cannot be used.
+#: Objects a layout maps that a drive cannot refuse (0x6071 is not in a hold-only layout,
+#: :attr:`CanopenSession.hold_only`).
 REQUIRED = (0x6040, 0x6071, 0x6041, 0x606C, 0x6064)
 
 
@@ -174,6 +175,23 @@ class CanopenSession:
         self.io.max_lsb = lsb = min(self.sdo.read(0x6072), 0x7FFF)
         self.notes["max_torque"] = f"0x6072 = {lsb} ({lsb * scale:.6g} {unit})"
 
+    @property
+    def hold_only(self) -> bool:
+        """Commanded only by the torque offset 0x60B2 under the drive's own position hold
+        (``mode=csp``, chosen or fallen back to): the target torque 0x6071 is neither mapped
+        nor written, and the drive need not have it."""
+        return self.options.mode_key == "csp"
+
+    @property
+    def has_target_torque(self) -> bool:
+        """The drive has the target torque 0x6071 and can map it into an RPDO."""
+        return self.objects.mappable(0x6071, receive=True)
+
+    def zero_target_torque(self) -> None:
+        """Target torque 0x6071 = 0 over SDO, where the command mode uses it."""
+        if not self.hold_only:
+            self.sdo.write(0x6071, 0, 0)
+
     def _torque_mode(self) -> None:
         o = self.options
         modes = self.objects.value(0x6502)
@@ -182,10 +200,20 @@ class CanopenSession:
                 f"node {o.node_id} does not offer mode {o.mode} ({o.mode_name}): "
                 f"0x6502 = 0x{modes:08X}"
             )
-        self.sdo.write(0x6071, 0, 0)
+        self.hold_reason = self._hold_capability(modes)
+        if self.hold_only and self.hold_reason is not None and not self.has_target_torque:
+            raise DriveConfigError(
+                f"node {o.node_id} cannot be identified: no target torque 0x6071, and no torque "
+                f"offset under its position hold: {self.hold_reason}"
+            )
+        if not self.hold_only and not self.has_target_torque:
+            raise DriveConfigError(
+                f"node {o.node_id} has no target torque 0x6071 (absent or not PDO-mappable) for "
+                f"{o.mode_name}"
+            )
+        self.zero_target_torque()
         set_mode(self.sdo, o.mode, o.mode_name)
         self.mode = o.mode
-        self.hold_reason = self._hold_capability(modes)
 
     def _hold_capability(self, modes: int | None) -> str | None:
         """Why the drive-side hold is unavailable, ``None`` when it is available."""
@@ -206,10 +234,11 @@ class CanopenSession:
         objects, n = self.objects, self.options.node_id
         for _ in range(len(HOLD_OBJECTS) + 2):
             try:
+                hold = self.hold_reason is None
                 self.layout = self.io.layout = plan_layout(
                     n, lambda i: objects.mappable(i, receive=True),
                     lambda i: objects.mappable(i, receive=False),
-                    hold=self.hold_reason is None, clock=True,
+                    hold=hold, clock=True, torque=not (self.hold_only and hold),
                 )  # fmt: skip
             except ValueError as err:
                 raise DriveConfigError(f"node {n}: {err}") from None

@@ -26,6 +26,10 @@ time at ``baud`` off both ends). Either way that
 midpoint and half the transaction's length are ``Feedback.t_host_s`` and
 ``Feedback.t_unc_s``.
 
+``open(read_only=True)`` (``commission --dry-run``) only reads: no
+``[[setup]]`` write, no watchdog set or fed (``watchdog_feed``), no command
+or control write (the base refuses those), so no write function code reaches the drive.
+
 A map whose watchdog is fed by any request (``feed = "any_request"``) over
 TCP gets a one-line :class:`~servobench.errors.DriveWarning` at open: a
 second client polling the drive (a SCADA, another host) keeps the watchdog
@@ -69,6 +73,7 @@ from servobench.errors import (
     DriveFaultError,
     SessionWarning,
     StateTransitionError,
+    UsageError,
 )
 
 #: Response timeout when the URL gives none [s].
@@ -190,13 +195,13 @@ class ModbusDrive(Drive):
         self._t_offset_s, self._t_last_s = 0.0, None
         try:
             self._fault_code()  # the unit answers, and the map's fault register exists
-            for s in self.regmap.setup:
+            for s in () if self.read_only else self.regmap.setup:
                 self._call("write_register", f"setup write {s.address:#06x}={s.value} ({s.note})",
                            address=s.address, value=s.value)  # fmt: skip
         except BaseException:
             self._close()
             raise
-        if not self.rtu and self.regmap.watchdog_feed == "any_request":
+        if not self.rtu and not self.read_only and self.regmap.watchdog_feed == "any_request":
             warnings.warn(
                 SessionWarning(
                     f"{self.where}: map {self.regmap.name!r} feeds the drive's watchdog with any "
@@ -215,6 +220,8 @@ class ModbusDrive(Drive):
 
     def _write(self, reg: Register, words: Sequence[int]) -> None:
         what = f"write {reg.name} ({reg.address:#06x})"
+        if self.read_only:  # the last guard: nothing above should have come here
+            raise UsageError(f"{self.where} was opened read-only: refused to {what}")
         if len(words) == 1:
             self._call("write_register", what, address=reg.address, value=words[0])
         else:
@@ -246,7 +253,7 @@ class ModbusDrive(Drive):
         self._write(self.regmap["command"], encode(self.regmap["command"], u))
 
     def _feed(self) -> None:
-        if self.regmap.watchdog_feed == "register":
+        if self.regmap.watchdog_feed == "register" and not self.read_only:  # none armed read-only
             reg = self.regmap["watchdog_feed"]
             self._feed_count = self._feed_count % 0x7FFF + 1  # 1..32767 fits every format
             self._write(reg, encode_raw(reg, self._feed_count))

@@ -67,6 +67,12 @@ axis0.config.servobench_cycle``); a drive that rejects it (a stock ODrive) is
 free-running (:attr:`SerialAsciiDrive.lockstep` is False) and :meth:`set_cycle`
 tells it nothing. The log's ``drive_clock`` line says which clock ``t`` is.
 
+``open(read_only=True)`` (``commission --dry-run``) sends only reads (``r``,
+the feedback and identity queries): the watchdog is neither disarmed at open
+or close nor fed nor armed, a stale watchdog error is left as it is (and
+reported by :meth:`info`), and nothing is configured or commanded (no ``w``,
+``c``, ``u`` or ``sc``).
+
 Not confirmed against hardware (no ODrive here; the served simulator follows
 the firmware source): see the caveats at the top of
 ``drivers/data/dialects/odrive.toml`` (firmware 0.6 property names, the
@@ -99,6 +105,7 @@ from servobench.errors import (
     DriveFaultError,
     DriveWarning,
     StateTransitionError,
+    UsageError,
 )
 
 DEFAULT_BAUD = 115200
@@ -237,6 +244,8 @@ class SerialAsciiDrive(Drive):
         return self.link.query(command, **values)
 
     def _command(self, command: str, **values: float) -> None:
+        if self.read_only:  # the last guard: nothing above should have come here
+            raise UsageError(f"{self.port} was opened read-only: refused to send {command!r}")
         self.link.command(command, **values)
 
     # ------------------------------------------------------------ lifecycle
@@ -244,10 +253,11 @@ class SerialAsciiDrive(Drive):
         self.link.open()
         try:
             code = self._error_code()  # proves the drive speaks the dialect
-            self._disarm()  # a watchdog an earlier host left armed would fault the idle axis
+            if not self.read_only:
+                self._disarm()  # a watchdog an earlier host left armed would fault the idle axis
             self.firmware_version = self._read_version()
             self.lockstep = self._has_cycle_extension()
-            if code and code == self.dialect.watchdog_error:
+            if code and code == self.dialect.watchdog_error and not self.read_only:
                 self._clear_stale_watchdog(code)
         except BaseException:
             self.link.close()
@@ -288,7 +298,7 @@ class SerialAsciiDrive(Drive):
 
     def _close(self) -> None:
         try:
-            if self.link.is_open:
+            if self.link.is_open and not self.read_only:
                 self._disarm()
         finally:
             self.link.close()
@@ -458,6 +468,8 @@ class SerialAsciiDrive(Drive):
         return self._error_code()
 
     def _send_clear_errors(self) -> None:
+        if self.read_only:
+            raise UsageError(f"{self.port} was opened read-only: refused to clear its errors")
         bodies = self.dialect.requests("clear_errors", self.firmware_version, axis=self.axis)
         self.link.send(*bodies)
 
