@@ -187,8 +187,11 @@ def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra
     try:
         model = json.loads(res["stdout"])
     except (TypeError, ValueError):
+        model = {}
+    if not isinstance(model, dict) or "M" not in model:  # no model: sidbe's one line, or {"error": ...}
         lines = str(res["stderr"]).strip().splitlines()
-        row["error"] = lines[-1] if lines else f"exit {res['rc']}"
+        row["error"] = (model.get("error") if isinstance(model, dict) else None) or (
+            lines[-1] if lines else f"exit {res['rc']}")
         return row
     try:
         record = json.loads(state.read_text())["tick"]
