@@ -132,12 +132,12 @@ class Model:
     @property
     def pole(self) -> float:
         """Pole of the linear block, ``-B/M`` [1/s]."""
-        return -self.B / self.M
+        return self.servo_model.pole
 
     @property
     def dc_gain(self) -> float:
         """DC gain of the linear block, ``1/B`` [velocity units per command unit]."""
-        return 1.0 / self.B
+        return self.servo_model.dc_gain
 
     @property
     def fit_percent(self) -> float | None:
