@@ -283,7 +283,11 @@ def scan_delay(data: Dataset, fit: ZohFit, min_delay_s: float = 0.0) -> tuple[fl
     h = max(1e-3, 1e-2 * best)
     curv = (rss(best + h, tau) - 2.0 * rss(best, tau) + rss(best - h, tau)) / h**2
     s2 = full_rss / max(1, len(fit_d.residual) - 5)
-    std = math.sqrt(2.0 * s2 / curv) * dt if curv > 0 else math.nan
+    if curv > 0:
+        std = math.sqrt(2.0 * s2 / curv) * dt
+    else:  # no curvature to read: exact pairs (a residual at rounding) pin the delay, others do not
+        exact = s2 <= (EXACT_RTOL * float(np.sqrt(np.mean(data.cat("v") ** 2)))) ** 2
+        std = 0.0 if exact else math.nan
     return best * dt, fit_d, std
 
 
