@@ -105,6 +105,9 @@ from servobench.errors import (
 S = CiA402State
 #: Deadline of each CiA 402 state transition, and of the quick stop [s].
 STATE_TIMEOUT_S = 1.0
+#: How long each step of the CiA 402 walk towards a state may take [s]: a failure to answer, not
+#: a stop, so as long as the master's AL transitions (a loaded host sends frames late).
+WALK_TIMEOUT_S = 3.0
 #: The RxPDO objects a drive commanded under its own hold (``hold_only``) needs.
 HOLD_RX = (0x6040, 0x607A, 0x60B2)
 #: A DC-synchronous exchange: margin after the SYNC0 event before the inputs are read [s],
@@ -319,7 +322,7 @@ class EthercatDrive(Drive):
         for step in plan(state, target):
             if step.controlword is not None:
                 self._values[0x6040] = step.controlword
-            deadline = time.monotonic() + STATE_TIMEOUT_S
+            deadline = time.monotonic() + WALK_TIMEOUT_S
             while (state := self._state()) is not step.next_state:
                 if state in (S.FAULT, S.FAULT_REACTION_ACTIVE) and not from_fault:
                     raise self._fault_error(f"while going to {step.next_state.value}")
@@ -328,7 +331,7 @@ class EthercatDrive(Drive):
                         raise self._fault_error("persists after fault reset")
                     raise StateTransitionError(
                         f"{self.bus.name} stayed in {state.value}, expected "
-                        f"{step.next_state.value} within {STATE_TIMEOUT_S} s"
+                        f"{step.next_state.value} within {WALK_TIMEOUT_S} s"
                     )
 
     def _fault_error(self, context: str) -> DriveFaultError:
