@@ -72,10 +72,10 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
         bound = 2.0
     split = transport == "serial"  # the torque line and the feedback query are two requests
     if split:
-        # NOT the 1 % (left open): each row's delay is 0 or one tick as a tick falls
-        # between the two requests or not, which one delay cannot model; measured 0.03-2.3 % over
-        # ticks of 0.125-2 ms, fits of 96-99.6 %
-        bound, fit_floor = 3.0, 96.0
+        # each row's delay is 0 or one tick as a tick falls between the two requests or not: the
+        # tick is located per run and each command acts from its own tick; the fit reaches 98.5-99.7 %
+        # (where every read sits at a tick's edge the grid is not kept), not the 99 % (open)
+        fit_floor = 98.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
     assert max(abs(e) for e in errors.values()) <= bound, errors
     # without stamps a read that crosses a tick boundary moves its sample a whole tick: the fit

@@ -3,7 +3,10 @@
 The reference is built independently of :mod:`servobench.bench.identify.drive_grid`:
 a drive that samples at its last tick before each request and acts from the
 next, simulated on its own tick grid (exact zero-order hold per tick), read by
-a host whose requests jitter across the drive's ticks.
+a host whose requests jitter across the drive's ticks. Each run's clock starts
+at its own first sample, so its ticks lie at a phase of their own; where the
+command goes ahead of its query (a serial link), it acts from the first tick
+after it arrived.
 """
 
 from __future__ import annotations
@@ -47,11 +50,12 @@ def test_the_grid_is_found_and_the_samples_go_back_onto_their_ticks(phase_s):
     data, sampled = _host_log(phase_s, seed=int(phase_s * 1e5))
     first = identify_data(data, "joint")
     grid = find_drive_grid(data, first.model)
-    assert grid is not None and grid.tick_s == TICK and abs(grid.drift) < 1e-6
+    assert grid is not None and grid.tick_s == TICK
     # the grid found puts every read on the tick it was sampled at (the phase itself is known only
     # to within the gap the reads leave between ticks)
     for seg, ticks in zip(data.segments, sampled, strict=True):
-        offset = grid.index(seg.t) - ticks  # one whole number of ticks for every read
+        assert abs(grid.for_run(seg.run).drift) < 1e-6
+        offset = grid.for_run(seg.run).index(seg.t) - ticks  # one whole number of ticks for every read
         assert np.mean(offset == np.median(offset)) > 0.99
     moved, _ = on_grid(data, grid)
     result = identify_data(moved, "joint")
@@ -82,3 +86,49 @@ def test_a_grid_maps_instants_to_ticks_with_drift():
     n = g.index(np.array([0.0, 0.00021, 1.0]))
     assert n.tolist() == [-1.0, 0.0, 999.0]
     assert g.instant(np.array([0.0]))[0] == pytest.approx(0.2e-3 / (1 - 50e-6))
+
+
+def _serial_log(seed: int, lead_s: float, tick: float, n: int = 1600, fs: float = 200.0):
+    """Two runs at ``fs`` whose commands reach the drive ``lead_s`` before their queries; each
+    run's clock starts at its first query, at a phase of the drive's ticks of its own. The
+    drive's record: each row's action tick minus its sample tick, over all rows."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    s = sum(np.sin(2 * np.pi * f * t + p) for f, p in zip((1.0, 3.0, 7.0), rng.uniform(0, 6, 3), strict=True))
+    segments, delays = [], []
+    for run, scale in ((1, 1.0), (2, 0.9)):
+        u = 2.0 * scale * np.sign(s)
+        phase = rng.uniform(0.0, tick)
+        query = t + tick + rng.uniform(-0.05e-3, 0.05e-3, n)  # the query reaches the drive
+        n_sample = np.floor((query - phase) / tick).astype(int)
+        n_act = np.floor((query - lead_s - phase) / tick).astype(int) + 1  # first tick after arrival
+        ticks = int(n_act[-1]) + 2
+        u_tick = np.zeros(ticks)
+        for k in range(n):
+            u_tick[n_act[k] :] = u[k]
+        v = TRUE.simulate(u_tick, 1.0 / tick).v[n_sample]
+        logged = query - query[0]
+        segments.append(Segment(run, logged, u, v, fs, np.diff(logged), t_unc=np.full(n, 0.05e-3)))
+        delays.append((n_act - n_sample) * tick)
+    data = Dataset(tuple(segments), fs, min_delay_s=-lead_s)
+    return data, float(np.mean(np.concatenate(delays)))
+
+
+@pytest.mark.parametrize(("seed", "tick"), [(1, 1e-3), (2, 2e-3)])
+def test_with_a_command_lead_each_command_acts_from_its_own_tick(seed, tick):
+    # the command's lead (0.35 ms) puts a tick between command and query for some rows: those
+    # act in the sample's own tick, the others a tick later; no constant delay holds both
+    data, record = _serial_log(seed, 0.35e-3, tick)
+    first = identify_data(data, "joint")
+    grid = find_drive_grid(data, first.model, first.std.get("delay_s", 0.0))
+    assert grid is not None and grid.tick_s == tick and grid.lead_s == 0.35e-3
+    moved, _ = on_grid(data, grid)
+    offsets = np.concatenate([s.act_offset_s for s in moved.segments])  # around the mean delay
+    assert np.mean(offsets) == pytest.approx(0.0, abs=1e-12) and np.ptp(offsets) == pytest.approx(tick)
+    result = identify_data(moved, "joint")
+    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
+                      (result.model.coulomb_neg, 0.4)):  # fmt: skip
+        assert got == pytest.approx(want, rel=2e-3)
+    assert result.model.delay_s == pytest.approx(record, abs=0.02e-3)
+    assert result.fit_percent > 99.9
+    assert first.fit_percent < result.fit_percent

@@ -88,7 +88,7 @@ def identify(
         def regrid(d: Dataset) -> Dataset:
             return on_grid(d, grid)[0]
 
-        data, merged = on_grid(data, grid)
+        data, merged = on_grid(data, grid, result.model)
         result = identify_data(data, method, resonance=resonance)
         result = replace(result, notes=(*result.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)

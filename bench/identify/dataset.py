@@ -71,6 +71,12 @@ class Segment:
         Timing uncertainty of each sample [s]: the half-width of the interval
         known to hold its instant (the log's ``t_unc`` column of a real-time
         run without drive time stamps); None when the log has none.
+    act_offset_s : ndarray or None
+        Each command's own shift [s] of the instant it acts from, on top of the
+        model's action delay (zero mean; see :mod:`~servobench.bench.identify.delay`):
+        set where the drive's tick was located on the host's clock and its commands
+        and samples travel in separate requests; None: every command acts the
+        delay after its row's instant.
     """
 
     run: int
@@ -84,6 +90,7 @@ class Segment:
     u_exc: np.ndarray | None = None
     x_ref: np.ndarray | None = None
     t_unc: np.ndarray | None = None
+    act_offset_s: np.ndarray | None = None
 
     @property
     def derived(self) -> bool:
@@ -115,12 +122,13 @@ class Segment:
                 motion.x[:n], motion.v[:n], motion.a[:n], motion.cutoff_hz, motion.method
             )
         dt = None if self.dt_s is None else self.dt_s[: max(0, n - 1)]
-        x, u_exc, x_ref, t_unc = (
-            None if a is None else a[:n] for a in (self.x, self.u_exc, self.x_ref, self.t_unc)
+        x, u_exc, x_ref, t_unc, offsets = (
+            None if a is None else a[:n]
+            for a in (self.x, self.u_exc, self.x_ref, self.t_unc, self.act_offset_s)
         )
         return Segment(
             self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x, u_exc, x_ref,
-            t_unc,
+            t_unc, offsets,
         )  # fmt: skip
 
 

@@ -19,6 +19,13 @@ already handles, exactly:
   staircase does: ``v[k+1] = a v[k] + b (u_eff[k] - F)`` while the velocity
   keeps its sign, so the exact pair regression holds with ``u_eff`` for ``u``.
 
+Where each row's command acts at an instant of its own (a drive whose
+commands and samples go in separate requests: a command acts at the drive's
+tick after it arrives, its sample was taken at the tick before the query),
+``offsets_s`` moves each switch by its own amount on top of the delay: ``u[k]``
+acts from ``t_k + d + offsets_s[k]`` (zero-mean offsets keep ``d`` the mean
+action delay). A later command never acts before an earlier one.
+
 Before the first command acts, ``u_before`` is in force (0 for a run that
 starts from an enabled axis at rest). Switch instants within
 :data:`COINCIDE` of a cycle of a sample instant are taken to fall on it, so a
@@ -41,7 +48,11 @@ def sample_instants(n: int, dt_s: float | np.ndarray) -> np.ndarray:
 
 
 def merged_grid(
-    u: np.ndarray, dt_s: float | np.ndarray, delay_s: float, u_before: float = 0.0
+    u: np.ndarray,
+    dt_s: float | np.ndarray,
+    delay_s: float,
+    u_before: float = 0.0,
+    offsets_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(u_m, dt_m, rows)``: the commands in force over a grid of the sample and switch instants.
 
@@ -55,6 +66,8 @@ def merged_grid(
         Action delay [s]; negative: the command acts before its logged instant.
     u_before : float
         Command in force before ``u[0]`` acts.
+    offsets_s : ndarray of shape (n,), optional
+        Each row's own shift of its switch [s] on top of ``delay_s`` (see the module doc).
 
     Returns
     -------
@@ -72,7 +85,7 @@ def merged_grid(
         return u.copy(), np.zeros(0), np.zeros(0, dtype=int)
     mean_dt = float(t[-1] / (n - 1)) if n > 1 else 1.0
     eps = COINCIDE * mean_dt
-    switches = t + float(delay_s)
+    switches = switch_instants(t, delay_s, offsets_s)
     # switches that fall on a sample instant (within eps) add no grid point
     inside = switches < t[-1] - eps
     s_in = switches[inside]
@@ -90,12 +103,22 @@ def merged_grid(
     return u_m, np.diff(grid), rows
 
 
+def switch_instants(t_s: np.ndarray, delay_s: float, offsets_s: np.ndarray | None = None) -> np.ndarray:
+    """The instants [s] the commands logged at ``t_s`` act from: ``t_s + delay_s``, each moved by its
+    offset where given, never before an earlier row's (a later command cannot act first)."""
+    switches = np.asarray(t_s, dtype=float) + float(delay_s)
+    if offsets_s is None:
+        return switches
+    return np.maximum.accumulate(switches + np.asarray(offsets_s, dtype=float))
+
+
 def effective_command(
     u: np.ndarray,
     dt_s: float | np.ndarray,
     delay_s: float,
     tau_s: float,
     u_before: float = 0.0,
+    offsets_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per sample interval, the constant command equivalent to the delayed staircase, shape ``(n - 1,)``.
 
@@ -105,15 +128,15 @@ def effective_command(
     their weighted mean. Exact for a first-order block of time constant
     ``tau_s`` [s] while the friction force stays constant over the interval.
     With ``delay_s`` 0 it is ``u[:-1]``. A negative delay (a command that acts before
-    its logged instant) is handled alike.
+    its logged instant) is handled alike, and so are per-row ``offsets_s`` [s].
     """
     u = np.asarray(u, dtype=float)
     n = u.size
     if n < 2:
         return u[:0].copy()
-    if delay_s == 0:
+    if delay_s == 0 and offsets_s is None:
         return u[:-1].copy()
-    u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before)
+    u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before, offsets_s)
     grid = np.concatenate(([0.0], np.cumsum(dt_m)))
     # each grid interval i belongs to sample interval k(i); its end relative to t_{k+1}
     k_of = np.searchsorted(rows, np.arange(grid.size - 1), side="right") - 1

@@ -19,7 +19,17 @@ last command sent in it, as repeated stamps do), the command then acts one
 tick later, and the pair regression's mean squared residual is compared
 over the phases. A grid is kept only where it explains the data clearly
 better than the constant delay (:data:`MIN_GAIN`); otherwise, and for logs
-with stamps, derived velocity or a command lead, nothing changes.
+with stamps or derived velocity, nothing changes.
+
+Where the command goes ahead of its sample's query (ODrive serial:
+``command_lead_s`` ``L`` > 0), each row's command acts from the first tick after
+``t - L`` and its sample is the tick before ``t``: the action follows the
+sample by no tick or by one, row by row, which a constant delay cannot hold.
+On the grid each command then carries its own offset
+(:attr:`~servobench.bench.identify.dataset.Segment.act_offset_s`) around the
+mean delay. At such a link's rates every command switch reverses the axis
+within its interval, so no pair of samples holds a switch; the phase is then
+read from the model's simulation of each run, not from its pairs.
 
 Pure: arrays and datasets in, a dataset out; no transport.
 """
@@ -59,16 +69,28 @@ class DriveGrid:
     """The drive's tick grid on the log's clock: ticks at ``(phase_s + n tick_s) / (1 - drift)``
     [s]: the nominal tick ``tick_s``, the phase ``phase_s`` in ``[0, tick_s)`` at ``t = 0`` and the
     drive clock's drift against the host's (``drift``: a fraction, ppm times 1e-6), and how much
-    the grid cut the mean squared pair residual (``gain``, > 1)."""
+    the grid cut the mean squared residual (``gain``, > 1); ``lead_s`` [s]: how long before its
+    sample's query each command was sent (0: one request carries both)."""
 
     tick_s: float
     phase_s: float
     gain: float
     drift: float = 0.0
+    lead_s: float = 0.0
 
     def index(self, t_s: np.ndarray) -> np.ndarray:
         """The tick each instant ``t_s`` [s] was sampled at (the last at or before it)."""
         return np.floor(((1.0 - self.drift) * np.asarray(t_s, dtype=float) - self.phase_s) / self.tick_s + ON_TICK)
+
+    def action_index(self, t_s: np.ndarray) -> np.ndarray:
+        """The tick each row's command acts from: the first after its arrival, ``lead_s`` before
+        the row's instant ``t_s`` [s] (the tick after the sample where one request carries both)."""
+        return self.index(np.asarray(t_s, dtype=float) - self.lead_s) + 1.0
+
+    @property
+    def period_s(self) -> float:
+        """The tick on the log's clock [s] (the drift taken in)."""
+        return self.tick_s / (1.0 - self.drift)
 
     def instant(self, n: np.ndarray) -> np.ndarray:
         """The instants [s] of ticks ``n`` on the log's clock."""
@@ -78,21 +100,68 @@ class DriveGrid:
         return (
             f"the drive's control tick ({self.tick_s * 1e3:.4g} ms) located on the host's clock (phase "
             f"{self.phase_s * 1e3:.4g} ms, drift {self.drift * 1e6:.3g} ppm): each sample moved to the tick it "
-            f"was taken at, its command acting from the next ({merged} reads of one tick kept once); the "
-            f"pair residual fell {self.gain:.3g} times against a constant delay"
+            f"was taken at, its command acting from {self._acting()} ({merged} reads of one tick kept "
+            f"once); the {'simulation' if self.lead_s > 0 else 'pair'} residual fell {self.gain:.3g} times "
+            "against a constant delay"
         )
 
+    def _acting(self) -> str:
+        if self.lead_s > 0:
+            return f"the first tick after its arrival, {self.lead_s * 1e3:.3g} ms before the query"
+        return "the next"
 
-def onto_grid(segment: Segment, grid: DriveGrid) -> tuple[Segment, int]:
+
+@dataclass(frozen=True)
+class RunGrids:
+    """The drive's tick grid located in each run: every run's clock starts at its own first
+    sample, so each has its own phase (and drift) on one nominal tick. ``gain``: how much the
+    grids cut the mean squared residual over the whole log against a constant delay."""
+
+    grids: tuple[tuple[int, DriveGrid], ...]
+    gain: float
+
+    @property
+    def tick_s(self) -> float:
+        return self.grids[0][1].tick_s
+
+    @property
+    def lead_s(self) -> float:
+        return self.grids[0][1].lead_s
+
+    def for_run(self, run: int) -> DriveGrid:
+        """The grid of run ``run``."""
+        for number, grid in self.grids:
+            if number == run:
+                return grid
+        raise IdentificationError(f"no tick grid was located for run {run}")
+
+    def note(self, merged: int) -> str:
+        phases = ", ".join(f"run {r} {g.phase_s * 1e3:.4g} ms" for r, g in self.grids)
+        drift = max((g.drift for _, g in self.grids), key=abs)
+        return replace(self.grids[0][1], gain=self.gain, drift=drift).note(merged).replace(
+            f"phase {self.grids[0][1].phase_s * 1e3:.4g} ms", f"phase {phases}")
+
+
+def _grid_of(grid: DriveGrid | RunGrids, run: int) -> DriveGrid:
+    return grid.for_run(run) if isinstance(grid, RunGrids) else grid
+
+
+def onto_grid(
+    segment: Segment, grid: DriveGrid, mean_delay_s: float | None = None, ticks: np.ndarray | None = None
+) -> tuple[Segment, int]:
     """``segment`` with each instant moved to the tick it was sampled at, and the reads merged.
 
     Reads whose instants fall on one tick are one sample: the first read's
     feedback, the last read's command. The per-interval steps become whole
     ticks; ``t_unc`` stays as logged (the tick a read landed on is known no
-    better than the host's bracket).
+    better than the host's bracket). With a command lead (``grid.lead_s``)
+    each command's action tick is its own (:meth:`DriveGrid.action_index`):
+    its offset from ``mean_delay_s`` [s] (the mean over every run,
+    :func:`grid_delay_s`; this run's own when None) is kept as ``act_offset_s``.
+    ``ticks``: each read's sample tick where already decided (:func:`sample_ticks`).
     """
     t = np.asarray(segment.t, dtype=float)
-    k = grid.index(t)
+    k = grid.index(t) if ticks is None else np.asarray(ticks, dtype=float)
     keep = np.concatenate(([True], np.diff(k) != 0))
     if np.any(np.diff(k) < 0):
         raise IdentificationError("the log's instants go back: no tick grid can hold them")
@@ -103,74 +172,200 @@ def onto_grid(segment: Segment, grid: DriveGrid) -> tuple[Segment, int]:
     def pick(a, rows):
         return None if a is None else np.asarray(a)[rows]
 
+    offsets = None
+    if grid.lead_s > 0:
+        delays = (grid.action_index(t[last]) - k[first]) * grid.period_s
+        offsets = delays - (float(np.mean(delays)) if mean_delay_s is None else mean_delay_s)
     moved = replace(
         segment, t=t_new, u=segment.u[last], v=segment.v[first], x=pick(segment.x, first),
         u_exc=pick(segment.u_exc, last), x_ref=pick(segment.x_ref, last),
-        t_unc=pick(segment.t_unc, first), dt_s=np.diff(t_new),
+        t_unc=pick(segment.t_unc, first), dt_s=np.diff(t_new), act_offset_s=offsets,
     )  # fmt: skip
     return moved, int(t.size - first.size)
 
 
-def on_grid(data: Dataset, grid: DriveGrid) -> tuple[Dataset, int]:
-    """Every run of ``data`` on the grid (:func:`onto_grid`), and the reads merged in all."""
-    segments, merged = [], 0
+def sample_ticks(segment: Segment, grid: DriveGrid, model) -> np.ndarray:
+    """Each read's sample tick on ``grid``, a read whose bracket ``t +- t_unc`` holds a tick
+    decided by ``model``'s simulation.
+
+    With a command lead the action tick of a read near a tick is that tick
+    whichever side of it the query arrived (the command came a lead earlier),
+    so only the sample is in doubt: the tick before, or the one the query
+    followed. Each such read takes the one whose simulated velocity lies
+    nearer its own; the simulation itself does not depend on the choice.
+    Without a lead, or without ``t_unc``, the ticks are :meth:`DriveGrid.index`'s.
+    """
+    t = np.asarray(segment.t, dtype=float)
+    k = grid.index(t)
+    if grid.lead_s <= 0 or segment.t_unc is None or t.size < 2:
+        return k
+    unc = np.asarray(segment.t_unc, dtype=float)
+    below = grid.instant(k) >= t - unc  # the query may have come before tick k: sample k - 1
+    above = grid.instant(k + 1) <= t + unc  # or after tick k + 1: sample k + 1
+    alt = np.where(below, k - 1, np.where(above, k + 1, k))
+    doubt = alt != k
+    if not doubt.any():
+        return k
+    switches = np.maximum.accumulate(grid.instant(grid.action_index(t)))
+    v_k, v_alt = _velocity_at(grid.instant(k), grid.instant(alt), segment.u, switches, model, float(segment.v[0]))
+    v = np.asarray(segment.v, dtype=float)
+    chosen = np.where(doubt & (np.abs(v_alt - v) < np.abs(v_k - v)), alt, k)
+    return np.maximum.accumulate(chosen)
+
+
+def _velocity_at(
+    at_a: np.ndarray, at_b: np.ndarray, u: np.ndarray, switches: np.ndarray, model, v0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``model``'s velocity at the instants ``at_a`` and ``at_b`` [s], command ``u[j]`` in force from
+    ``switches[j]`` [s] (0 before the first), from ``v0`` at the earliest instant."""
+    from servobench.bench.identify.simulation import simulate_variable_dt
+
+    start = min(float(at_a[0]), float(at_b[0]))
+    inside = switches[(switches > start) & (switches < max(float(at_a[-1]), float(at_b[-1])))]
+    instants = np.unique(np.concatenate(([start], at_a, at_b, inside)))
+    j = np.searchsorted(switches, instants + 1e-12 * grid_scale(instants), side="right") - 1
+    u_m = np.where(j >= 0, np.asarray(u, dtype=float)[np.clip(j, 0, None)], 0.0)
+    v = simulate_variable_dt(u_m, np.diff(instants), model.to_plant_params(), v0)
+    return v[np.searchsorted(instants, at_a)], v[np.searchsorted(instants, at_b)]
+
+
+def grid_scale(instants: np.ndarray) -> float:
+    """A time scale [s] for rounding tolerances on ``instants``: their mean step."""
+    return float((instants[-1] - instants[0]) / max(instants.size - 1, 1)) if instants.size > 1 else 1.0
+
+
+def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, ticks: dict | None = None) -> float:
+    """The mean action delay [s] on ``grid`` over every run: one tick without a command lead; with
+    one, the mean over the rows of ticks from each sample to its command's action (each run's
+    sample ticks from ``ticks``, keyed by run, where given)."""
+    if grid.lead_s <= 0:
+        return _grid_of(grid, data.segments[0].run).period_s
+    total, count = 0.0, 0
     for s in data.segments:
-        moved, n = onto_grid(s, grid)
+        g = _grid_of(grid, s.run)
+        k = g.index(s.t) if not ticks or ticks.get(s.run) is None else ticks[s.run]
+        last = np.concatenate((np.flatnonzero(np.diff(k) != 0), [k.size - 1]))
+        first = np.concatenate(([0], last[:-1] + 1))
+        total += float(np.sum(g.action_index(s.t[last]) - k[first])) * g.period_s
+        count += first.size
+    return total / count if count else _grid_of(grid, data.segments[0].run).period_s
+
+
+def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None) -> tuple[Dataset, int]:
+    """Every run of ``data`` on the grid (:func:`onto_grid`; its own where ``grid`` holds one per
+    run), and the reads merged in all; with ``model`` and a command lead, the reads near a tick
+    placed by it (:func:`sample_ticks`)."""
+    segments, merged = [], 0
+    ticks = {s.run: sample_ticks(s, _grid_of(grid, s.run), model) if model is not None else None
+             for s in data.segments}  # fmt: skip
+    mean_delay = grid_delay_s(data, grid, ticks) if grid.lead_s > 0 else None
+    for s in data.segments:
+        moved, n = onto_grid(s, _grid_of(grid, s.run), mean_delay, ticks[s.run])
         segments.append(moved)
         merged += n
     return replace(data, segments=tuple(segments)), merged
 
 
 def applicable(data: Dataset, delay_s: float) -> bool:
-    """A log whose instants are the host's (``t_unc``), with measured velocity, one request per
-    exchange (no command lead), and an action delay of at least a fiftieth of a cycle."""
-    return (
-        data.timing_uncertain
-        and not data.derived
-        and data.min_delay_s == 0.0
-        and delay_s > 0.02 * data.dt_s
-    )
+    """A log whose instants are the host's (``t_unc``), with measured velocity, and an action
+    delay of at least a fiftieth of a cycle, or a command lead (whose rows' delays may average
+    to anything down to minus the lead)."""
+    if not data.timing_uncertain or data.derived:
+        return False
+    return data.min_delay_s < 0.0 or delay_s > 0.02 * data.dt_s
 
 
-def nominal_ticks_s(delay_s: float, delay_std_s: float = 0.0) -> list[float]:
+def nominal_ticks_s(
+    delay_s: float, delay_std_s: float = 0.0, lead_s: float = 0.0, longest_s: float = math.inf
+) -> list[float]:
     """The nominal ticks [s] the delay ``delay_s`` [s] (1 sigma ``delay_std_s``) may stand for,
-    nearest first: within :data:`SNAP_SHARE`, or three sigma, of it."""
-    reach = max(SNAP_SHARE * delay_s, 3.0 * delay_std_s)
-    near = [t for t in NICE_TICKS_S if abs(t - delay_s) <= max(reach, SNAP_SHARE * t)]
+    nearest first: within :data:`SNAP_SHARE`, or three sigma, of it.
+
+    A command sent ``lead_s`` [s] ahead of its query acts a tick after its sample, or in the
+    sample's own tick where a tick fell within the lead; as the host's cycle keeps its phase
+    against the drive's ticks, any share of the rows may do either, and the mean delay is
+    anywhere up to a tick: then every nominal tick from the delay on, up to ``longest_s``.
+    """
+    reach = max(SNAP_SHARE * abs(delay_s), 3.0 * delay_std_s)
+    if lead_s > 0:  # (a tick shorter than the lead may even put the action before the sample)
+        near = [t for t in NICE_TICKS_S if abs(delay_s) - max(reach, SNAP_SHARE * t) <= t <= longest_s]
+    else:
+        near = [t for t in NICE_TICKS_S if abs(t - delay_s) <= max(reach, SNAP_SHARE * t)]
     return sorted(near, key=lambda t: abs(t - delay_s))
 
 
-def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0) -> DriveGrid | None:
-    """The best of :func:`find_grid_at` over the nominal ticks the model's delay may stand for
-    (:func:`nominal_ticks_s`), or None where none explains the data clearly better."""
+def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0) -> RunGrids | None:
+    """The best over the nominal ticks the model's delay may stand for (:func:`nominal_ticks_s`)
+    of each run's grid (:func:`find_grid_at`), or None where none explains the data clearly
+    better (:data:`MIN_GAIN`) than the constant delay over the whole log."""
     if not applicable(data, model.delay_s):
         return None
-    found = [g for t in nominal_ticks_s(model.delay_s, delay_std_s) if (g := find_grid_at(data, model, t))]
+    lead = max(-data.min_delay_s, 0.0)
+    # a tick longer than the host's cycle leaves too few distinct ticks to place the reads on,
+    # and one shorter than twice the reads' typical bracket cannot be told from their scatter
+    ticks = nominal_ticks_s(model.delay_s, delay_std_s, lead, data.dt_s)
+    if lead > 0:
+        bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
+        ticks = [t for t in ticks if t >= 2.0 * bracket]
+    found = [g for t in ticks if (g := find_run_grids(data, model, t, lead))]
     return max(found, key=lambda g: g.gain) if found else None
 
 
-def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
+def find_run_grids(data: Dataset, model, tick: float, lead_s: float = 0.0) -> RunGrids | None:
+    """Each run's grid of nominal tick ``tick`` [s] (:func:`find_grid_at` on that run alone), kept
+    where together they cut the whole log's mean squared residual :data:`MIN_GAIN` times."""
+    from servobench.bench.identify.joint import pair_residual_ms
+
+    grids = []
+    for seg in data.segments:
+        g = find_grid_at(replace(data, segments=(seg,)), model, tick, lead_s, min_gain=0.0)
+        if g is None:
+            return None
+        grids.append((seg.run, g))
+    found = RunGrids(tuple(grids), 1.0)
+    try:
+        moved, _ = on_grid(data, found, model)
+        if lead_s > 0:
+            ticks = {seg.run: sample_ticks(seg, found.for_run(seg.run), model) for seg in data.segments}
+            baseline = _simulation_ms(data, model)
+            best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, found, ticks)))
+        else:
+            baseline = pair_residual_ms(data, model.delay_s, model.time_constant_s)
+            best = pair_residual_ms(moved, tick, model.time_constant_s)
+    except IdentificationError:
+        return None
+    if not (best > 0 and baseline / best >= MIN_GAIN):
+        return None
+    return replace(found, gain=baseline / best)
+
+
+def find_grid_at(
+    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN
+) -> DriveGrid | None:
     """The drive's tick grid with nominal tick ``tick`` [s] on the host's clock that best explains
-    ``data`` under ``model`` (whose ``delay_s`` is about one tick), or None where no grid explains it
-    clearly better than the model's constant delay.
+    ``data`` under ``model`` (whose ``delay_s`` is about one tick, or up to ``lead_s`` less), or
+    None where no grid explains it clearly better than the model's constant delay.
 
     In each
     window of :data:`WINDOW_S` the phase is the one of :data:`PHASES` (refined
-    between its neighbours) whose grid leaves the model's pair residual
-    smallest, the command acting one tick after its sample; the phases,
+    between its neighbours) whose grid leaves the model's residual
+    smallest (its pairs', the command acting one tick after its sample; with a
+    command lead, its simulation's, each command acting from its own tick); the phases,
     unwrapped along the run, give the grid's phase and the drive clock's drift
     by a straight-line fit (median-robust). The grid is kept where the refitted
-    pair regression's mean squared residual falls :data:`MIN_GAIN` times below
-    the constant delay's.
+    mean squared residual falls ``min_gain`` times below the constant delay's. The runs
+    of a log each start their clock at their first sample: one run at a time here.
     """
     from servobench.bench.identify.joint import pair_residual_ms
 
     tau = model.time_constant_s
     try:
-        baseline = pair_residual_ms(data, model.delay_s, tau)  # the constant delay identified
+        # the constant delay identified
+        baseline = _simulation_ms(data, model) if lead_s > 0 else pair_residual_ms(data, model.delay_s, tau)
     except IdentificationError:
         return None
-    model = replace(model, delay_s=tick)
+    if lead_s <= 0:
+        model = replace(model, delay_s=tick)
     t_end = max(float(s.t[-1]) for s in data.segments)
     edges = np.arange(0.0, t_end + WINDOW_S, WINDOW_S)
     phases = np.arange(PHASES) * tick / PHASES
@@ -179,9 +374,7 @@ def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
     for i, phase in enumerate(phases):
         sums = np.zeros(edges.size - 1)
         n = np.zeros(edges.size - 1)
-        for seg in data.segments:
-            moved, _ = onto_grid(seg, DriveGrid(tick, phase, 1.0))
-            t_pair, e = _model_residuals(moved, model, tick)
+        for t_pair, e in _residuals(data, model, DriveGrid(tick, phase, 1.0, 0.0, lead_s)):
             w = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, edges.size - 2)
             sums += np.bincount(w, e * e, edges.size - 1)
             n += np.bincount(w, None, edges.size - 1)
@@ -201,7 +394,7 @@ def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
     best_cost, grid = math.inf, None
     for drift in {0.0, float(slope)}:
         for phase in np.arange(FINE_PHASES) * tick / FINE_PHASES:
-            trial = DriveGrid(tick, float(phase), 1.0, drift)
+            trial = DriveGrid(tick, float(phase), 1.0, drift, lead_s)
             cost = _grid_cost(data, model, trial)
             if cost < best_cost:
                 best_cost, grid = cost, trial
@@ -209,16 +402,19 @@ def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
         return None
     step = tick / FINE_PHASES
     for phase in grid.phase_s + np.linspace(-step, step, 2 * REFINE_STEPS + 1):
-        trial = DriveGrid(tick, float(phase % tick), 1.0, grid.drift)
+        trial = replace(grid, phase_s=float(phase % tick))
         cost = _grid_cost(data, model, trial)
         if cost < best_cost:
             best_cost, grid = cost, trial
     try:
         moved, _ = on_grid(data, grid)
-        best = pair_residual_ms(moved, tick, tau)
+        if lead_s > 0:
+            best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, grid)))
+        else:
+            best = pair_residual_ms(moved, tick, tau)
     except IdentificationError:
         return None
-    if not (best > 0 and baseline / best >= MIN_GAIN):
+    if not (best > 0 and baseline / best >= min_gain):
         return None
     return replace(grid, gain=baseline / best)
 
@@ -226,12 +422,35 @@ def find_grid_at(data: Dataset, model, tick: float) -> DriveGrid | None:
 def _grid_cost(data: Dataset, model, grid: DriveGrid) -> float:
     """Mean squared residual of ``model`` over every run moved onto ``grid``."""
     total, count = 0.0, 0
-    for seg in data.segments:
-        moved, _ = onto_grid(seg, grid)
-        _, e = _model_residuals(moved, model, grid.tick_s / (1.0 - grid.drift))
+    for _, e in _residuals(data, model, grid):
         total += float(e @ e)
         count += e.size
     return total / count if count else math.inf
+
+
+def _residuals(data: Dataset, model, grid: DriveGrid) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per run on ``grid``: the instants [s] and residuals of ``model``: its pairs' with the command
+    acting one tick after its sample (``model.delay_s`` that tick), or with a command lead its
+    simulation's, each command acting from its own tick (the model's delay set to their mean)."""
+    if grid.lead_s <= 0:
+        return [_model_residuals(onto_grid(s, grid)[0], model, grid.period_s) for s in data.segments]
+    moved, _ = on_grid(data, grid)
+    model = replace(model, delay_s=grid_delay_s(data, grid))
+    return [(s.t, _simulated(s, model, data.dt_s) - s.v) for s in moved.segments]
+
+
+def _simulated(seg: Segment, model, dt_s: float) -> np.ndarray:
+    """``model``'s velocity over ``seg`` from its first sample's velocity, its commands' offsets taken in."""
+    from servobench.bench.identify.simulation import simulate_velocity
+
+    dt = dt_s if seg.dt_s is None else seg.dt_s
+    return simulate_velocity(model, seg.u, dt, float(seg.v[0]), seg.act_offset_s)
+
+
+def _simulation_ms(data: Dataset, model) -> float:
+    """Mean squared simulation residual of ``model`` over every run of ``data``."""
+    e = np.concatenate([_simulated(s, model, data.dt_s) - s.v for s in data.segments])
+    return float(np.mean(e * e)) if e.size else math.inf
 
 
 def _model_residuals(seg: Segment, model, tick_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -144,6 +144,9 @@ def identify_joint(
 
     fit = _solve(_pairs(data), data, None)
     delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
+    if math.isnan(delay_std):  # the pairs cannot tell the delay (no curvature): the simulation can
+        delay_s = _delay_by_simulation(data, _model(fit, delay_s)).delay_s
+        fit = _solve(_pairs(delayed(data, delay_s, fit.M / fit.B)), delayed(data, delay_s, fit.M / fit.B), fit)
     ddata = delayed(data, delay_s, fit.M / fit.B)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
     v_rms = math.sqrt(float(np.mean(v_all**2)))
@@ -175,8 +178,8 @@ def identify_joint(
 
 def _simulates_exactly(data: Dataset, model: ServoModel) -> bool:
     """The model's simulation reproduces every run to :data:`EXACT_RTOL` of its rms velocity."""
-    sim = [simulate_run(model, s.u, data.dt_s if s.dt_s is None else s.dt_s, float(s.v[0]), _period(data))
-           for s in data.segments]  # fmt: skip
+    sim = [simulate_run(model, s.u, data.dt_s if s.dt_s is None else s.dt_s, float(s.v[0]), _period(data),
+                        s.act_offset_s) for s in data.segments]  # fmt: skip
     v = data.cat("v")
     miss = float(np.sqrt(np.mean((v - np.concatenate(sim)) ** 2)))
     return miss <= EXACT_RTOL * float(np.sqrt(np.mean(v**2)))
@@ -203,14 +206,14 @@ def delayed(data: Dataset, delay_s: float, tau_s: float) -> Dataset:
     per interval, to the commands acting ``delay_s`` [s] after their logged instants
     (:func:`~servobench.bench.identify.delay.effective_command`, for a time constant
     ``tau_s`` [s]): the pair regression of the delayed plant. ``data`` itself at delay 0."""
-    if delay_s == 0:
+    if delay_s == 0 and all(s.act_offset_s is None for s in data.segments):
         return data
 
     def eff(s: Segment, u: np.ndarray | None) -> np.ndarray | None:
         if u is None:
             return None
         dt = data.dt_s if s.dt_s is None else s.dt_s
-        return np.concatenate((effective_command(u, dt, delay_s, tau_s), u[-1:]))
+        return np.concatenate((effective_command(u, dt, delay_s, tau_s, offsets_s=s.act_offset_s), u[-1:]))
 
     return replace(data, segments=tuple(replace(s, u=eff(s, s.u), u_exc=eff(s, s.u_exc))
                                         for s in data.segments))  # fmt: skip
@@ -390,6 +393,7 @@ def _instrumental(
                 data.dt_s if s.dt_s is None else s.dt_s,
                 initial_velocity(s, sigma),
                 _period(iv),
+                s.act_offset_s,
             )
             for s in iv.segments
         ]
@@ -567,7 +571,8 @@ def oe_chunks(data: Dataset, sigma: float) -> tuple[list[Chunk], str]:
             note = f"output-error refinement on the first {per_run} samples of each run"
         v0 = initial_velocity(seg, sigma)
         dt = data.dt_s if seg.dt_s is None else seg.dt_s
-        chunks.append(Chunk(seg.u, seg.v, dt, v0, weight=_sample_weights(seg, sigma, data.dt_s)))
+        chunks.append(Chunk(seg.u, seg.v, dt, v0, weight=_sample_weights(seg, sigma, data.dt_s),
+                            act_offset_s=seg.act_offset_s))  # fmt: skip
     return chunks, note
 
 

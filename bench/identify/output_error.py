@@ -67,6 +67,9 @@ class Chunk:
         through the same filter and derivative, so both sides are filtered alike.
     x0 : float
         Initial position [units] (derived chunks).
+    act_offset_s : ndarray or None
+        Each command's own shift of its action instant [s] on top of the model's delay
+        (:attr:`~servobench.bench.identify.dataset.Segment.act_offset_s`).
     """
 
     u: np.ndarray
@@ -78,6 +81,7 @@ class Chunk:
     weight: float | np.ndarray = 1.0
     derive: DerivedMotion | None = None
     x0: float = 0.0
+    act_offset_s: np.ndarray | None = None
 
 
 def simulate_chunk(model: ServoModel, chunk: Chunk) -> np.ndarray:
@@ -92,7 +96,7 @@ def simulate_chunk(model: ServoModel, chunk: Chunk) -> np.ndarray:
         d = chunk.derive
         v = differentiate_position(x, 1.0 / dt, d.cutoff_hz, d.method).v
     else:
-        v = simulate_velocity(model, chunk.u, chunk.dt_s, chunk.v0)
+        v = simulate_velocity(model, chunk.u, chunk.dt_s, chunk.v0, chunk.act_offset_s)
     end = len(v) - chunk.skip if chunk.derive is not None else len(v)
     return v[chunk.skip : end]
 

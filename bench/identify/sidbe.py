@@ -144,7 +144,7 @@ def _friction_sampled(
     vs = [s.v for s in data.segments]
     # the command held over each interval that moves the block as the delayed ones do
     # (padded to n: the pairs read u[k] for k < n - 1 only)
-    us = [_pad(effective_command(s.u, dt, delay_s, M / B)) for s in data.segments]
+    us = [_pad(effective_command(s.u, dt, delay_s, M / B, offsets_s=s.act_offset_s)) for s in data.segments]
     ints = [np.full(len(s) - 1, dt) for s in data.segments]
     pairs = select_pairs(vs, us, ints, max_pairs=MAX_PAIRS)
     force = pairs.u - (pairs.v1 - a * pairs.v0) / b

@@ -28,6 +28,7 @@ def simulate_velocity(
     u: np.ndarray,
     dt_s: float | np.ndarray,
     v0: float = 0.0,
+    offsets_s: np.ndarray | None = None,
 ) -> np.ndarray:
     """Noise-free velocity [units/s] at each sample, ``u`` held per interval.
 
@@ -40,11 +41,14 @@ def simulate_velocity(
         Sample interval [s], one value or one per interval.
     v0 : float
         Velocity at the first sample [units/s].
+    offsets_s : ndarray of shape (n,), optional
+        Each command's own shift [s] of its action instant on top of the model's delay
+        (:attr:`Segment.act_offset_s <servobench.bench.identify.dataset.Segment.act_offset_s>`).
     """
     u = np.asarray(u, dtype=float)
     params = model.to_plant_params()
-    if model.delay_s != 0:
-        v = simulate_delayed(u, dt_s, params, model.delay_s, v0)
+    if model.delay_s != 0 or offsets_s is not None:
+        v = simulate_delayed(u, dt_s, params, model.delay_s, v0, offsets_s=offsets_s)
         if model.resonance is not None:
             v = model.resonance.filter_velocity(v, float(np.mean(dt_s)))
         return v
@@ -67,14 +71,16 @@ def simulate_delayed(
     delay_s: float,
     v0: float = 0.0,
     u_before: float = 0.0,
+    offsets_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Exact stick-slip velocity at the sample instants when ``u[k]`` acts from ``t_k + delay_s``.
+    """Exact stick-slip velocity at the sample instants when ``u[k]`` acts from ``t_k + delay_s``
+    (``+ offsets_s[k]`` where given).
 
     Simulated on the grid of the sample and switch instants
     (:func:`~servobench.bench.identify.delay.merged_grid`) and taken back at the
     samples; ``u_before`` [command units] is in force until ``u[0]`` acts.
     """
-    u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before)
+    u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before, offsets_s)
     if u_m.size == 0:
         return u_m
     return simulate_variable_dt(u_m, dt_m, params, v0)[rows]
@@ -150,8 +156,10 @@ def simulate_run(
     dt_s: float | np.ndarray,
     v0: float = 0.0,
     period: int = 0,
+    offsets_s: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Velocity over a whole run; with ``period`` (samples) long periodic runs are tiled.
+    """Velocity over a whole run; with ``period`` (samples) long periodic runs are tiled
+    (never with per-row action ``offsets_s``, which make a run aperiodic).
 
     For a periodic command, periods after the transient equal the steady-state
     period; the run is simulated for its first periods until two consecutive
@@ -160,6 +168,8 @@ def simulate_run(
     """
     u = np.asarray(u, dtype=float)
     n = len(u)
+    if offsets_s is not None:
+        return simulate_velocity(model, u, dt_s, v0, offsets_s)
     if period <= 0 or np.ndim(dt_s) != 0 or model.resonance is not None or n < 6 * period:
         return simulate_velocity(model, u, dt_s, v0)
     whole = n // period

@@ -69,7 +69,7 @@ def verify(
     start, stop = window
     for seg in data.segments:
         dt = data.dt_s if seg.dt_s is None else seg.dt_s
-        v_sim = simulate_run(model, seg.u, dt, initial_velocity(seg, noise_std), period)
+        v_sim = simulate_run(model, seg.u, dt, initial_velocity(seg, noise_std), period, seg.act_offset_s)
         sl = slice(start, stop)
         runs.append(
             RunVerification(seg.run, seg.t, seg.u, seg.v, v_sim, fit_percent(seg.v[sl], v_sim[sl]), seg.u_exc)
