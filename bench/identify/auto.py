@@ -27,7 +27,13 @@ from __future__ import annotations
 from dataclasses import replace
 
 from servobench.bench.identify.dataset import Dataset, prepare
-from servobench.bench.identify.drive_grid import find_drive_grid, on_grid
+from servobench.bench.identify.drive_grid import (
+    MIN_GAIN,
+    TRIAL_GAIN,
+    find_drive_grid,
+    on_grid,
+    refit_kept,
+)
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.motion import require_motion
@@ -81,16 +87,21 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
-    grid = find_drive_grid(data, result.model, float(result.std.get("delay_s", 0.0) or 0.0))
+    lead = data.min_delay_s < 0  # a command ahead of its query: the grid is judged by its refit
+    grid = find_drive_grid(data, result.model, float(result.std.get("delay_s", 0.0) or 0.0),
+                           TRIAL_GAIN if lead else MIN_GAIN)  # fmt: skip
     logged, regrid = data, None
     if grid is not None:  # the drive's tick located on the host's clock: samples onto it
+        moved, merged = on_grid(data, grid, result.model)
+        again = identify_data(moved, method, resonance=resonance)
+        if lead and not refit_kept(result.fit_percent, again.fit_percent):
+            grid = None
+        else:
 
-        def regrid(d: Dataset) -> Dataset:
-            return on_grid(d, grid)[0]
+            def regrid(d: Dataset) -> Dataset:
+                return on_grid(d, grid)[0]
 
-        data, merged = on_grid(data, grid, result.model)
-        result = identify_data(data, method, resonance=resonance)
-        result = replace(result, notes=(*result.notes, grid.note(merged)))
+            data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
     timing = timing_figure(log.metadata, data, estimate, regrid, logged)
     return result if timing is None else replace(result, timing=timing)
@@ -125,6 +136,10 @@ def identify_data(
     else:
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     ver = verify(est.model, data, est.noise_std)
+    notes = est.notes
+    if ver.set_aside:
+        notes = (*notes, f"{ver.set_aside} samples whose instants the log knows only within more than a "
+                 "quarter cycle (t_unc: the host stalled) left out of the verification fit")  # fmt: skip
     return IdentificationResult(
         model=est.model,
         method=est.method,
@@ -134,7 +149,7 @@ def identify_data(
         estimator=est.estimator,
         noise_std=est.noise_std,
         validation=validation,
-        notes=est.notes,
+        notes=notes,
         frf=est.frf if est.frf is not None else frf,
         verification=ver,
         units=data.units,

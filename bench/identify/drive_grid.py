@@ -48,6 +48,10 @@ from servobench.errors import IdentificationError
 PHASES = 24
 #: The grid must cut the mean squared pair residual of the constant delay by this factor.
 MIN_GAIN = 1.5
+#: With a command lead the grid is first judged under the constant-delay model, whose parameters
+#: the misplaced reads have bent: a grid that improves on it at all is tried, and kept where the
+#: model identified on it verifies :data:`MIN_GAIN` times better in mean square (:func:`refit_kept`).
+TRIAL_GAIN = 1.0
 #: Instants this close below a tick (share of the tick) count as on it (float rounding).
 ON_TICK = 1e-9
 #: Nominal control ticks of drives [s] (16 kHz down to 250 Hz): the identified delay is snapped
@@ -147,7 +151,7 @@ def _grid_of(grid: DriveGrid | RunGrids, run: int) -> DriveGrid:
 
 
 def onto_grid(
-    segment: Segment, grid: DriveGrid, mean_delay_s: float | None = None, ticks: np.ndarray | None = None
+    segment: Segment, grid: DriveGrid, mean_delay_s: float | None = None, placed: Placement | None = None
 ) -> tuple[Segment, int]:
     """``segment`` with each instant moved to the tick it was sampled at, and the reads merged.
 
@@ -158,10 +162,11 @@ def onto_grid(
     each command's action tick is its own (:meth:`DriveGrid.action_index`):
     its offset from ``mean_delay_s`` [s] (the mean over every run,
     :func:`grid_delay_s`; this run's own when None) is kept as ``act_offset_s``.
-    ``ticks``: each read's sample tick where already decided (:func:`sample_ticks`).
+    ``placed``: each read's ticks where already decided (:func:`place_reads`).
     """
     t = np.asarray(segment.t, dtype=float)
-    k = grid.index(t) if ticks is None else np.asarray(ticks, dtype=float)
+    placed = place_reads(segment, grid) if placed is None else placed
+    k = placed.sample
     keep = np.concatenate(([True], np.diff(k) != 0))
     if np.any(np.diff(k) < 0):
         raise IdentificationError("the log's instants go back: no tick grid can hold them")
@@ -174,7 +179,7 @@ def onto_grid(
 
     offsets = None
     if grid.lead_s > 0:
-        delays = (grid.action_index(t[last]) - k[first]) * grid.period_s
+        delays = (placed.action[last] - k[first]) * grid.period_s
         offsets = delays - (float(np.mean(delays)) if mean_delay_s is None else mean_delay_s)
     moved = replace(
         segment, t=t_new, u=segment.u[last], v=segment.v[first], x=pick(segment.x, first),
@@ -184,33 +189,87 @@ def onto_grid(
     return moved, int(t.size - first.size)
 
 
-def sample_ticks(segment: Segment, grid: DriveGrid, model) -> np.ndarray:
-    """Each read's sample tick on ``grid``, a read whose bracket ``t +- t_unc`` holds a tick
-    decided by ``model``'s simulation.
+@dataclass(frozen=True)
+class Placement:
+    """Where each read of a run went on its grid: the tick its sample was taken at (``sample``)
+    and the tick its command acts from (``action``), as tick indices, shape ``(n,)``."""
 
-    With a command lead the action tick of a read near a tick is that tick
-    whichever side of it the query arrived (the command came a lead earlier),
-    so only the sample is in doubt: the tick before, or the one the query
-    followed. Each such read takes the one whose simulated velocity lies
-    nearer its own; the simulation itself does not depend on the choice.
-    Without a lead, or without ``t_unc``, the ticks are :meth:`DriveGrid.index`'s.
+    sample: np.ndarray
+    action: np.ndarray
+
+
+#: A command whose arrival (``t - lead_s``) lies this share of a tick (or its read's ``t_unc``, if
+#: more) from a tick may act from either: the simulation decides (the lead itself is the wire's).
+ACTION_DOUBT = 0.15
+
+
+def place_reads(segment: Segment, grid: DriveGrid, model=None) -> Placement:
+    """Each read's sample and action tick on ``grid`` (:class:`Placement`); with ``model``, and a
+    command lead, a read whose instants are in doubt decided by ``model``'s simulation.
+
+    The command of a read arrived ``lead_s`` before it and acts from the first
+    tick after; where a tick lies within the doubt of that arrival
+    (:data:`ACTION_DOUBT`) and the command changes there, the action tick that
+    simulates the samples up to the next change better is kept (one change at a
+    time, in order). Then the sample: with the actions fixed, a read whose
+    bracket ``t +- t_unc`` holds a tick takes the tick before it or after it,
+    whichever's simulated velocity lies nearer its own (the simulation does not
+    depend on the samples). Without a lead, a model or ``t_unc``, the ticks are
+    :meth:`DriveGrid.index`'s and :meth:`DriveGrid.action_index`'s.
     """
     t = np.asarray(segment.t, dtype=float)
-    k = grid.index(t)
-    if grid.lead_s <= 0 or segment.t_unc is None or t.size < 2:
-        return k
+    k, ka = grid.index(t), grid.action_index(t)
+    if model is None or grid.lead_s <= 0 or segment.t_unc is None or t.size < 2:
+        return Placement(k, ka)
     unc = np.asarray(segment.t_unc, dtype=float)
+    v = np.asarray(segment.v, dtype=float)
+    ka = _decide_actions(segment, grid, model, k, ka, np.maximum(unc, ACTION_DOUBT * grid.tick_s))
     below = grid.instant(k) >= t - unc  # the query may have come before tick k: sample k - 1
     above = grid.instant(k + 1) <= t + unc  # or after tick k + 1: sample k + 1
     alt = np.where(below, k - 1, np.where(above, k + 1, k))
     doubt = alt != k
-    if not doubt.any():
-        return k
-    switches = np.maximum.accumulate(grid.instant(grid.action_index(t)))
-    v_k, v_alt = _velocity_at(grid.instant(k), grid.instant(alt), segment.u, switches, model, float(segment.v[0]))
-    v = np.asarray(segment.v, dtype=float)
-    chosen = np.where(doubt & (np.abs(v_alt - v) < np.abs(v_k - v)), alt, k)
-    return np.maximum.accumulate(chosen)
+    if doubt.any():
+        switches = np.maximum.accumulate(grid.instant(ka))
+        v_k, v_alt = _velocity_at(grid.instant(k), grid.instant(alt), segment.u, switches, model, float(v[0]))
+        k = np.maximum.accumulate(np.where(doubt & (np.abs(v_alt - v) < np.abs(v_k - v)), alt, k))
+    return Placement(k, ka)
+
+
+def _decide_actions(segment: Segment, grid: DriveGrid, model, k: np.ndarray, ka: np.ndarray,
+                    unc: np.ndarray) -> np.ndarray:  # fmt: skip
+    """The action ticks ``ka`` with each command change whose arrival is in doubt (within ``unc``
+    [s] of a tick) moved to the side that simulates the samples up to the next change better."""
+    arrival = np.asarray(segment.t, dtype=float) - grid.lead_s
+    early = grid.instant(ka - 1) > arrival - unc  # it may have come before tick ka - 1
+    late = grid.instant(ka) <= arrival + unc  # or after tick ka
+    alt = np.where(early, ka - 1, np.where(late, ka + 1, ka))
+    u, v = np.asarray(segment.u, dtype=float), np.asarray(segment.v, dtype=float)
+    changes = np.flatnonzero(np.concatenate(([True], u[1:] != u[:-1])))
+    doubtful = [int(r) for r in changes if alt[r] != ka[r]]
+    if not doubtful:
+        return ka
+    ka = ka.copy()
+    at = grid.instant(k)
+    for r in doubtful:
+        after = changes[changes > r]
+        window = slice(r, int(after[0]) + 1 if after.size else v.size)
+        costs = []
+        for cand in (ka[r], alt[r]):
+            trial = ka.copy()
+            trial[r] = cand
+            sim, _ = _velocity_at(at, at, u, np.maximum.accumulate(grid.instant(trial)), model, float(v[0]))
+            costs.append(float(np.sum((sim[window] - v[window]) ** 2)))
+        if costs[1] < costs[0]:
+            ka[r] = alt[r]
+    # A command that repeats the one before acts alike on either tick: for the mean delay, the
+    # rows in doubt among them take the other tick in the share the changes showed.
+    share = np.mean([ka[r] == alt[r] for r in doubtful])
+    still = np.setdiff1d(np.flatnonzero(alt != ka), doubtful)
+    still = still[alt[still] != ka[still]]
+    if still.size and share > 0:
+        pick = still[np.unique(np.round(np.linspace(0, still.size - 1, int(round(share * still.size)))).astype(int))]
+        ka[pick] = alt[pick] if int(round(share * still.size)) else ka[pick]
+    return ka
 
 
 def _velocity_at(
@@ -234,19 +293,20 @@ def grid_scale(instants: np.ndarray) -> float:
     return float((instants[-1] - instants[0]) / max(instants.size - 1, 1)) if instants.size > 1 else 1.0
 
 
-def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, ticks: dict | None = None) -> float:
+def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None = None) -> float:
     """The mean action delay [s] on ``grid`` over every run: one tick without a command lead; with
     one, the mean over the rows of ticks from each sample to its command's action (each run's
-    sample ticks from ``ticks``, keyed by run, where given)."""
+    :class:`Placement` from ``placed``, keyed by run, where given)."""
     if grid.lead_s <= 0:
         return _grid_of(grid, data.segments[0].run).period_s
     total, count = 0.0, 0
     for s in data.segments:
         g = _grid_of(grid, s.run)
-        k = g.index(s.t) if not ticks or ticks.get(s.run) is None else ticks[s.run]
+        p = place_reads(s, g) if not placed or placed.get(s.run) is None else placed[s.run]
+        k = p.sample
         last = np.concatenate((np.flatnonzero(np.diff(k) != 0), [k.size - 1]))
         first = np.concatenate(([0], last[:-1] + 1))
-        total += float(np.sum(g.action_index(s.t[last]) - k[first])) * g.period_s
+        total += float(np.sum(p.action[last] - k[first])) * g.period_s
         count += first.size
     return total / count if count else _grid_of(grid, data.segments[0].run).period_s
 
@@ -254,13 +314,12 @@ def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, ticks: dict | None =
 def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None) -> tuple[Dataset, int]:
     """Every run of ``data`` on the grid (:func:`onto_grid`; its own where ``grid`` holds one per
     run), and the reads merged in all; with ``model`` and a command lead, the reads near a tick
-    placed by it (:func:`sample_ticks`)."""
+    placed by it (:func:`place_reads`)."""
     segments, merged = [], 0
-    ticks = {s.run: sample_ticks(s, _grid_of(grid, s.run), model) if model is not None else None
-             for s in data.segments}  # fmt: skip
-    mean_delay = grid_delay_s(data, grid, ticks) if grid.lead_s > 0 else None
+    placed = {s.run: place_reads(s, _grid_of(grid, s.run), model) for s in data.segments}
+    mean_delay = grid_delay_s(data, grid, placed) if grid.lead_s > 0 else None
     for s in data.segments:
-        moved, n = onto_grid(s, _grid_of(grid, s.run), mean_delay, ticks[s.run])
+        moved, n = onto_grid(s, _grid_of(grid, s.run), mean_delay, placed[s.run])
         segments.append(moved)
         merged += n
     return replace(data, segments=tuple(segments)), merged
@@ -294,10 +353,17 @@ def nominal_ticks_s(
     return sorted(near, key=lambda t: abs(t - delay_s))
 
 
-def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0) -> RunGrids | None:
+def refit_kept(fit_before_pct: float, fit_after_pct: float) -> bool:
+    """A located grid is kept where the model identified on it verifies :data:`MIN_GAIN` times better
+    in mean square than the constant delay's (fits [%], ``100 (1 - |e| / |v - mean v|)``)."""
+    miss_before, miss_after = 100.0 - fit_before_pct, 100.0 - fit_after_pct
+    return miss_after <= 0 or (miss_before / miss_after) ** 2 >= MIN_GAIN
+
+
+def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0, min_gain: float = MIN_GAIN) -> RunGrids | None:
     """The best over the nominal ticks the model's delay may stand for (:func:`nominal_ticks_s`)
     of each run's grid (:func:`find_grid_at`), or None where none explains the data clearly
-    better (:data:`MIN_GAIN`) than the constant delay over the whole log."""
+    better (``min_gain``) than the constant delay over the whole log."""
     if not applicable(data, model.delay_s):
         return None
     lead = max(-data.min_delay_s, 0.0)
@@ -307,13 +373,15 @@ def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0) -> RunGrids 
     if lead > 0:
         bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
         ticks = [t for t in ticks if t >= 2.0 * bracket]
-    found = [g for t in ticks if (g := find_run_grids(data, model, t, lead))]
+    found = [g for t in ticks if (g := find_run_grids(data, model, t, lead, min_gain))]
     return max(found, key=lambda g: g.gain) if found else None
 
 
-def find_run_grids(data: Dataset, model, tick: float, lead_s: float = 0.0) -> RunGrids | None:
+def find_run_grids(
+    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN
+) -> RunGrids | None:
     """Each run's grid of nominal tick ``tick`` [s] (:func:`find_grid_at` on that run alone), kept
-    where together they cut the whole log's mean squared residual :data:`MIN_GAIN` times."""
+    where together they cut the whole log's mean squared residual ``min_gain`` times."""
     from servobench.bench.identify.joint import pair_residual_ms
 
     grids = []
@@ -326,15 +394,15 @@ def find_run_grids(data: Dataset, model, tick: float, lead_s: float = 0.0) -> Ru
     try:
         moved, _ = on_grid(data, found, model)
         if lead_s > 0:
-            ticks = {seg.run: sample_ticks(seg, found.for_run(seg.run), model) for seg in data.segments}
+            placed = {seg.run: place_reads(seg, found.for_run(seg.run), model) for seg in data.segments}
             baseline = _simulation_ms(data, model)
-            best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, found, ticks)))
+            best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, found, placed)))
         else:
             baseline = pair_residual_ms(data, model.delay_s, model.time_constant_s)
             best = pair_residual_ms(moved, tick, model.time_constant_s)
     except IdentificationError:
         return None
-    if not (best > 0 and baseline / best >= MIN_GAIN):
+    if not (best > 0 and baseline / best >= min_gain):
         return None
     return replace(found, gain=baseline / best)
 

@@ -10,6 +10,13 @@ with the measured (or derived) velocity::
 over all runs together (100 % is a perfect fit, 0 % is no better than the
 mean). A window restricts the comparison to held-out samples while the
 simulation still runs from the start of each run.
+
+A sample whose instant the log knows only within more than a quarter of a
+cycle (``t_unc``, a host that stalled mid-exchange) is left out of the score,
+as identification left it out (:data:`~servobench.bench.identify.joint.TIMING_REJECT_SHARE`):
+where it was read is unknown, so no model can be scored on it. They are
+counted (:attr:`Verification.set_aside`); where they would be most of the
+log, every sample is scored.
 """
 
 from __future__ import annotations
@@ -44,6 +51,8 @@ class Verification:
     runs: tuple[RunVerification, ...]
     fit_percent: float
     window: tuple[int, int | None] = (0, None)
+    #: Samples left out of the score: their instants known worse than a quarter cycle.
+    set_aside: int = 0
 
 
 def verify(
@@ -67,14 +76,30 @@ def verify(
     runs = []
     measured, simulated = [], []
     start, stop = window
-    for seg in data.segments:
+    known = _instant_known(data)
+    for seg, ok in zip(data.segments, known, strict=True):
         dt = data.dt_s if seg.dt_s is None else seg.dt_s
         v_sim = simulate_run(model, seg.u, dt, initial_velocity(seg, noise_std), period, seg.act_offset_s)
         sl = slice(start, stop)
-        runs.append(
-            RunVerification(seg.run, seg.t, seg.u, seg.v, v_sim, fit_percent(seg.v[sl], v_sim[sl]), seg.u_exc)
-        )
-        measured.append(seg.v[sl])
-        simulated.append(v_sim[sl])
+        keep = ok[sl]
+        runs.append(RunVerification(seg.run, seg.t, seg.u, seg.v, v_sim,
+                                    fit_percent(seg.v[sl][keep], v_sim[sl][keep]), seg.u_exc))  # fmt: skip
+        measured.append(seg.v[sl][keep])
+        simulated.append(v_sim[sl][keep])
     total = fit_percent(np.concatenate(measured), np.concatenate(simulated))
-    return Verification(tuple(runs), total, window)
+    aside = int(sum(np.count_nonzero(~ok[slice(start, stop)]) for ok in known))
+    return Verification(tuple(runs), total, window, aside)
+
+
+def _instant_known(data: Dataset) -> list[np.ndarray]:
+    """Per run, the samples whose instants are known within a quarter cycle (all, where that
+    would leave fewer than half of them, as identification does)."""
+    from servobench.bench.identify.joint import MIN_KEPT_SHARE, TIMING_REJECT_SHARE
+
+    known = [np.ones(len(s), dtype=bool) if s.t_unc is None
+             else np.asarray(s.t_unc) / np.sqrt(3.0) <= TIMING_REJECT_SHARE * data.dt_s
+             for s in data.segments]  # fmt: skip
+    total = sum(k.size for k in known)
+    if sum(np.count_nonzero(k) for k in known) < MIN_KEPT_SHARE * total:
+        return [np.ones_like(k) for k in known]
+    return known
