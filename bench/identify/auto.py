@@ -30,7 +30,9 @@ from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.drive_grid import (
     MIN_GAIN,
     TRIAL_GAIN,
-    find_drive_grid,
+    TRIALS,
+    by_simulation,
+    find_drive_grids,
     on_grid,
     refit_kept,
 )
@@ -87,21 +89,28 @@ def identify(
         raise UsageError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     data = prepare(log, velocity_cutoff_hz=velocity_cutoff_hz, derivative_method=derivative_method)
     result = identify_data(data, method, resonance=resonance)
-    lead = data.min_delay_s < 0  # a command ahead of its query: the grid is judged by its refit
-    grid = find_drive_grid(data, result.model, float(result.std.get("delay_s", 0.0) or 0.0),
-                           TRIAL_GAIN if lead else MIN_GAIN)  # fmt: skip
+    trial = by_simulation(data)  # grids the simulation judges: each kept by its refit
+    grids = find_drive_grids(data, result.model, float(result.std.get("delay_s", 0.0) or 0.0),
+                             TRIAL_GAIN if trial else MIN_GAIN)[: TRIALS if trial else 1]  # fmt: skip
     logged, regrid = data, None
-    if grid is not None:  # the drive's tick located on the host's clock: samples onto it
+    best = None
+    for grid in grids:  # the drive's tick located on the host's clock: samples onto it
         moved, merged = on_grid(data, grid, result.model)
-        again = identify_data(moved, method, resonance=resonance)
-        if lead and not refit_kept(result.fit_percent, again.fit_percent):
-            grid = None
-        else:
+        try:
+            again = identify_data(moved, method, resonance=resonance)
+        except IdentificationError:
+            continue
+        if (not trial or refit_kept(result.fit_percent, again.fit_percent)) and (
+            best is None or again.fit_percent > best[2].fit_percent
+        ):
+            best = (grid, moved, again, merged)
+    if best is not None:
+        grid, moved, again, merged = best
 
-            def regrid(d: Dataset) -> Dataset:
-                return on_grid(d, grid)[0]
+        def regrid(d: Dataset) -> Dataset:
+            return on_grid(d, grid)[0]
 
-            data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
+        data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
     timing = timing_figure(log.metadata, data, estimate, regrid, logged)
     return result if timing is None else replace(result, timing=timing)

@@ -48,10 +48,12 @@ from servobench.errors import IdentificationError
 PHASES = 24
 #: The grid must cut the mean squared pair residual of the constant delay by this factor.
 MIN_GAIN = 1.5
-#: With a command lead the grid is first judged under the constant-delay model, whose parameters
-#: the misplaced reads have bent: a grid that improves on it at all is tried, and kept where the
-#: model identified on it verifies :data:`MIN_GAIN` times better in mean square (:func:`refit_kept`).
-TRIAL_GAIN = 1.0
+#: Where the simulation judges a grid (:func:`by_simulation`) the constant-delay model it is judged
+#: under has had its parameters bent by the misplaced reads (at a slow rate the delay trades against
+#: the mass): the best :data:`TRIALS` grids are each identified on, and the best kept where it
+#: verifies :data:`MIN_GAIN` times better in mean square (:func:`refit_kept`).
+TRIAL_GAIN = 0.0
+TRIALS = 3
 #: Instants this close below a tick (share of the tick) count as on it (float rounding).
 ON_TICK = 1e-9
 #: Nominal control ticks of drives [s] (16 kHz down to 250 Hz): the identified delay is snapped
@@ -62,10 +64,13 @@ SNAP_SHARE = 0.05
 FINE_PHASES = 120
 #: Steps each side of the best fine phase in its last refinement.
 REFINE_STEPS = 12
-#: Windows the phase is read in [s] (a 50 ppm crystal drifts 25 us in one).
+#: Windows the phase is read in [s] (a 50 ppm crystal drifts 25 us in one); longer where the
+#: log's rate gives them fewer than :data:`MIN_WINDOW_PAIRS` samples.
 WINDOW_S = 0.5
 #: Fewest pairs a window needs to read its phase.
 MIN_WINDOW_PAIRS = 50
+#: Fewest pairs holding a command change for the pairs to judge a grid (else its simulation does).
+MIN_SWITCH_PAIRS = 20
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,7 @@ class DriveGrid:
     gain: float
     drift: float = 0.0
     lead_s: float = 0.0
+    simulated: bool = False
 
     def index(self, t_s: np.ndarray) -> np.ndarray:
         """The tick each instant ``t_s`` [s] was sampled at (the last at or before it)."""
@@ -105,7 +111,7 @@ class DriveGrid:
             f"the drive's control tick ({self.tick_s * 1e3:.4g} ms) located on the host's clock (phase "
             f"{self.phase_s * 1e3:.4g} ms, drift {self.drift * 1e6:.3g} ppm): each sample moved to the tick it "
             f"was taken at, its command acting from {self._acting()} ({merged} reads of one tick kept "
-            f"once); the {'simulation' if self.lead_s > 0 else 'pair'} residual fell {self.gain:.3g} times "
+            f"once); the {'simulation' if self.simulated else 'pair'} residual fell {self.gain:.3g} times "
             "against a constant delay"
         )
 
@@ -364,21 +370,46 @@ def find_drive_grid(data: Dataset, model, delay_std_s: float = 0.0, min_gain: fl
     """The best over the nominal ticks the model's delay may stand for (:func:`nominal_ticks_s`)
     of each run's grid (:func:`find_grid_at`), or None where none explains the data clearly
     better (``min_gain``) than the constant delay over the whole log."""
+    found = find_drive_grids(data, model, delay_std_s, min_gain)
+    return found[0] if found else None
+
+
+def find_drive_grids(data: Dataset, model, delay_std_s: float = 0.0, min_gain: float = MIN_GAIN) -> list[RunGrids]:
+    """Every nominal tick's grids (:func:`find_run_grids`) that cut the constant delay's residual
+    ``min_gain`` times under ``model``, best first."""
     if not applicable(data, model.delay_s):
-        return None
+        return []
     lead = max(-data.min_delay_s, 0.0)
+    simulated = by_simulation(data)
     # a tick longer than the host's cycle leaves too few distinct ticks to place the reads on,
     # and one shorter than twice the reads' typical bracket cannot be told from their scatter
     ticks = nominal_ticks_s(model.delay_s, delay_std_s, lead, data.dt_s)
     if lead > 0:
         bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
         ticks = [t for t in ticks if t >= 2.0 * bracket]
-    found = [g for t in ticks if (g := find_run_grids(data, model, t, lead, min_gain))]
-    return max(found, key=lambda g: g.gain) if found else None
+    elif simulated:  # the delay was read from a simulation that trades it against the mass
+        ticks = sorted({*ticks, *(t for t in NICE_TICKS_S if t <= model.delay_s)}, key=lambda t: abs(t - model.delay_s))
+    found = [g for t in ticks if (g := find_run_grids(data, model, t, lead, min_gain, simulated))]
+    return sorted(found, key=lambda g: -g.gain)
+
+
+def by_simulation(data: Dataset) -> bool:
+    """Whether a grid on ``data`` is judged by the model's simulation, not its pairs: with a command
+    lead, or where fewer than :data:`MIN_SWITCH_PAIRS` pairs hold a command change (every change
+    reverses the axis within its interval, and such intervals are no pairs)."""
+    if data.min_delay_s < 0:
+        return True
+    held = 0
+    for s in data.segments:
+        v, u = np.asarray(s.v), np.asarray(s.u)
+        change = np.concatenate(([False], u[1:-1] != u[:-2]))  # u[k] differs from u[k - 1]
+        same = ((v[:-1] > 0) & (v[1:] > 0)) | ((v[:-1] < 0) & (v[1:] < 0))
+        held += int(np.count_nonzero(change & same))
+    return held < MIN_SWITCH_PAIRS
 
 
 def find_run_grids(
-    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN
+    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN, simulated: bool = False
 ) -> RunGrids | None:
     """Each run's grid of nominal tick ``tick`` [s] (:func:`find_grid_at` on that run alone), kept
     where together they cut the whole log's mean squared residual ``min_gain`` times."""
@@ -386,14 +417,14 @@ def find_run_grids(
 
     grids = []
     for seg in data.segments:
-        g = find_grid_at(replace(data, segments=(seg,)), model, tick, lead_s, min_gain=0.0)
+        g = find_grid_at(replace(data, segments=(seg,)), model, tick, lead_s, 0.0, simulated or lead_s > 0)
         if g is None:
             return None
         grids.append((seg.run, g))
     found = RunGrids(tuple(grids), 1.0)
     try:
         moved, _ = on_grid(data, found, model)
-        if lead_s > 0:
+        if found.grids[0][1].simulated:
             placed = {seg.run: place_reads(seg, found.for_run(seg.run), model) for seg in data.segments}
             baseline = _simulation_ms(data, model)
             best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, found, placed)))
@@ -408,7 +439,7 @@ def find_run_grids(
 
 
 def find_grid_at(
-    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN
+    data: Dataset, model, tick: float, lead_s: float = 0.0, min_gain: float = MIN_GAIN, simulated: bool = False
 ) -> DriveGrid | None:
     """The drive's tick grid with nominal tick ``tick`` [s] on the host's clock that best explains
     ``data`` under ``model`` (whose ``delay_s`` is about one tick, or up to ``lead_s`` less), or
@@ -427,22 +458,24 @@ def find_grid_at(
     from servobench.bench.identify.joint import pair_residual_ms
 
     tau = model.time_constant_s
+    simulated = simulated or lead_s > 0
     try:
         # the constant delay identified
-        baseline = _simulation_ms(data, model) if lead_s > 0 else pair_residual_ms(data, model.delay_s, tau)
+        baseline = _simulation_ms(data, model) if simulated else pair_residual_ms(data, model.delay_s, tau)
     except IdentificationError:
         return None
-    if lead_s <= 0:
+    if not simulated:
         model = replace(model, delay_s=tick)
     t_end = max(float(s.t[-1]) for s in data.segments)
-    edges = np.arange(0.0, t_end + WINDOW_S, WINDOW_S)
+    window = max(WINDOW_S, 1.25 * MIN_WINDOW_PAIRS * data.dt_s)  # a slow link: longer windows
+    edges = np.arange(0.0, t_end + window, window)
     phases = np.arange(PHASES) * tick / PHASES
     costs = np.full((PHASES, edges.size - 1), np.nan)
     counts = np.zeros(edges.size - 1)
     for i, phase in enumerate(phases):
         sums = np.zeros(edges.size - 1)
         n = np.zeros(edges.size - 1)
-        for t_pair, e in _residuals(data, model, DriveGrid(tick, phase, 1.0, 0.0, lead_s)):
+        for t_pair, e in _residuals(data, model, DriveGrid(tick, phase, 1.0, 0.0, lead_s, simulated)):
             w = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, edges.size - 2)
             sums += np.bincount(w, e * e, edges.size - 1)
             n += np.bincount(w, None, edges.size - 1)
@@ -462,7 +495,7 @@ def find_grid_at(
     best_cost, grid = math.inf, None
     for drift in {0.0, float(slope)}:
         for phase in np.arange(FINE_PHASES) * tick / FINE_PHASES:
-            trial = DriveGrid(tick, float(phase), 1.0, drift, lead_s)
+            trial = DriveGrid(tick, float(phase), 1.0, drift, lead_s, simulated)
             cost = _grid_cost(data, model, trial)
             if cost < best_cost:
                 best_cost, grid = cost, trial
@@ -476,7 +509,7 @@ def find_grid_at(
             best_cost, grid = cost, trial
     try:
         moved, _ = on_grid(data, grid)
-        if lead_s > 0:
+        if simulated:
             best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, grid)))
         else:
             best = pair_residual_ms(moved, tick, tau)
@@ -500,7 +533,7 @@ def _residuals(data: Dataset, model, grid: DriveGrid) -> list[tuple[np.ndarray, 
     """Per run on ``grid``: the instants [s] and residuals of ``model``: its pairs' with the command
     acting one tick after its sample (``model.delay_s`` that tick), or with a command lead its
     simulation's, each command acting from its own tick (the model's delay set to their mean)."""
-    if grid.lead_s <= 0:
+    if not grid.simulated:
         return [_model_residuals(onto_grid(s, grid)[0], model, grid.period_s) for s in data.segments]
     moved, _ = on_grid(data, grid)
     model = replace(model, delay_s=grid_delay_s(data, grid))
