@@ -10,7 +10,7 @@ time constant of 10 ms, so a 1 ms tick left unmodelled costs M about 30 %).
 
 Judged per case: M, B and each Coulomb level within 0.5 % with stamps and
 1 % without, as the issue's acceptance states; fit >= 99 % with stamps and
->= 98 % without (the issue asks 99 %: not met at a 1 ms tick, see below);
+>= 98.5 % without (the issue asks 99 %: a read the host stalled on can cost more);
 the identified delay within 0.05 ms (or a tenth of the tick) of the mean
 delay the served drive's own record shows (or three of its stated sigma where
 that is wider: Modbus RTU without stamps), or, where the command and the
@@ -65,22 +65,12 @@ def _sidbe(transport: str, tick: float, stamps: bool, tmp_path: Path, seed: int)
 def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
     model, record = _sidbe(transport, tick, stamps, tmp_path, seed=CASES.index((transport, tick, stamps)))
     bound = 0.5 if stamps else 1.0
-    fit_floor = 99.0 if stamps else 96.0
-    if transport == "modbus-rtu" and not stamps:
-        # NOT the issue's 1 % (left open): at the 50 Hz its link carries, with brackets of +-1.1 ms,
-        # M comes out 0.004-1.1 % off over runs (2.2 % once in the benchmark at a 2 ms tick)
-        bound = 2.0
+    # without stamps the tick is located on the host's clock: fits of 99.7-99.99 % measured, but a
+    # read the host stalled on can cost more than the quarter cycle that sets it aside: 98.5 % here
+    fit_floor = 99.0 if stamps else 98.5
     split = transport == "serial"  # the torque line and the feedback query are two requests
-    if split:
-        # each row's delay is 0 or one tick as a tick falls between the two requests or not: the
-        # tick is located per run and each command acts from its own tick; the fit reaches 98.5-99.7 %
-        # (where every read sits at a tick's edge the grid is not kept), not the issue's 99 % (open)
-        fit_floor = 98.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
     assert max(abs(e) for e in errors.values()) <= bound, errors
-    # without stamps a read that crosses a tick boundary moves its sample a whole tick: the fit
-    # of a short excitation at a 1 ms tick, in a loaded suite, reaches 97.2-99.9 %, not the
-    # issue's 99 % (left open)
     assert model["fit_percent"] >= fit_floor
     # the issue asks 0.05 ms (or a tenth of the tick); Modbus RTU without stamps, at the 50 Hz its
     # link carries with brackets of +-1.1 ms, states a sigma of up to 0.05 ms: there 3 sigma holds

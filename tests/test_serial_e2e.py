@@ -384,3 +384,19 @@ def test_missing_port_is_a_connection_error(tmp_path):
     drive = open_drive(f"serial://{tmp_path}/no-such-tty")
     with pytest.raises(DriveConnectionError, match="cannot open"):
         drive.open()
+
+
+def test_a_reply_that_came_while_the_host_was_descheduled_is_read_not_timed_out():
+    # a busy host may wake past its deadline with the drive's reply waiting in the port: the
+    # drive answered, so it is read (seen as "no reply within 0.1 s" in a loaded suite)
+    with PtyPort() as port:
+        link = AsciiLink(port.path, 115200, load_dialect("odrive"), 0, False, 0.05)
+        link.open()  # ends a half line with an empty one: nobody answers it
+        try:
+            os.write(port.master, b"0.5 1.25\r\n")
+            time.sleep(0.02)
+            assert link.read_body(time.monotonic() - 1.0) == "0.5 1.25"  # its deadline long past
+            with pytest.raises(DriveTimeoutError, match="within 0.05 s"):  # and nothing more came
+                link.read_body(time.monotonic() - 1.0)
+        finally:
+            link.close()

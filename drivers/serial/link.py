@@ -171,6 +171,7 @@ class AsciiLink:
         """One reply line (terminator stripped) or :class:`DriveTimeoutError` at ``deadline``."""
         ser = self._port()
         end = self.dialect.reply_terminator[-1:]
+        late = False  # one look past the deadline has been taken
         while True:
             i = self._rx.find(end)
             if i >= 0:
@@ -183,22 +184,26 @@ class AsciiLink:
                 self._rx.clear()
                 raise DriveConnectionError(f"{self.port}: no line end in {junk!r}... (wrong baud?)")
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            try:
+                # past the deadline, look once more without waiting: a host that was descheduled
+                # past it finds the reply that came meanwhile, and a drive is silent only when
+                # nothing waits in the port
+                ready, _, _ = select.select([ser.fileno()], [], [], max(remaining, 0.0))
+                chunk = ser.read(max(1, ser.in_waiting)) if ready else None
+            except (serial.SerialException, OSError) as err:
+                raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
+            if ready:
+                if not chunk:
+                    raise DriveConnectionError(f"{self.port}: port closed by the other end")
+                self._rx += chunk
+                self.bytes_received += len(chunk)
+            if remaining <= 0 and (late or not ready) and self._rx.find(end) < 0:
                 partial = f" (partial {bytes(self._rx)!r})" if self._rx else ""
                 raise DriveTimeoutError(
                     f"{self.port}: no reply to {' / '.join(self._sent)!r} within "
                     f"{self.reply_timeout_s} s{partial}"
                 )
-            try:
-                ready, _, _ = select.select([ser.fileno()], [], [], remaining)
-                if ready:
-                    chunk = ser.read(max(1, ser.in_waiting))
-                    if not chunk:
-                        raise DriveConnectionError(f"{self.port}: port closed by the other end")
-                    self._rx += chunk
-                    self.bytes_received += len(chunk)
-            except (serial.SerialException, OSError) as err:
-                raise DriveConnectionError(f"{self.port}: read failed: {err}") from err
+            late = remaining <= 0
 
     def read_body(self, deadline: float | None = None) -> str:
         """Next reply body; a rejection message raises :class:`CommandRejectedError`."""
