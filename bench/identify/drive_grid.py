@@ -50,7 +50,8 @@ PHASES = 24
 MIN_GAIN = 1.5
 #: Where the simulation judges a grid (:func:`by_simulation`) the constant-delay model it is judged
 #: under has had its parameters bent by the misplaced reads (at a slow rate the delay trades against
-#: the mass): the best :data:`TRIALS` grids are each identified on, and the best kept where it
+#: the mass): every nominal tick's grid is identified on (the best :data:`TRIALS` by their gain
+#: with a command lead, whose delay bounds the tick from below), and the best kept where it
 #: verifies :data:`MIN_GAIN` times better in mean square (:func:`refit_kept`).
 TRIAL_GAIN = 0.0
 TRIALS = 3
@@ -334,10 +335,11 @@ def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None) -> tuple[Data
 def applicable(data: Dataset, delay_s: float) -> bool:
     """A log whose instants are the host's (``t_unc``), with measured velocity, and an action
     delay of at least a fiftieth of a cycle, or a command lead (whose rows' delays may average
-    to anything down to minus the lead)."""
+    to anything down to minus the lead), or one whose delay was read from a simulation that
+    trades it against the mass (:func:`by_simulation`)."""
     if not data.timing_uncertain or data.derived:
         return False
-    return data.min_delay_s < 0.0 or delay_s > 0.02 * data.dt_s
+    return data.min_delay_s < 0.0 or delay_s > 0.02 * data.dt_s or by_simulation(data)
 
 
 def nominal_ticks_s(
@@ -387,8 +389,9 @@ def find_drive_grids(data: Dataset, model, delay_std_s: float = 0.0, min_gain: f
     if lead > 0:
         bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
         ticks = [t for t in ticks if t >= 2.0 * bracket]
-    elif simulated:  # the delay was read from a simulation that trades it against the mass
-        ticks = sorted({*ticks, *(t for t in NICE_TICKS_S if t <= model.delay_s)}, key=lambda t: abs(t - model.delay_s))
+    elif simulated:  # the delay was read from a simulation that trades it against the mass: any tick
+        # a hundredth of a cycle or more (finer ticks leave no mark at the log's rate)
+        ticks = sorted((t for t in NICE_TICKS_S if t >= 0.01 * data.dt_s), key=lambda t: abs(t - model.delay_s))
     found = [g for t in ticks if (g := find_run_grids(data, model, t, lead, min_gain, simulated))]
     return sorted(found, key=lambda g: -g.gain)
 
