@@ -2,7 +2,9 @@
 
 Before any test runs, the controller makes the peers the selected tests pair
 with present (:mod:`peers`: installed as root, else one line and a non-zero
-exit).
+exit), and compiles the plant simulator's kernels into numba's cache in a
+process of its own (:data:`WARM_KERNELS`): a first compile holds the GIL for
+seconds, which in a test streaming to a drive would starve its watchdog feeder.
 
 The suite runs with one test file per worker (``--dist loadfile`` in
 pyproject.toml). ``-n auto`` gives a worker per core, and one more when the
@@ -19,6 +21,8 @@ short ones fill in around them.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import peers
 import psutil
@@ -36,8 +40,26 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return cores + 1 if busy < IDLE_BELOW_PERCENT else cores
 
 
+#: Run once by the controller: every kernel of the compiled simulator compiled and cached.
+WARM_KERNELS = """
+import numpy as np
+from servobench.bench.testing.hidden_effects import random_case
+from servobench.sim_backend.physics import effects
+from servobench.sim_backend.physics.coulomb import PlantState
+from servobench.sim_backend.physics.effects.backlash import engaged
+from servobench.sim_backend.physics.rich_plant import build_model
+rng = np.random.default_rng(0)
+u = np.sign(np.sin(np.arange(400) * 0.05))
+for effect in (None, *effects.names()):
+    build_model(random_case(effect, rng).params).simulate(u, 1e-3, PlantState(0.0, 0.0))
+engaged(np.cumsum(u) * 1e-3, 0.01)
+"""
+
+
 def pytest_configure(config: pytest.Config) -> None:
     peers.check(config)  # the controller only; a worker returns at once
+    if not hasattr(config, "workerinput"):
+        subprocess.run([sys.executable, "-c", WARM_KERNELS], check=True, timeout=600)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

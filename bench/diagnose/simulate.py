@@ -3,7 +3,10 @@
 A :class:`Candidate` is the base model (``M, B, coulomb_pos, coulomb_neg``) plus an
 ordered set of effects; it runs on the same simulator the ``sim://`` drive
 uses (:mod:`servobench.sim_backend.physics.coulomb` for the base, :mod:`servobench.sim_backend.physics.rich_plant`
-with effects), so what diagnose names can be simulated back.
+with effects), so what diagnose names can be simulated back: compiled
+(:mod:`servobench.sim_backend.physics.compiled`), every window of every candidate of a batch
+in one call (:func:`simulate_many`: a Jacobian's columns), the reference loops for a model
+whose terms are not all data.
 """
 
 from __future__ import annotations
@@ -15,8 +18,10 @@ import numpy as np
 
 from servobench.bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
 from servobench.bench.identify.dataset import initial_velocity
-from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
-from servobench.sim_backend.physics.rich_plant import build_model
+from servobench.errors import UsageError
+from servobench.sim_backend.physics.compiled import pack_coulomb, run
+from servobench.sim_backend.physics.coulomb import PlantParams, PlantState
+from servobench.sim_backend.physics.rich_plant import RichModel, build_model
 
 BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
 
@@ -89,21 +94,80 @@ def simulate(
     UsageError
         Parameters the simulator rejects (e.g. a Stribeck level below Coulomb).
     """
-    params = cand.plant()
-    model = build_model(params) if params.effects else None
+    (out,) = simulate_many(data, [cand], which, added)
+    if isinstance(out, UsageError):
+        raise out
+    return out
+
+
+def simulate_many(
+    data: DiagnosisData,
+    cands: Sequence[Candidate],
+    which: Sequence[Window] | None = None,
+    added: Sequence[np.ndarray] | None = None,
+) -> list[list[np.ndarray] | UsageError]:
+    """:func:`simulate` of each candidate, the compiled ones in one call; the error instead
+    of the velocity for parameters the simulator rejects."""
+    which = windows(data) if which is None else list(which)
     dt = data.dt_s
     sigma = data.sigma_v
-    out = [np.full(len(r), np.nan) for r in data.segments]
-    for i, s, e in windows(data) if which is None else which:
+    u_runs = [r.u if added is None else r.u + added[i] for i, r in enumerate(data.segments)]
+    rows, start, col = [], [], 0  # per window: run, first sample, samples, output column
+    for i, s, e in which:
         r = data.segments[i]
-        u = r.u if added is None else r.u + added[i]
-        state = PlantState(initial_velocity(r, sigma, s), float(r.position[s]))
-        if model is None:
-            v, _, _ = simulate_coulomb(u[s:e], dt, params, state)
+        v0, x0 = initial_velocity(r, sigma, s), float(r.position[s])
+        rows.append((i, s, e - s, col))
+        start.append((v0, x0, v0, x0, 0.0))
+        col += e - s
+    out: list = [None] * len(cands)
+    packs, lines, batch = [], [], []
+    shared: dict[
+        int, list[np.ndarray]
+    ] = {}  # delay [samples] -> lines of models without transforms
+    for c, cand in enumerate(cands):
+        try:
+            params = cand.plant()
+            model = build_model(params) if params.effects else None
+            pk = pack_coulomb(params, dt) if model is None else model.packed(dt)
+        except UsageError as err:
+            out[c] = err
+            continue
+        if pk is None:
+            try:
+                out[c] = _reference(data, model, which, u_runs, start)
+            except UsageError as err:
+                out[c] = err
+            continue
+        if pk.inputs:
+            lines.append([pk.line(u) for u in u_runs])
         else:
-            model.reset()
-            model.prime(u[:s], dt)
-            v, _, _ = model.simulate(u[s:e], dt, state)
+            lines.append(shared.setdefault(pk.whole, [pk.line(u) for u in u_runs]))
+        packs.append(pk)
+        batch.append(c)
+    if packs:
+        v, _, _ = run(packs, lines, np.array(rows, dtype=np.int64).reshape(-1, 4), np.array(start))
+        for p, c in enumerate(batch):
+            per_run = [np.full(len(r), np.nan) for r in data.segments]
+            for i, s, n, o in rows:
+                per_run[i][s : s + n] = v[p, o : o + n]
+            out[c] = per_run
+    return out
+
+
+def _reference(
+    data: DiagnosisData,
+    model: RichModel,
+    which: Sequence[Window],
+    u_runs: Sequence[np.ndarray],
+    start: Sequence[tuple],
+) -> list[np.ndarray]:
+    """A model whose terms are not all data, window by window on the reference loops."""
+    out = [np.full(len(r), np.nan) for r in data.segments]
+    for (i, s, e), (v0, x0, *_) in zip(which, start, strict=True):
+        u = u_runs[i]
+        model.reset()
+        model.prime(u[:s], data.dt_s)
+        v, _, _ = model.simulate(u[s:e], data.dt_s, PlantState(v0, x0))
         out[i][s:e] = v
     return out
 

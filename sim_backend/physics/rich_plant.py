@@ -19,6 +19,10 @@ the crossing time and stays at rest unless the force exceeds its breakaway
 level, in which case it continues the other way for the rest of the segment:
 no switching-function smoothing, no chatter at zero velocity.
 
+The loops below are the reference. A model whose terms are all data (every library effect
+but the spring of a resonance) runs them compiled (:mod:`.kernels`, through :mod:`.compiled`),
+with the same numbers; ``tests/test_compiled_plant.py`` holds the two together.
+
 Sampling: ``v[k]``, ``x[k]`` at ``t_k``, before ``u[k]`` acts on ``[t_k, t_k + dt)``.
 """
 
@@ -30,10 +34,12 @@ import numpy as np
 
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.bodies import Propagator, consts, slider
+from servobench.sim_backend.physics.compiled import Packed, pack, run
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState
 from servobench.sim_backend.physics.coupling import CouplingMixin
 from servobench.sim_backend.physics.effects import collect_terms
 from servobench.sim_backend.physics.effects.spec import Terms
+from servobench.sim_backend.physics.kernels import PAIRS, SEG_COLS
 
 #: Sub-steps per interval for terms that are not exact under constant force.
 DEFAULT_SUBSTEPS = 2
@@ -41,6 +47,12 @@ DEFAULT_SUBSTEPS = 2
 MAX_SUBSTEPS = 16
 #: Steps whose segments are kept prepared (a plant integrated over irregular spans sees many).
 PREPARED_STEPS = 64
+#: The spring columns of a segment's row when there is no spring (see :meth:`RichModel.rows`).
+_SPRING_PAD = (0.0,) * (SEG_COLS - PAIRS)
+#: Shortest call integrated compiled [samples]: a call costs the compiled loop about 20 us
+#: before its first sample, the reference loops about 0.5 us per sample (the simulated drive
+#: steps one sample at a time). Both give the same numbers and keep the same state.
+COMPILED_FROM = 32
 
 
 def _coefficients(k: tuple[float, ...]) -> tuple[float, ...]:
@@ -71,11 +83,17 @@ class RichModel(CouplingMixin):
         Base plant.
     terms : Terms
         Collected effect terms.
+    reference : bool
+        Integrate with the Python loops below even when the terms are data (the compiled
+        integrator, :mod:`.kernels`, runs by default; the reference is what it is tested
+        against).
     """
 
-    def __init__(self, params: PlantParams, terms: Terms) -> None:
+    def __init__(self, params: PlantParams, terms: Terms, reference: bool = False) -> None:
         self.params = params
         self.terms = terms
+        self.reference = reference
+        self.compiled_from = COMPILED_FROM
         B, dB = params.B, terms.dB
         self.B_pos, self.B_neg = B + dB, B - dB
         if not (self.B_pos > 0 and self.B_neg > 0):
@@ -104,7 +122,8 @@ class RichModel(CouplingMixin):
             and terms.coupling is None
         )
         self._dt: float | None = None
-        self._prepared: dict[float, tuple[int, list]] = {}  # step [s] -> (whole delay steps, segments)
+        self._prepared: dict[float, tuple] = {}  # step [s] -> (whole delay steps, segments, ...)
+        self._packed: dict[float, Packed | None] = {}  # step [s] -> what the compiled loop reads
         self._mats: dict[tuple, tuple] = {}
         self._systems: dict[tuple, Propagator] = {}
         self.reset()
@@ -132,17 +151,19 @@ class RichModel(CouplingMixin):
         """Drop what was prepared for a step (the terms changed: prepare again)."""
         self._dt = None
         self._prepared.clear()
+        self._packed.clear()
 
     def _prepare(self, dt_s: float) -> None:
         if not dt_s > 0:
             raise UsageError("sample interval must be > 0 s")
         hit = self._prepared.get(dt_s)
         if hit is not None:
-            self._whole, self._segs, self._inline = hit
+            self._whole, self._segs, self._inline, self._rows = hit
             self._dt = dt_s
             return
         if len(self._prepared) >= PREPARED_STEPS:  # irregular steps (clock=real): keep it bounded
             self._prepared.clear()
+            self._packed.clear()
             self._mats.clear()
         p, c = self.params, self.terms.coupling
         delay = self.terms.delay_s / dt_s
@@ -152,6 +173,7 @@ class RichModel(CouplingMixin):
         r = c.load_ratio if c is not None else 0.0
         segs = []
         inline = []  # per segment: coefficients of the whole body and of the motor alone
+        rows = []  # per segment, what the compiled integrator reads (kernels.SEG_COLS numbers)
         fr = self.friction
         for share, prev in pattern:
             h = share * dt_s
@@ -160,15 +182,69 @@ class RichModel(CouplingMixin):
             if c is None:
                 segs.append((prev, h, rigid, rigid, ()))
                 inline.append((_coefficients(k_rigid), _coefficients(k_rigid)))
+                rows.append((float(prev), *k_rigid, *k_rigid, *k_rigid, *_SPRING_PAD))
                 continue
             k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
             motor = slider(k_motor, fr)
             load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
             segs.append((prev, h, rigid, motor, load))
             inline.append((_coefficients(k_rigid), _coefficients(k_motor)))
+            rows.append((float(prev), *k_rigid, *k_motor, *load, *self._spring_row(h)))
         self._segs, self._inline = segs, inline
+        self._rows = np.array(rows, dtype=float).reshape(len(rows), -1)
         self._dt = dt_s
-        self._prepared[dt_s] = (self._whole, segs, inline)
+        self._prepared[dt_s] = (self._whole, segs, inline, self._rows)
+
+    def _spring_row(self, h: float) -> tuple[float, ...]:
+        """A spring's transitions over a segment ``h`` [s] as the compiled loop reads them (the
+        very matrices the reference loop uses); zeros without a spring."""
+        c = self.terms.coupling
+        if c is None or c.kind != "spring":
+            return _SPRING_PAD
+        out: list[float] = []
+        for sm, sl in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            A, b = self._spring_step(h, sm, sl, False)
+            out.extend(a for row in A for a in row)
+            out.extend(b)
+        for sl in (1, -1):
+            A, b = self._spring_step(h, 1, sl, True)
+            out.extend(a for row in A for a in row)
+            out.extend(b)
+        return tuple(out)
+
+    def rows(self, dt_s: float) -> np.ndarray:
+        """Per segment of an interval of ``dt_s`` [s], the numbers the compiled loop reads:
+        uses the previous command, then the :func:`consts` of the whole body, of the motor
+        alone and of the load alone (shape ``(segments, kernels.SEG_COLS)``)."""
+        if dt_s != self._dt:
+            self._prepare(dt_s)
+        return self._rows
+
+    def whole_delay(self, dt_s: float) -> int:
+        """The transport delay's whole samples at a step of ``dt_s`` [s]."""
+        if dt_s != self._dt:
+            self._prepare(dt_s)
+        return self._whole
+
+    def packed(self, dt_s: float) -> Packed | None:
+        """The model as the compiled loop reads it (``None``: a term is not data, or
+        :attr:`reference`)."""
+        if self.reference:
+            return None
+        if dt_s not in self._packed:
+            self._packed[dt_s] = pack(self, dt_s)
+        return self._packed[dt_s]
+
+    def _line(self, u: np.ndarray, pk: Packed) -> np.ndarray:
+        """The delay line and ``u``, transformed: ``prev[j] = line[j]``, ``cur[j] = line[j + 1]``
+        of :meth:`_commands`."""
+        need = self._whole + 1
+        hist = self._history
+        if hist.size < need:
+            hist = np.concatenate([np.zeros(need - hist.size), hist])
+        line = np.concatenate([hist[-need:], u])
+        self._history = line[-need:]
+        return pk.transform(line)
 
     def _commands(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Effective command held in each interval and in the interval before it (delay line)."""
@@ -200,8 +276,18 @@ class RichModel(CouplingMixin):
             self._prepare(dt_s)
         u = np.asarray(u, dtype=float)
         self._sync(state)
-        cur, prev = self._commands(u)
         c = self.terms.coupling
+        pk = self.packed(dt_s) if u.size >= self.compiled_from else None
+        if pk is not None:
+            start = np.array([self._hidden], dtype=float)
+            out_v, out_x, final = run([pk], [[self._line(u, pk)]], [(0, 0, u.size, 0)], start)
+            vm, xm, vl, xl, side = final[0, 0].tolist()
+            self._hidden = (vm, xm, vl, xl, int(side))
+            measured_load = c is not None and c.measured == "load"
+            out = PlantState(vl, xl) if measured_load else PlantState(vm, xm)
+            self._last = out
+            return out_v[0], out_x[0], PlantState(out.v, out.x)
+        cur, prev = self._commands(u)
         if c is None:
             vs, xs = self._run_rigid(cur.tolist(), prev.tolist())
         elif c.kind == "spring":

@@ -58,18 +58,11 @@ def contribute(p, plant, terms: Terms) -> None:
 
 
 def engaged(x: np.ndarray, gap: float) -> np.ndarray:
-    """Whether a load behind a play of ``gap`` is being driven (play operator on ``x``)."""
-    half = 0.5 * gap
-    out = np.zeros(x.size, dtype=bool)
-    xl = float(x[0]) if x.size else 0.0
-    for i, xi in enumerate(x.tolist()):
-        if xi - xl > half:
-            xl = xi - half
-            out[i] = True
-        elif xl - xi > half:
-            xl = xi + half
-            out[i] = True
-    return out
+    """Whether a load behind a play of ``gap`` is being driven (play operator on ``x``,
+    compiled: :func:`~servobench.sim_backend.physics.kernels.play_engaged`)."""
+    from servobench.sim_backend.physics.kernels import play_engaged
+
+    return play_engaged(np.ascontiguousarray(x, dtype=float), float(gap))
 
 
 def screen(ctx: ScreenInput) -> Screening:

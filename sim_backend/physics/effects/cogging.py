@@ -17,6 +17,7 @@ from servobench.sim_backend.physics.effects.spec import (
     ParamSpec,
     Screening,
     ScreenInput,
+    SineForce,
     Terms,
     base_columns,
     base_fit,
@@ -59,8 +60,7 @@ MIN_PERIODS_FUNDAMENTAL = 1.5
 def contribute(p, plant, terms: Terms) -> None:
     amp, phase = float(p["amp"]), float(p["phase"])
     k = 2.0 * math.pi / float(p["period"])
-    sin = math.sin
-    terms.position_forces.append(lambda x: amp * sin(k * x + phase))
+    terms.position_forces.append(SineForce(amp, k, phase))
 
 
 def _peak(ks: np.ndarray, x: np.ndarray, e: np.ndarray) -> float:

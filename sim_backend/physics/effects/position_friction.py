@@ -16,6 +16,8 @@ integrator (sub-stepped, the level held over each sub-step).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from servobench.errors import UsageError
@@ -24,6 +26,7 @@ from servobench.sim_backend.physics.effects.spec import (
     ParamSpec,
     Screening,
     ScreenInput,
+    TableFriction,
     Terms,
     base_columns,
     base_fit,
@@ -117,8 +120,16 @@ def curve(p) -> tuple[float, float, np.ndarray]:
     if unused:
         raise UsageError(f"position_friction posfric_{unused[0]} is set but posfric_knots = {n}")
     values = np.array([float(p[f"f{i}"]) for i in range(n)])
-    grid = np.linspace(x0, x1, TABLE_POINTS)
-    return x0, x1, basis(grid, x0, x1, n) @ values
+    return x0, x1, _table_basis(x0, x1, n) @ values
+
+
+@lru_cache(maxsize=64)
+def _table_basis(x_from: float, x_to: float, knots: int) -> np.ndarray:
+    """The spline basis at the :data:`TABLE_POINTS` table points (kept: a refit builds the
+    curve at every step with the same span and knots)."""
+    out = basis(np.linspace(x_from, x_to, TABLE_POINTS), x_from, x_to, knots)
+    out.setflags(write=False)
+    return out
 
 
 def check(p, plant) -> None:
@@ -133,22 +144,8 @@ def check(p, plant) -> None:
 
 def contribute(p, plant, terms: Terms) -> None:
     x0, x1, table = curve(p)
-    values = table.tolist()
-    last = len(values) - 1
-    scale = last / (x1 - x0)
-    first, final = values[0], values[-1]
-
-    def at(x: float) -> float:
-        s = (x - x0) * scale
-        if s <= 0.0:
-            return first
-        if s >= last:
-            return final
-        i = int(s)
-        w = s - i
-        return values[i] + w * (values[i + 1] - values[i])
-
-    terms.friction_at = at
+    values = tuple(table.tolist())
+    terms.friction_at = TableFriction(x0, (len(values) - 1) / (x1 - x0), values)
 
 
 def travel(x: np.ndarray) -> tuple[float, float]:

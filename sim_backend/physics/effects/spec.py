@@ -114,6 +114,67 @@ class Coupling:
     measured: str = "motor"
 
 
+# ------------------------------------------------------------------ terms as data
+# The velocity- and position-dependent terms are callables (the reference integrator calls
+# them) that also carry their coefficients as data, which the compiled integrator
+# (:mod:`servobench.sim_backend.physics.kernels`) reads: an effect contributes one of these,
+# never a bare function, so that its plant runs compiled. A bare callable (a test's plant
+# outside the library) is integrated by the reference loop.
+
+
+@dataclass(frozen=True)
+class GaussianExcess:
+    """Friction excess ``(pos if direction > 0 else neg) * exp(-(speed * inv_speed)^2)``.
+
+    ``pos``, ``neg`` [command units] are the excess at rest in each direction, ``inv_speed``
+    [s/unit] the inverse of the speed at which it has fallen to ``1/e`` (Stribeck).
+    """
+
+    pos: float
+    neg: float
+    inv_speed: float
+
+    def __call__(self, speed: float, direction: int) -> float:
+        z = speed * self.inv_speed
+        return (self.pos if direction > 0 else self.neg) * math.exp(-z * z)
+
+
+@dataclass(frozen=True)
+class TableFriction:
+    """Friction [command units] interpolated linearly in ``values`` along the travel.
+
+    ``values[i]`` holds at ``x0 + i / scale`` [units]; the end values hold beyond the ends.
+    """
+
+    x0: float
+    scale: float
+    values: tuple[float, ...]
+
+    def __call__(self, x: float) -> float:
+        values = self.values
+        last = len(values) - 1
+        s = (x - self.x0) * self.scale
+        if s <= 0.0:
+            return values[0]
+        if s >= last:
+            return values[last]
+        i = int(s)
+        w = s - i
+        return values[i] + w * (values[i + 1] - values[i])
+
+
+@dataclass(frozen=True)
+class SineForce:
+    """Force ``amp * sin(k * x + phase)`` [command units] opposing the command at position ``x``."""
+
+    amp: float
+    k: float
+    phase: float
+
+    def __call__(self, x: float) -> float:
+        return self.amp * math.sin(self.k * x + self.phase)
+
+
 @dataclass
 class Terms:
     """Model terms collected from the active effects, read by the integrator.
@@ -127,14 +188,17 @@ class Terms:
     dB : float
         Viscous asymmetry: ``B_pos = B + dB``, ``B_neg = B - dB``.
     friction_excess : callable(speed, direction) -> float, optional
-        Friction magnitude added to the Coulomb level of that direction at ``|v| = speed``.
+        Friction magnitude added to the Coulomb level of that direction at ``|v| = speed``
+        (a :class:`GaussianExcess` runs compiled).
     friction_at : callable(x) -> float, optional
         Friction magnitude added to both Coulomb levels and both breakaway levels at motor
-        position ``x`` [command units]; held over each integration sub-step.
+        position ``x`` [command units]; held over each integration sub-step (a
+        :class:`TableFriction` runs compiled).
     static_pos, static_neg : float
         Breakaway levels at rest (the larger of these and the plant's breakaway applies).
     position_forces : list of callable(x) -> float
-        Forces opposing the command at motor position ``x`` [command units].
+        Forces opposing the command at motor position ``x`` [command units] (each a
+        :class:`SineForce` runs compiled).
     coupling : Coupling, optional
     substep_s : float
         Longest integration sub-step the terms tolerate [s] (``inf``: exact, no sub-steps).

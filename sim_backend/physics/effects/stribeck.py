@@ -10,13 +10,12 @@ change per sub-step).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.effects.spec import (
     EffectSpec,
+    GaussianExcess,
     ParamSpec,
     Screening,
     ScreenInput,
@@ -59,14 +58,7 @@ def check(p, plant) -> None:
 def contribute(p, plant, terms: Terms) -> None:
     fs, vs = float(p["fs"]), float(p["vs"])
     dp, dn = fs - plant.coulomb_pos, fs - plant.coulomb_neg
-    inv = 1.0 / vs
-    exp = math.exp
-
-    def excess(speed: float, direction: int) -> float:
-        z = speed * inv
-        return (dp if direction > 0 else dn) * exp(-z * z)
-
-    terms.friction_excess = excess
+    terms.friction_excess = GaussianExcess(dp, dn, 1.0 / vs)
     terms.static_pos = max(terms.static_pos, fs)
     terms.static_neg = max(terms.static_neg, fs)
     drop = max(dp, dn, 1e-12)

@@ -1,0 +1,167 @@
+"""A plant model as the compiled integrator reads it, and many models run in one call.
+
+:func:`pack` turns a :class:`~servobench.sim_backend.physics.rich_plant.RichModel` into
+:class:`Packed` numbers (the layout of :mod:`.kernels`), :func:`pack_coulomb` the base plant;
+:func:`run` integrates a batch of them over windows of runs. A model whose terms are not all
+data (a bare callable) does not pack: it runs on the reference loops. A spring's reversals
+(rare) run on its model's own reference step, called back from the compiled loop.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from servobench.sim_backend.physics import kernels as k
+from servobench.sim_backend.physics.effects.spec import GaussianExcess, SineForce, TableFriction
+
+
+@dataclass(frozen=True)
+class Packed:
+    """One model's numbers (see :mod:`.kernels`), its delay in whole samples and its command
+    transforms; ``ipar``'s offsets count from the model's own rows."""
+
+    fpar: np.ndarray
+    ipar: np.ndarray
+    segs: np.ndarray
+    table: np.ndarray
+    forces: np.ndarray
+    whole: int = 0
+    inputs: tuple[Callable[[np.ndarray], np.ndarray], ...] = ()
+    #: The model of a spring, whose reversals the compiled loop hands back to it.
+    owner: object = None
+
+    def transform(self, line: np.ndarray) -> np.ndarray:
+        """The command transforms applied to a command line (each is elementwise)."""
+        for fn in self.inputs:
+            line = fn(line)
+        return np.ascontiguousarray(line, dtype=float)
+
+    def line(self, u: np.ndarray) -> np.ndarray:
+        """The line of a run simulated from its first sample with nothing applied before it:
+        ``whole + 1`` zeros then ``u``, transformed. A window from sample ``s`` reads it from
+        index ``s``, which is what priming with ``u[:s]`` gives the reference."""
+        return self.transform(np.concatenate([np.zeros(self.whole + 1), np.asarray(u, float)]))
+
+
+#: Keys of spring models in :data:`.kernels.REVERSALS`.
+_KEYS = itertools.count(1)
+
+
+def _ipar(kind: int, exc: bool, at: bool, segs: int, table: int, forces: int) -> np.ndarray:
+    out = np.zeros(k.NI, dtype=np.int64)
+    out[k.KIND], out[k.HAS_EXC], out[k.HAS_AT] = kind, int(exc), int(at)
+    out[k.SEG1], out[k.TAB1], out[k.FOR1] = segs, table, forces
+    return out
+
+
+def pack_coulomb(params, dt_s: float) -> Packed:
+    """The base plant of :func:`~.coulomb.simulate_coulomb` (its effects ignored)."""
+    fpar = np.zeros(k.NF)
+    fpar[k.FCP], fpar[k.FCN] = params.coulomb_pos, params.coulomb_neg
+    fpar[k.BKP], fpar[k.BKN] = params.breakaway_pos, params.breakaway_neg
+    fpar[k.MASS], fpar[k.B_POS], fpar[k.B_NEG], fpar[k.DT] = params.M, params.B, params.B, dt_s
+    return Packed(
+        fpar, _ipar(k.COULOMB, False, False, 0, 0, 0), np.zeros((0, k.SEG_COLS)), np.zeros(0),
+        np.zeros((0, 3)),
+    )  # fmt: skip
+
+
+def pack(model, dt_s: float) -> Packed | None:
+    """``model`` (a prepared :class:`~.rich_plant.RichModel`) over steps of ``dt_s``, or ``None``
+    when one of its terms is not data."""
+    terms = model.terms
+    c = terms.coupling
+    exc, at, forces = terms.friction_excess, terms.friction_at, terms.position_forces
+    if (
+        (exc is not None and not isinstance(exc, GaussianExcess))
+        or (at is not None and not isinstance(at, TableFriction))
+        or not all(isinstance(f, SineForce) for f in forces)
+    ):
+        return None
+    fcp, fcn, bkp, bkn, _, _ = model.friction
+    fpar = np.zeros(k.NF)
+    fpar[k.FCP], fpar[k.FCN], fpar[k.BKP], fpar[k.BKN] = fcp, fcn, bkp, bkn
+    if exc is not None:
+        fpar[k.EXC_POS], fpar[k.EXC_NEG], fpar[k.EXC_INV] = exc.pos, exc.neg, exc.inv_speed
+    table = np.zeros(0)
+    if at is not None:
+        fpar[k.AT_X0], fpar[k.AT_SCALE] = at.x0, at.scale
+        table = np.array(at.values, dtype=float)
+    if c is not None:
+        fpar[k.HALF], fpar[k.RATIO] = 0.5 * c.gap, c.load_ratio
+        fpar[k.STIFF], fpar[k.DAMP] = c.stiffness, c.damping
+    fpar[k.MASS], fpar[k.B_POS], fpar[k.B_NEG], fpar[k.DT] = (
+        model.params.M, model.B_pos, model.B_neg, dt_s,
+    )  # fmt: skip
+    segs = model.rows(dt_s)
+    kind = k.RIGID if c is None else k.GAP if c.kind == "gap" else k.SPRING
+    force_rows = np.array([(f.amp, f.k, f.phase) for f in forces], dtype=float).reshape(-1, 3)
+    ipar = _ipar(kind, exc is not None, at is not None, len(segs), table.size, len(force_rows))
+    owner = None
+    if kind == k.SPRING:
+        ipar[k.KEY] = next(_KEYS)
+        k.REVERSALS[int(ipar[k.KEY])] = owner = model
+    inputs = tuple(fn for _, fn in sorted(terms.inputs, key=lambda item: item[0]))
+    return Packed(fpar, ipar, segs, table, force_rows, model.whole_delay(dt_s), inputs, owner)
+
+
+def run(
+    packs: Sequence[Packed],
+    lines: Sequence[Sequence[np.ndarray]],
+    windows: np.ndarray,
+    start: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every model over every window in one compiled call.
+
+    Parameters
+    ----------
+    packs : sequence of Packed, length P
+    lines : sequence, per model, of one command line per run (:meth:`Packed.line`)
+    windows : ndarray of int, shape (W, 4)
+        Run, first sample (index in the run's line), samples, first output column.
+    start : ndarray, shape (W, 5)
+        The state at each window's start (motor ``v, x``, load ``v, x``, engaged side).
+
+    Returns
+    -------
+    v, x : ndarray, shape (P, N)
+        The measured body's velocity [units/s] and position [units] at each sample.
+    final : ndarray, shape (P, W, 5)
+        The state at each window's end.
+    """
+    P, runs = len(packs), len(lines[0]) if lines else 0
+    ipar = np.empty((P, k.NI), dtype=np.int64)
+    seg_at = table_at = force_at = line_next = 0
+    line_at = np.empty((P, runs), dtype=np.int64)
+    for p, (pk, per_run) in enumerate(zip(packs, lines, strict=True)):
+        ipar[p] = pk.ipar
+        ipar[p, [k.SEG0, k.SEG1]] += seg_at
+        ipar[p, [k.TAB0, k.TAB1]] += table_at
+        ipar[p, [k.FOR0, k.FOR1]] += force_at
+        seg_at, table_at, force_at = ipar[p, k.SEG1], ipar[p, k.TAB1], ipar[p, k.FOR1]
+        for r, ln in enumerate(per_run):
+            line_at[p, r] = line_next
+            line_next += ln.size
+    windows = np.ascontiguousarray(windows, dtype=np.int64).reshape(-1, 4)
+    n = int((windows[:, 3] + windows[:, 2]).max()) if windows.size else 0
+    out_v, out_x = np.empty((P, n)), np.empty((P, n))
+    final = np.empty((P, windows.shape[0], 5))
+    k.run_batch(
+        np.ascontiguousarray(np.stack([pk.fpar for pk in packs]).reshape(P, k.NF)),
+        ipar,
+        np.ascontiguousarray(np.concatenate([pk.segs for pk in packs]).reshape(-1, k.SEG_COLS)),
+        np.ascontiguousarray(np.concatenate([pk.table for pk in packs]), dtype=float),
+        np.ascontiguousarray(np.concatenate([pk.forces for pk in packs]).reshape(-1, 3)),
+        np.concatenate([ln for per_run in lines for ln in per_run]) if line_next else np.zeros(1),
+        line_at,
+        windows,
+        np.ascontiguousarray(start, dtype=float).reshape(-1, 5),
+        out_v,
+        out_x,
+        final,
+    )
+    return out_v, out_x, final
