@@ -1,9 +1,10 @@
 """Work on a log or a model: ``identify``, ``diagnose``, ``validate``, ``program``.
 
-Each function runs the code of the CLI command of the same name and returns a
-frozen result whose ``to_dict()`` is the JSON object that command prints with
-``--json`` (``program``: ``--format json``); errors are the CLI's, with its
-one-line messages. A log may be given as a :class:`~servobench.log.Log` or a
+Each function is what the CLI command of the same name runs (the command parses
+its arguments, calls it and prints the result); it returns a frozen result whose
+``to_dict()`` is the JSON object that command prints with ``--json``
+(``program``: ``--format json``); errors are the CLI's, with its one-line
+messages. A log may be given as a :class:`~servobench.log.Log` or a
 path, a model as a :class:`~servobench.model.Model` or the path of a model file.
 """
 
@@ -17,19 +18,21 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from servobench.bench.log.io import ExperimentLog
 from servobench.errors import UsageError
-from servobench.log import as_log
+from servobench.log import Log, read_log
 from servobench.model import Model, load_model, plain
 from servobench.verdict import Verdict
 
 if TYPE_CHECKING:
     from servobench.bench.commission.design import FrictionFeedForward, PIDesign
-    from servobench.bench.log.io import ExperimentLog
     from servobench.bench.model.program import ProgramValue
 
 __all__ = ["Diagnosis", "ProgramValues", "Validation", "diagnose", "identify", "program", "validate"]
 
 PathLike = str | os.PathLike[str]
+#: Which column (CSV) or variable (``.mat``) holds each signal: ``"t=Time,u=Input*35.15"`` or a mapping.
+ColumnMap = str | Mapping[str, str]
 
 
 def _model_arg(model: Model | PathLike) -> tuple[Model, str | None]:
@@ -38,6 +41,14 @@ def _model_arg(model: Model | PathLike) -> tuple[Model, str | None]:
     if isinstance(model, Model):
         return model, model.source or None
     return load_model(model), os.fspath(model)
+
+
+def _log_arg(log: ExperimentLog | PathLike, columns: ColumnMap | None = None,
+             mat_map: ColumnMap | None = None) -> tuple[Log, str]:  # fmt: skip
+    """The log and the name the CLI's output gives it: the path as given, else its source."""
+    if isinstance(log, ExperimentLog):
+        return Log.of(log), log.source
+    return read_log(log, columns=columns, mat_map=mat_map), os.fspath(log)
 
 
 # ---------------------------------------------------------------------------- identify
@@ -50,6 +61,8 @@ def identify(
     loop: str | None = None,
     out: PathLike | None = None,
     plots: PathLike | None = None,
+    columns: ColumnMap | None = None,
+    mat_map: ColumnMap | None = None,
 ) -> Model:
     """Identify ``M``, ``B`` and the Coulomb friction per direction, as ``servobench identify``.
 
@@ -70,12 +83,16 @@ def identify(
         Write ``model.json`` and the PNG plots here (refused when it holds a ``model.json``).
     plots : path, optional
         Also write the PNG plots here.
+    columns, mat_map : str or mapping, optional
+        Which column (CSV) or variable (``.mat``) of a log given as a path holds each signal
+        (``--columns``, ``--mat-map``; see :func:`~servobench.read_log`).
 
     Returns
     -------
     Model
         ``to_dict()`` is the ``identify --json`` object (the model keys, ``fit_percent``,
-        ``method``, ``std``, ``units`` ..., ``fs``, ``log``, ``drive_scale`` when stated).
+        ``method``, ``std``, ``units`` ..., ``fs``, ``log``, ``drive_scale`` when stated);
+        ``details`` the identification result the CLI's table is printed from.
 
     Raises
     ------
@@ -91,7 +108,7 @@ def identify(
     if out_dir is not None and (out_dir / MODEL_FILE).exists():
         raise UsageError(f"{out_dir} already holds a {MODEL_FILE}; choose another --out, or move it away "
                          "first: nothing was overwritten")  # fmt: skip
-    log = as_log(log)
+    log, name = _log_arg(log, columns, mat_map)
     if loop:
         log = replace(log, metadata={**log.metadata, "loop": loop})
     result = identify_log(log, method, resonance=resonance, velocity_cutoff_hz=cutoff_hz)
@@ -102,14 +119,14 @@ def identify(
         for folder in folders:
             folder.mkdir(parents=True, exist_ok=True)
             write_plots(result, folder)
-    scale = drive_scale_json(log.metadata, log.source)
-    doc = {**result.to_json(), "fs": log.fs_hz, "log": log.source, **({"drive_scale": scale} if scale else {})}
+    scale = drive_scale_json(log.metadata, name)
+    doc = {**result.to_json(), "fs": log.fs_hz, "log": name, **({"drive_scale": scale} if scale else {})}
     source = ""
     if out_dir is not None:
         path = out_dir / MODEL_FILE
         path.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         source = str(path)
-    return Model.from_dict(plain(doc, allow_nan=False), source)
+    return replace(Model.from_dict(plain(doc), source), details=result)
 
 
 # ---------------------------------------------------------------------------- diagnose
@@ -141,6 +158,9 @@ class Diagnosis:
         The verdict line the CLI prints first.
     report : Path or None
         ``report.md`` when ``out`` was given.
+    details : servobench.bench.diagnose.workflow.Diagnosis
+        The diagnosis the CLI's text is printed from (each round, the comparisons, the
+        families); internal types, which may change.
     """
 
     verdict: str
@@ -153,6 +173,7 @@ class Diagnosis:
     notes: tuple[str, ...]
     headline: str
     report: Path | None = None
+    details: Any = field(default=None, repr=False, compare=False)
     _json: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -171,6 +192,8 @@ def diagnose(
     effects: Iterable[str] | None = None,
     out: PathLike | None = None,
     progress: Callable[[str], None] | None = None,
+    columns: ColumnMap | None = None,
+    mat_map: ColumnMap | None = None,
 ) -> Diagnosis:
     """Name the effect the model lacks, as ``servobench diagnose``.
 
@@ -186,6 +209,9 @@ def diagnose(
         Write ``report.md``, ``model.json``, ``comparison.csv`` and the figures here.
     progress : callable(str), optional
         Called with a short message as each stage starts.
+    columns, mat_map : str or mapping, optional
+        Which column (CSV) or variable (``.mat``) of a log given as a path holds each signal
+        (``--columns``, ``--mat-map``; see :func:`~servobench.read_log`).
 
     Raises
     ------
@@ -196,8 +222,12 @@ def diagnose(
     from servobench.bench.diagnose.workflow import diagnose as diagnose_log
     from servobench.bench.report.diagnose import model_json, to_json, write_report
 
-    d = diagnose_log(as_log(log), horizon_s, effects=effects, progress=progress)
-    report = write_report(d, out) if out is not None else None
+    d = diagnose_log(_log_arg(log, columns, mat_map)[0], horizon_s, effects=effects, progress=progress)
+    report = None
+    if out is not None:
+        if progress is not None:
+            progress("writing the report")
+        report = write_report(d, out)
     model = Model.from_dict(model_json(d), str(report.parent / "model.json") if report else "")
     return Diagnosis(
         verdict=d.verdict.verdict,
@@ -210,6 +240,7 @@ def diagnose(
         notes=tuple(f.sentence for f in d.families) + tuple(d.notes),
         headline=d.verdict.headline(),
         report=report,
+        details=d,
         _json=plain(to_json(d)),
     )
 
@@ -234,6 +265,11 @@ class Validation:
         The verdict line the CLI prints first.
     figure : Path or None
         ``validation.png`` when ``out`` was given.
+    model : Model
+        The model judged.
+    details : servobench.bench.model.validate.Validation
+        The comparison the CLI's text is printed from (samples, runs, how the model was
+        compared); internal types, which may change.
     """
 
     verdict: Verdict
@@ -243,6 +279,8 @@ class Validation:
     notes: tuple[str, ...]
     headline: str
     figure: Path | None = None
+    model: Model | None = None
+    details: Any = field(default=None, repr=False, compare=False)
     _json: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -262,6 +300,8 @@ def validate(
     min_fit_percent: float | None = None,
     max_gap_percent: float | None = None,
     out: PathLike | None = None,
+    columns: ColumnMap | None = None,
+    mat_map: ColumnMap | None = None,
 ) -> Validation:
     """Judge a saved model on another log, as ``servobench validate``.
 
@@ -275,6 +315,9 @@ def validate(
         Thresholds [%] (``--min-fit``, ``--max-gap``; default 90 and 10).
     out : path, optional
         Write the measured-against-predicted figure here.
+    columns, mat_map : str or mapping, optional
+        Which column (CSV) or variable (``.mat``) of a log given as a path holds each signal
+        (``--columns``, ``--mat-map``; see :func:`~servobench.read_log`).
 
     Raises
     ------
@@ -282,15 +325,14 @@ def validate(
         The log cannot be compared (too short, nothing moves).
     UsageError, LogFormatError
     """
-    from servobench.bench.commands.validate import _unit_mismatch
     from servobench.bench.model import validate as v
     from servobench.units import SignalUnits
 
     model, name = _model_arg(model)
-    log = as_log(log)
+    log, log_name = _log_arg(log, columns, mat_map)
     result = v.validate(model.servo_model, log, model.effects, loop=loop)
     units = SignalUnits.from_metadata(log.metadata)
-    mismatch = _unit_mismatch(model.units, units)
+    mismatch = v.unit_mismatch(model.units, units)
     if mismatch:
         result = replace(result, notes=(*result.notes, mismatch))
     figure = None
@@ -303,7 +345,7 @@ def validate(
     judged = v.judge(result, min_fit, max_gap)
     verdict = Verdict.of(judged.passed)
     doc = {"verdict": verdict.word, **result.to_json(), "thresholds": judged.as_dict(), "model": name,
-           "log": log.source, "effects": list(model.effects), "units": units.as_metadata()}  # fmt: skip
+           "log": log_name, "effects": list(model.effects), "units": units.as_metadata()}  # fmt: skip
     if figure is not None:
         doc["figure"] = str(figure)
     return Validation(
@@ -312,9 +354,11 @@ def validate(
         gap_percent=float(result.gap_percent),
         force_error_percent=result.force_error_percent,
         notes=tuple(result.notes),
-        headline=verdict.line(f"{name or 'the model'} on {log.source}: {judged.text()}"),
+        headline=verdict.line(f"{name or 'the model'} on {log_name}: {judged.text()}"),
         figure=figure,
-        _json=plain(doc, allow_nan=False),
+        model=model,
+        details=result,
+        _json=plain(doc),
     )
 
 
@@ -408,8 +452,8 @@ def program(
     units = SignalUnits(saved.units.get("u", ""), saved.units.get("v", ""), saved.units.get("x", ""))
     scale = DriveScale()
     if log is not None:
-        read = as_log(log)
-        scale = DriveScale.from_metadata(read.metadata, read.source)
+        read, log_name = _log_arg(log)
+        scale = DriveScale.from_metadata(read.metadata, log_name)
     elif saved.drive_scale:
         scale = DriveScale.from_json(saved.drive_scale, name or "the model")
     ff, pi, values = design_values(base, units, fs, scale, phase_margin_deg=phase_margin_deg,
@@ -421,5 +465,5 @@ def program(
     doc = {"model": name, "source": described, "fs": fs, "drive_units": drive_units, "values": rows,
            "feed_forward": ff.as_dict(), "velocity_pi": pi.as_dict()}  # fmt: skip
     return ProgramValues(tuple(values), ff, pi, described, float(fs), drive_units,
-                         json.loads(json.dumps(doc, allow_nan=False, default=float)))  # fmt: skip
+                         json.loads(json.dumps(doc, default=float)))  # fmt: skip
 

@@ -107,9 +107,3 @@ def read_log(
     """
     return Log.of(_read_log(path, mat_map, columns=columns))
 
-
-def as_log(log: ExperimentLog | str | os.PathLike[str]) -> Log:
-    """A :class:`Log` from a log or a path (read with :func:`read_log`)."""
-    if isinstance(log, ExperimentLog):
-        return Log.of(log)
-    return read_log(log)

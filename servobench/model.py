@@ -95,6 +95,10 @@ class Model:
     record : mapping
         The JSON object the model came from (the CLI's output for it); not compared.
         :meth:`to_dict` starts from it.
+    details : servobench.bench.model.servo.IdentificationResult or None
+        The identification behind a model :func:`~servobench.identify` has just found (its
+        selection sentence, notes and timing figure, which the CLI's table prints); None
+        otherwise. Internal types, which may change; not compared, not saved.
     """
 
     M: float
@@ -109,6 +113,7 @@ class Model:
     fs_hz: float | None = None
     source: str = field(default="", compare=False)
     record: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+    details: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         put = object.__setattr__

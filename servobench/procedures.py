@@ -1,15 +1,18 @@
 """Work on a drive or a fleet: ``sidbe``, ``commission``, ``fleet``.
 
-Each function runs the code of the CLI command of the same name (without its
-terminal output: no progress bars unless a ``progress`` callback is given;
-``commission`` talks at the terminal as the CLI does) and returns a frozen
-result whose ``to_dict()`` is the JSON the command prints (``--json``) or, for
-``commission``, writes (``commission.json``). Errors are the CLI's.
+Each function is what the CLI command of the same name runs: the command parses
+its arguments, calls it and prints the result (the terminal output is the
+command's: no progress bars or notes unless ``progress`` and ``note`` callbacks
+are given; ``commission`` talks at the terminal as the CLI does). Each returns a
+frozen result whose ``to_dict()`` is the JSON the command prints (``--json``) or,
+for ``commission``, writes (``commission.json``). Errors are the CLI's.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -61,6 +64,14 @@ class SidbeResult:
         Each excite-identify round: amplitude, lines, fit, what came next.
     headline : str
         The verdict line the CLI prints first.
+    pace : {"real", "fast"}
+        How the runs were streamed: in real time, or lock-step as fast as the drive answers.
+    link_max_hz : float
+        The highest cycle rate the drive's link carries [Hz] (``inf``: nothing bounds it).
+    details : servobench.bench.procedure.sidbe.SidbeResult
+        The procedure's own record, which the CLI's text is printed from (the excitation
+        design, the achieved rate, the hold loop, the drive's remarks, the identification
+        result); internal types, which may change.
     """
 
     model: Model
@@ -73,6 +84,9 @@ class SidbeResult:
     plots: tuple[Path, ...]
     iterations: tuple[Iteration, ...]
     headline: str
+    pace: str = "real"
+    link_max_hz: float = math.inf
+    details: Any = field(default=None, repr=False, compare=False)
     _json: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -106,6 +120,7 @@ def sidbe(
     settle_s: float = _DEFAULT.settle_s,
     axis: str = _DEFAULT.axis,
     progress: Callable[[int, int, int], None] | None = None,
+    note: Callable[[str], None] | None = None,
 ) -> SidbeResult:
     """Run the whole SIDBE procedure on a drive, as ``servobench sidbe``.
 
@@ -131,6 +146,9 @@ def sidbe(
         between runs [s], the logs' ``axis`` name (:class:`~servobench.bench.procedure.sidbe.SidbeOptions`).
     progress : callable(round, done, total), optional
         Streaming progress per round.
+    note : callable(str), optional
+        Called with each note the CLI prints on stderr before streaming: the default cycle
+        rate lowered to fit the drive's link, closed loop chosen for the drive.
 
     Raises
     ------
@@ -142,8 +160,9 @@ def sidbe(
     DriveError
         The drive faulted or dropped the link (the axis was stopped).
     """
-    from servobench.bench.commands.sidbe import default_out_dir, verdict_line
-    from servobench.bench.procedure.sidbe import check_run_folder, run_sidbe
+    from servobench.bench.procedure.run_folder import check_run_folder, default_out_dir
+    from servobench.bench.procedure.sidbe import loop_note, rate_note, run_sidbe
+    from servobench.bench.run.runner import default_pace
     from servobench.drivers.registry import open_drive
 
     options = SidbeOptions(
@@ -156,23 +175,23 @@ def sidbe(
     options.validate()
     out_dir = Path(out) if out is not None else default_out_dir()
     check_run_folder(out_dir)  # before the drive is even opened
-    given = drive
     if isinstance(drive, str):
         drive = open_drive(drive)
     options.validate(drive)
+    say = note or (lambda _text: None)
+    if text := rate_note(fs_hz, drive):
+        say(text)
     try:
-        if isinstance(given, str):
-            with drive:
-                sr = run_sidbe(drive, options, out_dir, progress=progress)
-        else:
+        with drive if not drive.is_open else contextlib.nullcontext(drive):  # closed again if opened here
+            if text := loop_note(options, drive):
+                say(text)
             sr = run_sidbe(drive, options, out_dir, progress=progress)
     except IdentificationError as err:  # no model: say where the logs of the rounds are
         add_note(err, f"no model.json written; the logs are kept in {out_dir}")
         raise
-    verdict = Verdict.of(sr.passed)
     return SidbeResult(
         model=load_model(sr.model_path),
-        verdict=verdict,
+        verdict=Verdict.of(sr.passed),
         log=sr.log_path,
         fit_percent=float(sr.result.fit_percent),
         fit_threshold=float(sr.fit_threshold),
@@ -180,8 +199,11 @@ def sidbe(
         model_file=sr.model_path,
         plots=tuple(sr.plots),
         iterations=tuple(sr.iterations),
-        headline=verdict_line(sr),
-        _json=plain(sr.to_json(), allow_nan=False),
+        headline=sr.headline(),
+        pace=pace or drive.url.get_str("pace", "") or default_pace(drive),
+        link_max_hz=drive.max_rate_hz(),
+        details=sr,
+        _json=plain(sr.to_json()),
     )
 
 
@@ -317,6 +339,7 @@ def fleet(
     diagnose: bool = False,
     threshold_percent: float | None = None,
     progress: Callable[[int, int], None] | None = None,
+    note: Callable[[str], None] | None = None,
 ) -> FleetResult:
     """Re-identify a fleet's logs on Dask and trend each axis, as ``servobench fleet``.
 
@@ -335,6 +358,10 @@ def fleet(
     threshold_percent : float, optional
         Drift of a Coulomb level or B that flags an axis [%] (``--threshold``).
     progress : callable(done, total), optional
+        Called with ``(0, total)`` once the cluster is up, then as the logs are done.
+    note : callable(str), optional
+        Called once the cluster is up, with how many logs run on how many workers of which
+        scheduler (the line the CLI prints on stderr).
 
     Raises
     ------
@@ -342,7 +369,9 @@ def fleet(
         Dask or pyarrow missing (the ``fleet`` extra), a cluster that cannot be reached.
     UsageError
     KeyboardInterrupt
-        Ctrl-C: the cluster is shut down and the rows done so far are written (a note says where).
+        Ctrl-C: the cluster is shut down. During the jobs or the figures a ``FleetInterrupted``,
+        after the rows done so far were written (a note says where); while the page is
+        written, with a note saying so.
     """
     from servobench.bench.fleet.engine import (
         FleetInterrupted,
@@ -350,6 +379,7 @@ def fleet(
         map_on,
         require_fleet_extra,
         run_on,
+        worker_count,
     )
     from servobench.bench.fleet.page import axis_figure, write_page
     from servobench.bench.fleet.sources import find_logs
@@ -371,16 +401,30 @@ def fleet(
         write_csv(rows, out_dir / CSV_FILE)
         write_parquet(rows, out_dir / PARQUET_FILE)
 
+    def kept(stop: FleetInterrupted) -> FleetInterrupted:
+        tables(stop.rows)
+        done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
+        add_note(stop, f"{done} of {len(sources)} logs done, kept in {out_dir / CSV_FILE}")
+        return stop
+
     with connect(workers, scheduler) as client:
+        if note is not None:
+            note(f"{len(sources)} logs on {worker_count(client)} Dask workers (scheduler {client.scheduler.address})")
+        if progress is not None:
+            progress(0, len(sources))
         try:
             rows = run_on(client, sources, diagnose, progress)
         except FleetInterrupted as stop:
-            tables(stop.rows)
-            done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
-            add_note(stop, f"{done} of {len(sources)} logs done, kept in {out_dir / CSV_FILE}")
-            raise
+            raise kept(stop) from None
         tables(rows)
         trends = axis_trends(rows, threshold)
-        figures = map_on(client, axis_figure, trends, threshold_percent=threshold)
-    page = write_page(rows, trends, threshold, out_dir, figures)
+        try:
+            figures = map_on(client, axis_figure, trends, threshold_percent=threshold)
+        except KeyboardInterrupt:
+            raise kept(FleetInterrupted(rows)) from None
+    try:
+        page = write_page(rows, trends, threshold, out_dir, figures)
+    except KeyboardInterrupt as err:
+        add_note(err, f"interrupted while writing {out_dir}; run fleet again")
+        raise
     return FleetResult(tuple(rows), tuple(trends), out_dir, page)

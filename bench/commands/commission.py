@@ -15,8 +15,6 @@ to the end and the verdict is a fail, 1 on a refusal or error, 130 on Ctrl-C
 from __future__ import annotations
 
 import argparse
-import time
-from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,20 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace):
-    from servobench.bench.commission.config import load_config
-    from servobench.bench.commission.sequence import CommissionOptions, commission
-    from servobench.verdict import Verdict
+    from servobench.procedures import commission
 
-    out = Path(args.out) if args.out else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
-    options = CommissionOptions(
-        drive_url=args.drive,
-        config=load_config(args.config),
-        out_dir=out,
-        assume_yes=args.yes,
-        dry_run=args.dry_run,
-        record_bus=Path(args.record_bus) if args.record_bus else None,
-    )
-    result = commission(options)
-    if result.status == "dry-run":
-        return None
-    return Verdict(result.verdict)
+    result = commission(args.drive, config=args.config, out=args.out or None, yes=args.yes,
+                        dry_run=args.dry_run, record_bus=args.record_bus or None)  # fmt: skip
+    return result.verdict  # None after a dry run

@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+from servobench.bench.commands.log_args import add_log_arguments
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -63,21 +63,18 @@ def stage_progress(console=None) -> Iterator[Callable[[str], None]]:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from servobench.bench.diagnose.workflow import diagnose
-    from servobench.bench.report.diagnose import summary_lines, to_json, write_report
+    from servobench.analysis import diagnose
+    from servobench.bench.report.diagnose import summary_lines
 
     with stage_progress() as say:
-        log = read_log_of(args)
-        result = diagnose(log, horizon_s=args.horizon, progress=say)
-        if args.out:
-            say("writing the report")
-        report = write_report(result, args.out) if args.out else None
+        report = diagnose(args.log, horizon_s=args.horizon, out=args.out or None, progress=say,
+                          columns=args.columns, mat_map=args.mat_map)  # fmt: skip
     if args.json:
-        print(json.dumps(to_json(result)))
+        print(json.dumps(report.to_dict()))
         return 0
-    for line in summary_lines(result):
+    for line in summary_lines(report.details):
         print(line)
-    if report is not None:
-        print(f"report: {report}")
-        print(f"model: {report.parent / 'model.json'}")
+    if report.report is not None:
+        print(f"report: {report.report}")
+        print(f"model: {report.report.parent / 'model.json'}")
     return 0

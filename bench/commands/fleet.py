@@ -49,38 +49,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from servobench.bench.commands.progress import count_progress
+    from servobench.bench.fleet.engine import FleetInterrupted
+    from servobench.errors import notes_of
+    from servobench.procedures import fleet
 
-    from servobench.bench.fleet.engine import FleetInterrupted, require_fleet_extra
-    from servobench.bench.fleet.sources import find_logs
-    from servobench.bench.fleet.trend import axis_trends
-    from servobench.errors import UsageError
+    def started(text: str) -> None:
+        print(f"servobench fleet: {text}", file=sys.stderr, flush=True)
 
-    require_fleet_extra()
-    axis_trends([], args.threshold)  # checks the threshold before any work
-    if args.workers is not None and args.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {args.workers}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} is a file; name a folder")
-    sources = find_logs(args.logs)
-    out.mkdir(parents=True, exist_ok=True)
     try:
-        rows, trends, figures = _on_cluster(args, sources, out)
-    except FleetInterrupted as stop:
-        _write_tables(stop.rows, out)
-        done = sum(1 for r in stop.rows if not r.error.startswith("not processed"))
-        return _interrupted(
-            f"interrupted; Dask cluster shut down; {done} of {len(sources)} logs done, "
-            f"kept in {out / 'fleet.csv'}",
-            args,
-        )
-    except KeyboardInterrupt:
-        return _interrupted("interrupted; Dask cluster shut down, nothing written", args)
-    try:
-        return _report(rows, trends, figures, out, args)
-    except KeyboardInterrupt:
-        return _interrupted(f"interrupted while writing {out}; run fleet again", args)
+        with count_progress(lambda total: f"identifying {total} logs") as progress:
+            result = fleet(args.logs, args.out, workers=args.workers, scheduler=args.scheduler,
+                           diagnose=args.diagnose, threshold_percent=args.threshold, progress=progress,
+                           note=started)  # fmt: skip
+    except FleetInterrupted as stop:  # during the jobs or the figures: the rows so far are kept
+        return _interrupted("; ".join(["interrupted; Dask cluster shut down", *notes_of(stop)]), args)
+    except KeyboardInterrupt as err:  # before the rows, or while writing the page (its note says so)
+        return _interrupted("; ".join(notes_of(err)) or "interrupted; Dask cluster shut down, nothing written",
+                            args)  # fmt: skip
+    if args.json:
+        from servobench.bench.report.summary import print_json
+
+        print_json(result.to_dict())
+    else:
+        _print_text(result)
+    return 1 if result.failed else 0
 
 
 def _interrupted(message: str, args: argparse.Namespace) -> int:
@@ -93,63 +86,16 @@ def _interrupted(message: str, args: argparse.Namespace) -> int:
     return 130
 
 
-def _on_cluster(args: argparse.Namespace, sources, out) -> tuple:
-    """Rows (written at once to the tables), trends and each axis's figure, on the cluster."""
-    from servobench.bench.commands.progress import count_progress
-    from servobench.bench.fleet.engine import (
-        FleetInterrupted,
-        connect,
-        map_on,
-        run_on,
-        worker_count,
-    )
-    from servobench.bench.fleet.page import axis_figure
-    from servobench.bench.fleet.trend import axis_trends
+def _print_text(result) -> None:
+    from servobench.bench.fleet.table import CSV_FILE, PARQUET_FILE
 
-    with connect(args.workers, args.scheduler) as client:
-        print(f"servobench fleet: {len(sources)} logs on {worker_count(client)} Dask workers "
-              f"(scheduler {client.scheduler.address})", file=sys.stderr, flush=True)  # fmt: skip
-        with count_progress(f"identifying {len(sources)} logs", len(sources)) as progress:
-            rows = run_on(client, sources, args.diagnose, progress)
-        _write_tables(rows, out)
-        trends = axis_trends(rows, args.threshold)
-        try:
-            figures = map_on(client, axis_figure, trends, threshold_percent=args.threshold)
-        except KeyboardInterrupt:
-            raise FleetInterrupted(rows) from None
-    return rows, trends, figures
-
-
-def _write_tables(rows, out) -> None:
-    from servobench.bench.fleet.table import CSV_FILE, PARQUET_FILE, write_csv, write_parquet
-
-    write_csv(rows, out / CSV_FILE)
-    write_parquet(rows, out / PARQUET_FILE)
-
-
-def _report(rows, trends, figures, out, args: argparse.Namespace) -> int:
-    from servobench.bench.fleet.page import write_page
-    from servobench.bench.report.summary import print_json
-
-    page = write_page(rows, trends, args.threshold, out, figures)
-    failed = [r for r in rows if not r.ok]
-    if args.json:
-        print_json(
-            {"logs": len(rows), "failed": len(failed), "axes": [t.to_json() for t in trends]}
-        )
-    else:
-        _print_text(rows, failed, trends, out, page)
-    return 1 if failed else 0
-
-
-def _print_text(rows, failed, trends, out, page) -> None:
-    flagged = [t for t in trends if t.flagged]
-    print(f"{len(rows)} logs, {len(failed)} failed; {len(trends)} axes, {len(flagged)} flagged")
-    for t in flagged:
+    rows, failed, trends, out = result.rows, result.failed, result.axes, result.out_dir
+    print(f"{len(rows)} logs, {len(failed)} failed; {len(trends)} axes, {len(result.flagged)} flagged")
+    for t in result.flagged:
         print(f"FLAGGED {t.axis}: {'; '.join(t.reasons)}")
     for t in trends:
         for sentence in t.structure:
             print(f"note {t.axis}: {sentence}")
     for r in failed:
         print(f"failed {r.log}: {r.error.removeprefix(r.log + ': ')}")
-    print(f"wrote {out / 'fleet.csv'}, {out / 'fleet.parquet'}, {page}")
+    print(f"wrote {out / CSV_FILE}, {out / PARQUET_FILE}, {result.page}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+from servobench.bench.commands.log_args import add_log_arguments
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,37 +45,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    import json
-    from dataclasses import replace
     from pathlib import Path
 
-    from servobench.bench.identify.auto import identify
-    from servobench.bench.model.program import drive_scale_json
-    from servobench.bench.procedure.run_folder import MODEL_FILE
+    from servobench.analysis import identify
     from servobench.bench.report.summary import print_json, print_result
-    from servobench.errors import UsageError
 
-    out_dir = Path(args.out) if args.out else None
-    if out_dir is not None and (out_dir / MODEL_FILE).exists():
-        raise UsageError(f"{out_dir} already holds a {MODEL_FILE}; choose another --out, or move it away "
-                         "first: nothing was overwritten")  # fmt: skip
-    log = read_log_of(args)
-    if args.loop:
-        log = replace(log, metadata={**log.metadata, "loop": args.loop})
-    result = identify(log, args.method, resonance=args.resonance, velocity_cutoff_hz=args.cutoff)
-    from servobench.bench.report.plots import write_plots
-
-    for folder in {Path(d) for d in (args.plots, args.out) if d}:
-        folder.mkdir(parents=True, exist_ok=True)
-        write_plots(result, folder)
-    doc = {**result.to_json(), "fs": log.fs_hz, "log": args.log,
-           **({"drive_scale": scale} if (scale := drive_scale_json(log.metadata, args.log)) else {})}  # fmt: skip
-    if out_dir is not None:
-        (out_dir / MODEL_FILE).write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    model = identify(args.log, method=args.method, resonance=args.resonance, cutoff_hz=args.cutoff,
+                     loop=args.loop, out=args.out or None, plots=args.plots or None,
+                     columns=args.columns, mat_map=args.mat_map)  # fmt: skip
     if args.json:
-        print_json(doc)
+        print_json(model.to_dict())
     else:
-        print_result(result, f"Identified model: {args.log}")
-        if out_dir is not None:
-            print(f"output: {out_dir}")
+        print_result(model.details, f"Identified model: {args.log}")
+        if args.out:
+            print(f"output: {Path(args.out)}")
     return None

@@ -27,9 +27,3 @@ def add_log_arguments(p: argparse.ArgumentParser) -> None:
         "(without it a .mat file lists the variables it holds)",
     )
 
-
-def read_log_of(args: argparse.Namespace, name: str = "log"):
-    """The :class:`~servobench.bench.log.io.ExperimentLog` that ``args.<name>`` names."""
-    from servobench.bench.log.io import read_log
-
-    return read_log(getattr(args, name), args.mat_map, columns=args.columns)

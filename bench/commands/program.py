@@ -47,40 +47,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    from servobench.bench.model.file import program_model, read_model
-    from servobench.bench.model.program import DriveScale, design_values
-    from servobench.errors import UsageError
-    from servobench.units import SignalUnits
+    from servobench.analysis import program
 
-    saved = read_model(args.model)
-    model, described = program_model(saved)
-    fs_hz = args.fs if args.fs is not None else saved.fs_hz
-    if fs_hz is None or not (math.isfinite(fs_hz) and fs_hz > 0):
-        raise UsageError(f"{args.model} states no loop rate (fs): give --fs HZ, the rate of the drive's "
-                         "velocity loop the PI is designed for")  # fmt: skip
-    if args.sign_band < 0:
-        raise UsageError(f"--sign-band must be >= 0, got {args.sign_band:g}")
-    units = SignalUnits(saved.units.get("u", ""), saved.units.get("v", ""), saved.units.get("x", ""))
-    scale = DriveScale()
-    if args.log:
-        from servobench.bench.log.io import read_log
-
-        scale = DriveScale.from_metadata(read_log(args.log).metadata, args.log)
-    elif saved.drive_scale:
-        scale = DriveScale.from_json(saved.drive_scale, args.model)
-    ff, pi, values = design_values(model, units, fs_hz, scale, phase_margin_deg=args.phase_margin,
-                                   delay_cycles=args.delay_cycles, sign_band=args.sign_band)  # fmt: skip
-    head = {"model": args.model, "source": described, "fs": fs_hz,
-            "drive_units": "; ".join(scale.definitions(units)) if scale.reported else
-            "none stated: the drive takes the model's units (give --log LOG with scale_u/scale_v lines)"}  # fmt: skip
-    print({"text": _text, "csv": _csv, "json": _json, "toml": _toml}[args.format](head, values, ff, pi), end="")
+    values = program(args.model, fs_hz=args.fs, log=args.log, phase_margin_deg=args.phase_margin,
+                     delay_cycles=args.delay_cycles, sign_band=args.sign_band)  # fmt: skip
+    print({"text": _text, "csv": _csv, "json": _json, "toml": _toml}[args.format](values), end="")
 
 
 def _cell(value: float) -> str:
     return "" if isinstance(value, float) and math.isnan(value) else f"{value:.6g}"
 
 
-def _text(head, values, ff, pi) -> str:
+def _text(values) -> str:
+    head = values.to_dict()
     lines = [f"values to program from {head['model']}: {head['source']}",
              f"velocity loop at {head['fs']:g} Hz; drive units: {head['drive_units']}"]  # fmt: skip
     for v in values:
@@ -92,7 +71,7 @@ def _text(head, values, ff, pi) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _csv(head, values, ff, pi) -> str:
+def _csv(values) -> str:
     import csv
     import io
 
@@ -104,17 +83,16 @@ def _csv(head, values, ff, pi) -> str:
     return buf.getvalue()
 
 
-def _json(head, values, ff, pi) -> str:
+def _json(values) -> str:
     import json
 
-    rows = [{k: (None if isinstance(x, float) and math.isnan(x) else x) for k, x in v.as_dict().items()}
-            for v in values]  # fmt: skip
-    return json.dumps({**head, "values": rows, "feed_forward": ff.as_dict(), "velocity_pi": pi.as_dict()},
-                      allow_nan=False, default=float) + "\n"  # fmt: skip
+    return json.dumps(values.to_dict(), allow_nan=False) + "\n"
 
 
-def _toml(head, values, ff, pi) -> str:
+def _toml(values) -> str:
     import json
+
+    head = values.to_dict()
 
     def text(s: str) -> str:
         return json.dumps(s, ensure_ascii=False)  # a JSON string is a TOML basic string

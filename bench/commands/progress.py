@@ -1,9 +1,25 @@
-"""A rich progress bar on stderr for streaming runs."""
+"""Rich progress bars on stderr: for streaming runs, and for counting done items."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
+
+
+def _bar() -> Any:
+    """A ``rich.progress.Progress`` on stderr: description, bar, done/total, elapsed time."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=False,
+    )
 
 
 @contextmanager
@@ -12,19 +28,8 @@ def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], 
     if not enabled:
         yield lambda _i, _d, _t: None
         return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    console = Console(stderr=True)
+    bar = _bar()
     tasks: dict[int, int] = {}
-    bar = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=False,
-    )
 
     def update(index: int, done: int, total: int) -> None:
         if not tasks:
@@ -42,26 +47,25 @@ def stream_progress(enabled: bool = True) -> Iterator[Callable[[int, int, int], 
 
 @contextmanager
 def count_progress(
-    description: str, total: int, enabled: bool = True
+    description: str | Callable[[int], str], enabled: bool = True
 ) -> Iterator[Callable[[int, int], None]]:
-    """Yield ``update(done, total)`` for one bar of ``total`` items, drawn on stderr."""
+    """Yield ``update(done, total)`` for one bar, drawn on stderr from the first update on
+    (``description`` may be a function of the total)."""
     if not enabled:
         yield lambda _d, _t: None
         return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    bar = _bar()
+    tasks: list[int] = []
 
-    bar = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        transient=False,
-    )
-    task = bar.add_task(description, total=total)
-    bar.start()
+    def update(done: int, total: int) -> None:
+        if not tasks:
+            text = description(total) if callable(description) else description
+            tasks.append(bar.add_task(text, total=total))
+            bar.start()
+        bar.update(tasks[0], completed=done, total=total)
+
     try:
-        yield lambda done, all_: bar.update(task, completed=done, total=all_)
+        yield update
     finally:
-        bar.stop()
+        if tasks:
+            bar.stop()

@@ -30,16 +30,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.commands.sidbe import note_lowered_rate
+    from servobench.bench.commands.sidbe import note
     from servobench.bench.procedure.excitation import design_excitation
-    from servobench.bench.procedure.sidbe import SidbeOptions
+    from servobench.bench.procedure.sidbe import SidbeOptions, rate_note
     from servobench.bench.report.summary import print_json
     from servobench.bench.run.runner import stream_runs
     from servobench.drivers.registry import open_drive
 
     drive = open_drive(args.drive)
     fs_hz = link_rate_hz(args.fs, drive)  # refused before the port is opened
-    note_lowered_rate(args.fs, drive)
+    if text := rate_note(args.fs, drive):
+        note(text)
     design = design_from_args(args, fs_hz)
     options = SidbeOptions(
         amplitude=args.amplitude, ratio=args.ratio, fs_hz=fs_hz, periods=args.periods,

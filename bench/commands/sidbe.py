@@ -18,13 +18,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
-from pathlib import Path
 
 from servobench.bench.commands.excitation_args import add_excitation_arguments, parse_freqs
-
-#: Parent of the default output folders.
-RUNS_DIR = "servobench-runs"
+from servobench.bench.procedure.run_folder import RUNS_DIR
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -70,114 +66,48 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def default_out_dir(base: Path | None = None) -> Path:
-    """A new ``./servobench-runs/<YYYYmmdd-HHMMSS>[-n]`` folder name (the checkout's
-    ``.gitignore`` lists ``servobench-runs/``)."""
-    root = (base or Path.cwd()) / RUNS_DIR
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    path = root / stamp
-    n = 1
-    while path.exists():
-        n += 1
-        path = root / f"{stamp}-{n}"
-    return path
+def note(text: str) -> None:
+    """A note for the user: one line on stderr."""
+    print(f"servobench: note: {text}", file=sys.stderr)
 
 
-def note_lowered_rate(requested_hz: float | None, drive) -> None:
-    """Say on stderr when the default cycle rate was lowered to fit the drive's link."""
-    import sys
-
-    from servobench.bench.procedure.excitation import DEFAULT_FS_HZ
-    from servobench.drivers.link_budget import drive_rate_hz, lowered_rate_note
-
-    if requested_hz is None:
-        chosen = drive_rate_hz(None, drive, DEFAULT_FS_HZ)
-        note = lowered_rate_note(None, chosen, drive, DEFAULT_FS_HZ)
-        if note:
-            print(f"servobench: note: {note}", file=sys.stderr)
-
-
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace):
     from servobench.bench.commands.progress import stream_progress
-    from servobench.bench.procedure.sidbe import (
-        SidbeOptions,
-        check_run_folder,
-        loop_note,
-        run_sidbe,
-    )
     from servobench.bench.report.summary import print_json, print_result, rate_text
-    from servobench.bench.run.runner import default_pace
-    from servobench.drivers.registry import open_drive
-    from servobench.errors import IdentificationError, add_note
-    from servobench.verdict import Verdict
+    from servobench.procedures import sidbe
 
-    options = SidbeOptions(
-        amplitude=args.amplitude,
-        ratio=args.ratio,
-        fs_hz=args.fs,
-        periods=args.periods,
-        period_s=args.period,
-        freqs_hz=parse_freqs(args.freqs),
-        loop=args.loop,
-        method=args.method,
-        fit_threshold=args.fit_threshold,
-        max_iterations=args.max_iterations,
-        max_amplitude=args.max_amplitude,
-        resonance=args.resonance,
-        plots=not args.no_plots,
-    )
-    options.validate()
-    out_dir = Path(args.out) if args.out else default_out_dir()
-    check_run_folder(out_dir)  # before the drive is even opened
-    drive = open_drive(args.drive)
-    options.validate(drive)
-    note_lowered_rate(args.fs, drive)
-    with drive, stream_progress() as progress:
-        if note := loop_note(options, drive):
-            print(f"servobench: note: {note}", file=sys.stderr)
-        try:
-            result = run_sidbe(drive, options, out_dir, progress=progress)
-        except IdentificationError as err:  # no model: say where the logs of the rounds are
-            add_note(err, f"no model.json written; the logs are kept in {out_dir}")
-            raise
-    verdict = Verdict.of(result.passed)
+    with stream_progress() as progress:
+        result = sidbe(
+            args.drive, args.out or None, amplitude=args.amplitude, ratio=args.ratio, fs_hz=args.fs,
+            periods=args.periods, period_s=args.period, freqs_hz=parse_freqs(args.freqs), loop=args.loop,
+            method=args.method, fit_threshold=args.fit_threshold, max_iterations=args.max_iterations,
+            max_amplitude=args.max_amplitude, resonance=args.resonance, plots=not args.no_plots,
+            progress=progress, note=note,
+        )  # fmt: skip
     if args.json:
-        print_json(result.to_json())
-        return verdict
-    print(verdict_line(result))
+        print_json(result.to_dict())
+        return result.verdict
+    print(result.headline)
+    run = result.details
     rounds = ", ".join(
         f"#{it.index} ±{it.amplitude:g}: "
         + ("no model" if it.fit_percent is None else f"{it.fit_percent:.2f} %")
         for it in result.iterations
     )
     facts = {
-        "cycle rate": rate_text(result.design.fs_hz, result.fs_achieved_hz, drive.max_rate_hz(),
-                                pace=options.pace or drive.url.get_str("pace", "") or default_pace(drive)),
+        "cycle rate": rate_text(run.design.fs_hz, run.fs_achieved_hz, result.link_max_hz, pace=result.pace),
         "rounds (amplitude: fit)": rounds,
         "threshold": f"{result.fit_threshold:g} % ({'met' if result.passed else 'NOT met'})",
     }
-    if result.hold is not None:
-        h = result.hold
+    if run.hold is not None:
+        h = run.hold
         facts["loop"] = (
             f"closed, {h['where']}-side hold at x = {h['x_ref']:.4g}, "
             + (f"{h['travel_share']:.0%} of the room {h['room']:.4g} used" if h["room"] is not None
                and math.isfinite(h["room"]) else "no travel window: the drive's hold keeps the axis where it stood")
         )
-    if result.remarks:  # how the axis was stopped, optional objects the drive refused
-        facts["drive remarks"] = "; ".join(result.remarks)
-    print_result(result.result, "SIDBE: identified model", facts)
+    if run.remarks:  # how the axis was stopped, optional objects the drive refused
+        facts["drive remarks"] = "; ".join(run.remarks)
+    print_result(run.result, "SIDBE: identified model", facts)
     print(f"output: {result.out_dir}")
-    return verdict
-
-
-def verdict_line(result) -> str:
-    from servobench.verdict import Verdict
-
-    """The first line: the verification fit against the threshold, and what to do on a fail."""
-    fit, threshold = result.result.fit_percent, result.fit_threshold
-    if result.passed:
-        return Verdict.PASS.line(f"SIDBE verification fit {fit:.2f} % >= threshold {threshold:g} %")
-    return Verdict.FAIL.line(
-        f"SIDBE verification fit {fit:.2f} % < threshold {threshold:g} %; do not use this model before "
-        f"the cause is found (servobench diagnose {result.log_path} names what the model lacks)"
-    )
+    return result.verdict

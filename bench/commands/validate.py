@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-from servobench.bench.commands.log_args import add_log_arguments, read_log_of
+from servobench.bench.commands.log_args import add_log_arguments
 from servobench.bench.model.validate import DEFAULT_MAX_GAP_PERCENT, DEFAULT_MIN_FIT_PERCENT
 
 
@@ -38,37 +38,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace):
-    from servobench.bench.model.file import read_model
-    from servobench.bench.model.validate import judge, validate
+    from servobench.analysis import validate
     from servobench.bench.report.summary import print_json
-    from servobench.units import SignalUnits
-    from servobench.verdict import Verdict
+    from servobench.model import saved_model
 
-    saved = read_model(args.model)
-    log = read_log_of(args)
-    result = validate(saved.model, log, saved.effects, loop=args.loop)
-    units = SignalUnits.from_metadata(log.metadata)
-    mismatch = _unit_mismatch(saved.units, units)
-    if mismatch:
-        from dataclasses import replace
-
-        result = replace(result, notes=(*result.notes, mismatch))
-    figure = None
-    if args.out:
-        from servobench.bench.report.validation import write_validation_figure
-
-        figure = write_validation_figure(result, args.out, units, title=log.source)
-    judged = judge(result, args.min_fit, args.max_gap)
-    verdict = Verdict.of(judged.passed)
+    check = validate(args.model, args.log, loop=args.loop, min_fit_percent=args.min_fit,
+                     max_gap_percent=args.max_gap, out=args.out or None, columns=args.columns,
+                     mat_map=args.mat_map)  # fmt: skip
     if args.json:
-        out = {"verdict": verdict.word, **result.to_json(), "thresholds": judged.as_dict(), "model": args.model,
-               "log": args.log, "effects": list(saved.effects), "units": units.as_metadata()}  # fmt: skip
-        if figure is not None:
-            out["figure"] = str(figure)
-        print_json(out)
-        return verdict
-    print(verdict.line(f"{args.model} on {args.log}: {judged.text()}"))
-    print(f"model {args.model} ({saved.kind}{', effects: ' + ', '.join(saved.effects) if saved.effects else ''})")
+        print_json(check.to_dict())
+        return check.verdict
+    result, effects = check.details, list(check.model.effects)
+    print(check.headline)
+    print(f"model {args.model} ({saved_model(check.model).kind}{', effects: ' + ', '.join(effects) if effects else ''})")
     print(f"log   {args.log}: {result.samples:,} samples, {len(result.runs)} run(s), {result.comparison}")
     print(f"fit_percent         {result.fit_percent:8.3f} %")
     print(f"gap_percent         {result.gap_percent:8.3f} %")
@@ -76,17 +58,6 @@ def run(args: argparse.Namespace):
         print(f"force_error_percent {result.force_error_percent:8.3f} %")
     for note in result.notes:
         print(f"note: {note}")
-    if figure is not None:
-        print(f"figure: {figure}")
-    return verdict
-
-
-def _unit_mismatch(model_units, log_units) -> str:
-    """A note when the model's signal units (its ``units`` object) differ from the log's."""
-    differ = [
-        f"{k}: model [{model_units[k]}], log [{getattr(log_units, k)}]"
-        for k in ("u", "v", "x")
-        if model_units.get(k) and getattr(log_units, k) and model_units[k] != getattr(log_units, k)
-    ]
-    return ("units differ, the figures compare numbers in different units (" + "; ".join(differ) + ")"
-            if differ else "")  # fmt: skip
+    if check.figure is not None:
+        print(f"figure: {check.figure}")
+    return check.verdict

@@ -45,6 +45,7 @@ from servobench.bench.model.servo import ServoModel, fit_percent
 from servobench.errors import IdentificationError, UsageError
 from servobench.sim_backend.physics.coulomb import PlantParams
 from servobench.sim_backend.physics.effects import collect_terms
+from servobench.units import SignalUnits
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,17 @@ def judge(
         f"gap {gap:.2f} % {'<=' if gap_ok else 'above'} {max_gap_percent:g} %",
     )
     return Judgement(fit_ok and gap_ok, clauses, min_fit_percent, max_gap_percent)
+
+
+def unit_mismatch(model_units: Mapping[str, str], log_units: SignalUnits) -> str:
+    """A note when the model's signal units (its ``units`` object) differ from the log's, else ``""``."""
+    differ = [
+        f"{k}: model [{model_units[k]}], log [{getattr(log_units, k)}]"
+        for k in ("u", "v", "x")
+        if model_units.get(k) and getattr(log_units, k) and model_units[k] != getattr(log_units, k)
+    ]
+    return ("units differ, the figures compare numbers in different units (" + "; ".join(differ) + ")"
+            if differ else "")  # fmt: skip
 
 
 def _finite(value: float) -> float | None:

@@ -12,6 +12,7 @@ holds any of these is refused, never overwritten.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,8 @@ from typing import Any
 from servobench.bench.run.probe import PROBE_LOG
 from servobench.errors import UsageError
 
+#: Parent of the default run folders (the checkout's ``.gitignore`` lists it).
+RUNS_DIR = "servobench-runs"
 #: The trial under a drive's own hold loop (closed loop).
 HOLD_TRIAL_LOG = "hold-trial.csv"
 #: Files of a run folder: the accepted round's log and the model.
@@ -33,6 +36,19 @@ CLOSED_LOOP_LOGS = {
 def round_log_name(index: int) -> str:
     """The log of excite-identify round ``index`` (from 1)."""
     return f"log-{index}.csv"
+
+
+def default_out_dir(base: Path | None = None) -> Path:
+    """A new ``<base>/servobench-runs/<YYYYmmdd-HHMMSS>[-n]`` folder name (``base``: the
+    current folder by default)."""
+    root = (base or Path.cwd()) / RUNS_DIR
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path = root / stamp
+    n = 1
+    while path.exists():
+        n += 1
+        path = root / f"{stamp}-{n}"
+    return path
 
 
 def check_run_folder(out_dir: str | Path) -> None:

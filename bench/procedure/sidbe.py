@@ -27,7 +27,7 @@ already holds a run is refused, never overwritten.
 
 Public API (``commission`` builds on it): :class:`SidbeOptions`,
 :class:`Iteration`, :class:`SidbeResult`, :func:`run_sidbe`,
-:func:`check_run_folder`, :func:`loop_note`.
+:func:`check_run_folder`, :func:`loop_note`, :func:`rate_note`.
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ from servobench.bench.run.runner import DEFAULT_SETTLE_S, stream_runs
 from servobench.bench.run.travel import TravelWindow
 from servobench.drivers.base import Drive, Limits
 from servobench.errors import IdentificationError, UsageError
+from servobench.verdict import Verdict
 
 #: Default verification fit that ends the procedure [%].
 DEFAULT_FIT_THRESHOLD = 90.0
@@ -213,6 +214,17 @@ def loop_note(options: SidbeOptions, drive: Drive) -> str:
     )
 
 
+def rate_note(requested_hz: float | None, drive: Drive) -> str:
+    """One line for the terminal when the default cycle rate was lowered to fit the drive's
+    link (no rate requested); ``""`` otherwise."""
+    if requested_hz is not None:
+        return ""
+    from servobench.drivers.link_budget import drive_rate_hz, lowered_rate_note
+
+    chosen = drive_rate_hz(None, drive, exc.DEFAULT_FS_HZ)
+    return lowered_rate_note(None, chosen, drive, exc.DEFAULT_FS_HZ)
+
+
 @dataclass(frozen=True)
 class Iteration:
     """One excite-identify round: what was applied, how well the model fitted, what came next."""
@@ -327,6 +339,16 @@ class SidbeResult:
         if self.remarks:
             out["remarks"] = list(self.remarks)
         return out
+
+    def headline(self) -> str:
+        """The verdict line: the verification fit against the threshold, and what to do on a fail."""
+        fit, threshold = self.result.fit_percent, self.fit_threshold
+        if self.passed:
+            return Verdict.PASS.line(f"SIDBE verification fit {fit:.2f} % >= threshold {threshold:g} %")
+        return Verdict.FAIL.line(
+            f"SIDBE verification fit {fit:.2f} % < threshold {threshold:g} %; do not use this model before "
+            f"the cause is found (servobench diagnose {self.log_path} names what the model lacks)"
+        )
 
     def files(self) -> dict[str, str]:
         """What each log of the run folder holds (``model.json``'s ``files`` object)."""
