@@ -295,6 +295,9 @@ class LinearFit:
         False when the excited band cannot tell the delay from the plant: its
         correlation exceeds :data:`DELAY_CORRELATION_LIMIT`, its sigma exceeds
         one sample, or it ended on :data:`MAX_DELAY_SAMPLES`.
+    cov : ndarray, shape (3, 3), or None
+        Covariance of ``(M, B, delay_s)`` [natural units; s]; the delay's row and
+        column are 0 when it was not fitted.
     """
 
     M: float
@@ -309,6 +312,7 @@ class LinearFit:
     std_delay_s: float = math.nan
     delay_correlation: float = math.nan
     delay_separable: bool = True
+    cov: np.ndarray | None = None
 
 
 def position_over_velocity(
@@ -522,6 +526,11 @@ def _linear_fit(
         separable = bool(
             corr <= DELAY_CORRELATION_LIMIT and std_q <= 1.0 and q < MAX_DELAY_SAMPLES - DELAY_ZERO
         )  # a nan correlation is not separable
+    # (log M, log B[, mode], q) -> (M, B, delay_s)
+    rows = [0, 1, cov.shape[0] - 1] if delay else [0, 1]
+    scale = np.array([M, B, dt])[: len(rows)]
+    natural = np.zeros((3, 3))
+    natural[: len(rows), : len(rows)] = cov[np.ix_(rows, rows)] * np.outer(scale, scale)
     return LinearFit(
         M,
         B,
@@ -535,6 +544,7 @@ def _linear_fit(
         std_q * dt,
         corr,
         separable,
+        natural,
     )
 
 

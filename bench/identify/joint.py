@@ -421,6 +421,8 @@ def _refine(
         notes.append(note)
     free = (True, True, bool(np.any(v_all > threshold)), bool(np.any(v_all < -threshold)))
     oe = refine(model, chunks, free, free_delay=True, min_delay_s=data.min_delay_s)
+    if oe.colour is not None and oe.colour.coloured:
+        notes.append(oe.colour.note("the output-error"))
     estimator = "output-error"
     if _closed(data):
         estimator = "zoh-iv (excitation as instrument) + output-error"

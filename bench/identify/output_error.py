@@ -8,9 +8,15 @@ where the axis sticks. Periodic SIDBE runs are first averaged over their
 steady-state periods (a sufficient statistic for white noise), so each
 evaluation simulates one period per run, whatever the log length.
 
-The covariance of the estimate is ``sigma^2 (J^T J)^-1`` with ``J`` the
-sensitivity of the simulated velocity to the parameters; evaluated at the
-true parameters with the true noise this is the Cramér-Rao bound.
+The covariance of the estimate is the sandwich ``(J^T J)^-1 S (J^T J)^-1`` with
+``J`` the sensitivity of the simulated velocity to the parameters and ``S`` the
+long-run covariance of the residual's scores
+(:func:`~servobench.bench.identify.covariance.hac_covariance`, lags within each
+chunk): with white noise it is ``sigma^2 (J^T J)^-1``, which at the true
+parameters with the true noise is the Cramér-Rao bound; with coloured noise,
+rounding tied to the signal or an effect the model lacks it still covers the
+error, where ``sigma^2 (J^T J)^-1`` would state it several times too small.
+Whether the residual is white is tested (:attr:`OutputErrorFit.colour`).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from servobench.bench.identify.covariance import ResidualColour, hac_covariance, residual_colour
 from servobench.bench.identify.derivative import DerivedMotion, differentiate_position
 from servobench.bench.identify.simulation import simulate_steady_period, simulate_velocity
 from servobench.bench.model.servo import DELAY_KEY, STD_KEYS, ServoModel
@@ -122,13 +129,15 @@ def _model(p: np.ndarray, base: ServoModel, delay_unit_s: float = 1.0, min_delay
 
 @dataclass(frozen=True)
 class OutputErrorFit:
-    """Refined model, 1-sigma stds, residual noise sigma [units/s] of a raw sample, evaluations."""
+    """Refined model, 1-sigma stds, residual noise sigma [units/s] of a raw sample, evaluations,
+    cost, and the whiteness of the residual (None without one to test)."""
 
     model: ServoModel
     std: dict[str, float]
     sigma: float
     nfev: int
     cost: float = math.nan
+    colour: ResidualColour | None = None
 
 
 def refine(
@@ -228,20 +237,21 @@ def _refine_once(
     model = _model(p, model0, unit, min_delay_s)
     sigma2 = 2.0 * sol.cost / max(1, sol.fun.size - len(free_idx))
     # an averaged chunk's residual has variance sigma^2 / weight; the weighting undoes that
-    std = _std_from_jacobian(sol.jac, sigma2, p, free_idx, unit)
-    return OutputErrorFit(model, std, math.sqrt(sigma2), int(sol.nfev), float(sol.cost))
+    bounds = np.cumsum([measured_chunk(c).size for c in chunks])
+    std = _std_from_jacobian(sol.jac, sol.fun, bounds, p, free_idx, unit)
+    colour = residual_colour(sol.fun, bounds) if sol.fun.size > 8 and sigma2 > 0 else None
+    return OutputErrorFit(model, std, math.sqrt(sigma2), int(sol.nfev), float(sol.cost), colour)
 
 
 def _std_from_jacobian(
-    jac: np.ndarray, sigma2: float, p: np.ndarray, free_idx: list[int], delay_unit_s: float = 1.0
+    jac: np.ndarray, r: np.ndarray, bounds: np.ndarray, p: np.ndarray, free_idx: list[int],
+    delay_unit_s: float = 1.0,
 ) -> dict[str, float]:
-    """1-sigma of the natural parameters; ``delay_s`` [s] too where the delay was free."""
+    """1-sigma of the natural parameters (HAC sandwich on the residual ``r`` of the chunks
+    ending at ``bounds``); ``delay_s`` [s] too where the delay was free."""
     scale = np.array([math.exp(p[0]), math.exp(p[1]), 1.0, 1.0, delay_unit_s])[free_idx]
     Jn = np.asarray(jac) / scale  # d r / d natural parameter
-    try:
-        cov = sigma2 * np.linalg.inv(Jn.T @ Jn)
-    except np.linalg.LinAlgError:
-        cov = np.full((len(free_idx), len(free_idx)), np.nan)
+    cov = hac_covariance(Jn, np.asarray(r), bounds)
     sd = np.full(5, np.nan)
     sd[free_idx] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out = dict(zip(STD_KEYS, (float(x) for x in sd[:4]), strict=True))

@@ -33,6 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from servobench.bench.identify.covariance import bandwidth, parzen
 from servobench.bench.identify.dataset import Dataset
 from servobench.bench.identify.delay import effective_command
 from servobench.bench.identify.derivative import filter_command, settle_samples
@@ -117,6 +118,7 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B, fit.delay_s)
     else:
         fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B, fit.delay_s)
+        sp, sn = _friction_std(data, fit, NOISE_SIGMAS * sigma if sigma > 0 else 0.0, sigma)
     if fp < 0 or fn < 0:
         notes.append("a negative Coulomb level was estimated and clipped to 0")
     if of_position:  # keep the velocity FRF for the plot
@@ -157,6 +159,92 @@ def _friction_sampled(
         pairs = select_pairs(vs, us, ints, threshold=NOISE_SIGMAS * sigma, max_pairs=MAX_PAIRS)
         force = pairs.u - (pairs.v1 - a * pairs.v0) / b
     return (*_levels(force, pairs.pos, pairs.neg), sigma)
+
+
+def _friction_std(data: Dataset, fit, threshold: float, sigma: float) -> tuple[float, float]:
+    """1-sigma of the Coulomb levels of :func:`_friction_sampled` (pairs beyond ``threshold``).
+
+    A level is the mean of ``u_eff[k] - (v[k+1] - a v[k]) / b`` over its pairs, so
+    it carries (1) the error of ``M``, ``B`` and the delay, propagated through its
+    gradient (finite differences, the pairs held) with the FRF fit's covariance,
+    and (2) the velocity noise, a linear functional ``sum c_k e_k`` of it whose
+    variance is ``sum_l gamma(l) sum_k c_k c_k+l``: ``gamma`` the noise's
+    autocovariance, read from the spread of the steady periods about their mean
+    (Parzen-tapered, :func:`~servobench.bench.identify.covariance.bandwidth`), so
+    coloured noise counts at its true weight. The mean of the pairs' spread over
+    root N (what this replaces) treats the pairs as independent: with ``a``
+    close to 1 their noise nearly cancels along each stretch of motion, while the
+    error of ``M`` and ``B`` goes uncounted.
+    """
+    dt = data.dt_s
+    segments = [(s.v, effective_command(s.u, dt, fit.delay_s, fit.M / fit.B)) for s in data.segments]
+    masks = [((v[:-1] > threshold) & (v[1:] > threshold), (v[:-1] < -threshold) & (v[1:] < -threshold))
+             for v, _ in segments]  # fmt: skip
+
+    def levels(M: float, B: float, delay_s: float) -> np.ndarray:
+        a = math.exp(-B * dt / M)
+        b = (1.0 - a) / B
+        sums, counts = np.zeros(2), np.zeros(2)
+        for (v, _), s, m in zip(segments, data.segments, masks, strict=True):
+            u = effective_command(s.u, dt, delay_s, M / B)[: v.size - 1]
+            f = u - (v[1:] - a * v[:-1]) / b
+            for i in (0, 1):
+                sums[i] += float(np.sum(f[m[i]]))
+                counts[i] += np.count_nonzero(m[i])
+        return sums / np.maximum(counts, 1) * np.array([1.0, -1.0])
+
+    counts = np.array([sum(np.count_nonzero(m[i]) for m in masks) for i in (0, 1)], dtype=float)
+    var = np.zeros(2)
+    cov = fit.cov
+    if cov is not None and np.all(np.isfinite(cov)):
+        p = np.array([fit.M, fit.B, fit.delay_s])
+        grad = np.zeros((2, 3))
+        for j in range(3):
+            h = 1e-6 * p[j] if j < 2 else 1e-3 * dt
+            up, down = p.copy(), p.copy()
+            up[j] += h
+            down[j] -= h if (j < 2 or p[j] - h >= min(0.0, data.min_delay_s)) else 0.0
+            grad[:, j] = (levels(*up) - levels(*down)) / (up[j] - down[j])
+        var += np.einsum("ij,jk,ik->i", grad, cov, grad)
+    a = math.exp(-fit.B * dt / fit.M)
+    b = (1.0 - a) / fit.B
+    gamma = _noise_autocovariance(data, sigma)
+    weights = parzen(np.arange(gamma.size) / gamma.size)
+    for m in masks:
+        for i in (0, 1):
+            if counts[i] == 0:
+                continue
+            c = np.zeros(m[i].size + 1)
+            k = np.flatnonzero(m[i])
+            np.add.at(c, k, a / (b * counts[i]))
+            np.add.at(c, k + 1, -1.0 / (b * counts[i]))
+            var[i] += gamma[0] * float(c @ c) + 2.0 * sum(
+                weights[lag] * gamma[lag] * float(c[lag:] @ c[:-lag]) for lag in range(1, min(gamma.size, c.size)))
+    sd = np.sqrt(np.clip(var, 0.0, None))
+    return (float(sd[0]) if counts[0] else math.nan, float(sd[1]) if counts[1] else math.nan)
+
+
+def _noise_autocovariance(data: Dataset, sigma: float) -> np.ndarray:
+    """Autocovariance of the velocity noise at lags ``0 .. L-1`` [units^2/s^2], from each
+    run's steady periods about their mean (white ``sigma`` with fewer than two)."""
+    assert data.design is not None
+    n = data.design.samples_per_period
+    rows = []
+    for s in data.segments:
+        periods = len(s) // n - 1
+        if periods < 2:
+            continue
+        steady = s.v[n : (1 + periods) * n].reshape(periods, n)
+        rows.extend((steady - steady.mean(axis=0)) * math.sqrt(periods / (periods - 1)))
+    if not rows:
+        return np.array([sigma**2])
+    e = np.concatenate(rows)
+    bounds = np.cumsum([r.size for r in rows])
+    lags = bandwidth(e, bounds)
+    gamma = np.zeros(lags)
+    for lag in range(lags):
+        gamma[lag] = sum(float(r[lag:] @ r[: r.size - lag]) for r in rows) / e.size
+    return gamma
 
 
 def _pad(u_eff: np.ndarray) -> np.ndarray:
