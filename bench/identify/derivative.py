@@ -11,6 +11,7 @@ practice), so the filter cancels from the fitted relation.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -45,6 +46,18 @@ def settle_samples(fs_hz: float, cutoff_hz: float) -> int:
     return int(math.ceil(3.0 * fs_hz / cutoff_hz))
 
 
+@functools.lru_cache(maxsize=64)
+def butterworth(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.butter(order, wn)``, designed once per order and normalised cut-off (the
+    diagnosis filters the same signals thousands of times)."""
+    from scipy import signal
+
+    b, a = signal.butter(order, wn)
+    b.flags.writeable = False
+    a.flags.writeable = False
+    return b, a
+
+
 def lowpass(
     y: np.ndarray,
     fs_hz: float,
@@ -64,7 +77,7 @@ def lowpass(
         raise IdentificationError(
             f"velocity filter cut-off {cutoff_hz} Hz must lie between 0 and Nyquist ({fs_hz / 2} Hz)"
         )
-    b, a = signal.butter(order, cutoff_hz / (fs_hz / 2))
+    b, a = butterworth(order, cutoff_hz / (fs_hz / 2))
     y = np.asarray(y, dtype=float)
     padlen = 3 * max(len(a), len(b))
     if y.shape[axis] <= padlen:
