@@ -144,7 +144,9 @@ def identify_joint(
 
     fit = _solve(_pairs(data), data, None)
     delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
-    if math.isnan(delay_std):  # the pairs cannot tell the delay (no curvature): the simulation can
+    if math.isnan(delay_std) and any(s.act_offset_s is not None for s in data.segments):
+        # the pairs cannot tell the delay (no curvature) and the commands act each at its own
+        # offset from it (a located grid behind a command lead): the simulation tells it
         delay_s = _delay_by_simulation(data, _model(fit, delay_s)).delay_s
         fit = _solve(_pairs(delayed(data, delay_s, fit.M / fit.B)), delayed(data, delay_s, fit.M / fit.B), fit)
     ddata = delayed(data, delay_s, fit.M / fit.B)
