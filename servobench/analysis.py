@@ -144,6 +144,11 @@ class Diagnosis:
         model's parameters (``viscous_asymmetry`` also gives ``B_pos`` and ``B_neg``).
     evidence : mapping
         ``{effect name: sentence}``: the signature that named each effect.
+    std : mapping
+        1-sigma of every fitted value of the final model, keyed as the JSON's ``units``: the
+        base (``M``, ``B``, ``coulomb_pos``, ``coulomb_neg``, ``pole``, ``dc_gain``) and
+        ``"effect.parameter"`` (as ``effects`` gives them); none for parameters held fixed,
+        None where the data do not determine one. ``model.std`` holds the model file's.
     model : Model
         The diagnosed plant (base refitted with the effects): the ``model.json`` of ``--out``.
     gap_percent : float
@@ -166,6 +171,7 @@ class Diagnosis:
     verdict: str
     effects: Mapping[str, Mapping[str, float]]
     evidence: Mapping[str, str]
+    std: Mapping[str, float | None]
     model: Model
     gap_percent: float
     gap_before_percent: float
@@ -220,7 +226,7 @@ def diagnose(
     UsageError, LogFormatError
     """
     from servobench.bench.diagnose.workflow import diagnose as diagnose_log
-    from servobench.bench.report.diagnose import model_json, to_json, write_report
+    from servobench.bench.report.diagnose import model_json, notes, to_json, write_report
 
     d = diagnose_log(_log_arg(log, columns, mat_map)[0], horizon_s, effects=effects, progress=progress)
     report = None
@@ -229,19 +235,21 @@ def diagnose(
             progress("writing the report")
         report = write_report(d, out)
     model = Model.from_dict(model_json(d), str(report.parent / "model.json") if report else "")
+    doc = plain(to_json(d))
     return Diagnosis(
         verdict=d.verdict.verdict,
         effects={e.name: dict(e.parameters) for e in d.effects},
         evidence={e.name: e.evidence for e in d.effects},
+        std=dict(doc["std"]),
         model=model,
         gap_percent=float(d.gap_after),
         gap_before_percent=float(d.gap_before),
         noise_floor_percent=float(d.verdict.floor.percent),
-        notes=tuple(f.sentence for f in d.families) + tuple(d.notes),
+        notes=tuple(f.sentence for f in d.families) + tuple(notes(d)),
         headline=d.verdict.headline(),
         report=report,
         details=d,
-        _json=plain(to_json(d)),
+        _json=doc,
     )
 
 

@@ -13,6 +13,15 @@ screening's own joint fit too when the two bases are far apart
 (:func:`servobench.bench.diagnose.screening.unsettled`), and a term joining a
 model that already holds an effect must pay against that model refitted
 without it (:func:`servobench.bench.diagnose.search._refit_ablate`).
+
+Issue 30, over-naming on a new user's logs: a plant simulated finely outside
+the library (:mod:`servobench.bench.testing.fine_plant`) whose Stribeck
+breakaway is added to each direction's Coulomb level, so its static level
+differs by direction. A square-wave run named ``stribeck`` and ``cogging``, a
+strong-Stribeck SIDBE pair ``stribeck`` and ``backlash`` (the library's curve
+holds one static level, and a second effect soaked up the difference). The
+curve is now fitted with a static level per direction
+(:data:`servobench.bench.diagnose.screening.COMPANIONS`).
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ import pytest
 
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.log.io import read_log
+from servobench.bench.testing.fine_plant import ISSUE_PLANTS, write_issue_log
 from servobench.bench.testing.hidden_effects import HiddenCase, write_case_log
 from servobench.sim_backend.physics.plant import PlantParams
 
@@ -82,3 +92,39 @@ def test_every_rejected_second_effect_says_why(diagnosed):
     for d in diagnosed.values():
         for rnd in d.trace.rounds:
             assert all(t.reason for t in rnd.tried), [(t.effects, t.reason) for t in rnd.tried]
+
+
+@pytest.fixture(scope="module")
+def issue30(tmp_path_factory):
+    folder = Path(tmp_path_factory.mktemp("issue30"))
+    return {
+        kind: diagnose(
+            read_log(write_issue_log(kind, folder / f"{kind}.csv", np.random.default_rng(30)))
+        )
+        for kind in ("square", "sidbe")
+    }
+
+
+@pytest.mark.parametrize("kind", ["square", "sidbe"])
+def test_issue30_names_the_stribeck_curve_alone(issue30, kind):
+    d = issue30[kind]
+    assert [e.name for e in d.effects] == ["stribeck"], [e.name for e in d.effects]
+    assert d.gap_after <= d.gap_before / 3, (d.gap_before, d.gap_after)
+
+
+@pytest.mark.parametrize("kind", ["square", "sidbe"])
+def test_issue30_refits_the_stribeck_curve_within_5_percent(issue30, kind):
+    d, plant = issue30[kind], ISSUE_PLANTS[kind]
+    s, b = d.effects[0].parameters, d.base
+    assert s["vs"] == pytest.approx(plant.vs, rel=0.05)
+    assert s["fs_pos"] == pytest.approx(plant.fc_pos + plant.fs, rel=0.05)
+    assert s["fs_neg"] == pytest.approx(plant.fc_neg + plant.fs, rel=0.05)
+    # The breakaway excess over each direction's Coulomb level.
+    assert s["fs_pos"] - b["coulomb_pos"] == pytest.approx(plant.fs, rel=0.05)
+    assert s["fs_neg"] - b["coulomb_neg"] == pytest.approx(plant.fs, rel=0.05)
+    assert (b["M"], b["B"]) == pytest.approx((plant.M, plant.B), rel=0.05)
+
+
+def test_issue30_sidbe_pair_closes_the_gap_to_the_noise_floor(issue30):
+    d = issue30["sidbe"]
+    assert d.gap_after <= 1.5 * d.verdict.floor.percent, (d.gap_after, d.verdict.floor.percent)

@@ -18,6 +18,10 @@
 * ``units``: the unit of every parameter above (base and effects, as
   ``"effect.parameter"``) and of ``u``, ``v``, ``x``, from the log's
   ``unit_u``/``unit_v``/``unit_x`` metadata;
+* ``std``: the 1-sigma of every fitted parameter beside its value, keyed as
+  ``units`` (base keys, ``pole`` and ``dc_gain`` propagated, ``"effect.parameter"``);
+  parameters held fixed in the fit have none, those the data do not
+  determine ``null`` (:mod:`servobench.bench.diagnose.sigma`);
 * ``gap_percent``, ``noise_floor_percent``, ``verdict``, ``comparison`` (how
   the gap was measured) and ``source`` (the log).
 
@@ -33,6 +37,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from servobench.bench.diagnose.sigma import ParameterCovariance, candidate_std
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects import position_friction
@@ -53,11 +58,11 @@ def sim_url(cand: Candidate) -> str:
     """The ``sim://`` URL of a candidate model (noise-free; unused spline knots left out)."""
     plant = cand.plant()  # the levels as the simulator takes them
     query = {key: float(getattr(plant, name)) for key, name in URL_KEYS.items()}
-    query.update(library.to_query({n: _compact(n, p) for n, p in cand.effects.items()}))
+    query.update(library.to_query({n: written_parameters(n, p) for n, p in cand.effects.items()}))
     return "sim://?" + "&".join(f"{k}={v:.10g}" for k, v in query.items())
 
 
-def _compact(name: str, params: Mapping[str, float]) -> dict[str, float]:
+def written_parameters(name: str, params: Mapping[str, float]) -> dict[str, float]:
     """An effect's parameters as written: library names, unused spline knots left out."""
     if name == "position_friction":
         return position_friction.compact(params)
@@ -68,11 +73,27 @@ def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
     out = dict(units.parameters())
     for name, values in cand.effects.items():
-        kept = _compact(name, values)
+        kept = written_parameters(name, values)
         for p in library.spec(name).params:
             if p.name in kept:
                 out[f"{name}.{p.name}"] = units.effect_parameter(p.unit)
     return out
+
+
+def record_values(cand: Candidate) -> dict[str, float]:
+    """The parameters ``model.json`` gives, keyed as its ``units`` and ``std``: the base keys,
+    ``pole``, ``dc_gain`` and ``"effect.parameter"``."""
+    b = {k: float(cand.base[k]) for k in BASE_KEYS}
+    out = {**b, "pole": -b["B"] / b["M"], "dc_gain": 1.0 / b["B"]}
+    for name, values in cand.effects.items():
+        out.update({f"{name}.{k}": v for k, v in written_parameters(name, values).items()})
+    return out
+
+
+def record_std(cand: Candidate, covariance: ParameterCovariance | None) -> dict[str, float]:
+    """1-sigma of :func:`record_values` that the fitted parameters move (empty without a
+    covariance)."""
+    return {} if covariance is None else candidate_std(cand, covariance, record_values)
 
 
 def model_record(
@@ -84,8 +105,9 @@ def model_record(
     verdict: str,
     comparison: str,
     source: str,
+    std: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
-    """The content of ``model.json``; see the module docstring."""
+    """The content of ``model.json``; see the module docstring (``std``: :func:`record_std`)."""
     b = {k: float(cand.base[k]) for k in BASE_KEYS}
     record: dict[str, Any] = {
         "M": b["M"],
@@ -96,9 +118,10 @@ def model_record(
         "coulomb_neg": b["coulomb_neg"],
         "fit_percent": 100.0 - gap_percent,
         "method": METHOD,
-        "effects": {n: _compact(n, p) for n, p in cand.effects.items()},
+        "effects": {n: written_parameters(n, p) for n, p in cand.effects.items()},
         "sim_url": sim_url(cand),
         "units": parameter_units(cand, units),
+        "std": dict(std or {}),
         "gap_percent": gap_percent,
         "noise_floor_percent": noise_floor_percent,
         "verdict": verdict,

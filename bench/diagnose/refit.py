@@ -16,18 +16,24 @@ enter the cost; held-out samples judge the result.
 The Jacobian is ``least_squares``'s own two-point finite difference (same steps, same
 columns), its columns simulated in one compiled call (:func:`.simulate.simulate_many`)
 instead of one simulation per column.
+
+Every fitted parameter gets a 1-sigma (:mod:`.sigma`): the HAC covariance of the Jacobian and
+residual of the final ``least_squares`` (a fresh Jacobian when the grid search or an earlier
+round's solution is kept), each training window a chunk, in natural units by the chain rule.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from servobench.bench.diagnose.data import REFIT_MAX_SAMPLES, DiagnosisData
+from servobench.bench.diagnose.sigma import ParameterCovariance, natural_covariance
 from servobench.bench.diagnose.simulate import (
+    BASE_KEYS,
     Candidate,
     Window,
     gap_percent,
@@ -66,7 +72,13 @@ Bounds = Mapping[str, Mapping[str, tuple[float, float]]]
 
 @dataclass(frozen=True)
 class FitResult:
-    """A fitted candidate, its simulated velocity per run and its gaps [%]."""
+    """A fitted candidate, its simulated velocity per run and its gaps [%].
+
+    ``covariance`` (of a :func:`refit`; None for a candidate only evaluated) holds the fitted
+    parameters' covariance, ``std`` their 1-sigma by name (``M``, ``B``, ``coulomb_pos``,
+    ``coulomb_neg``, ``"effect.parameter"``; parameters held fixed have none, those the data
+    do not determine NaN).
+    """
 
     candidate: Candidate
     v_sim: tuple[np.ndarray, ...]
@@ -74,9 +86,19 @@ class FitResult:
     gap_train: float
     gap_held_out: float
     evaluations: int
+    covariance: ParameterCovariance | None = None
+
+    @property
+    def std(self) -> dict[str, float]:
+        return {} if self.covariance is None else self.covariance.std
 
 
-def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitResult:
+def evaluate(
+    data: DiagnosisData,
+    cand: Candidate,
+    evaluations: int = 1,
+    covariance: ParameterCovariance | None = None,
+) -> FitResult:
     """Simulate a candidate on all windows and measure its gaps (infinite for parameters the
     simulator rejects)."""
     try:
@@ -93,6 +115,7 @@ def evaluate(data: DiagnosisData, cand: Candidate, evaluations: int = 1) -> FitR
         gap_percent(data, v, "train"),
         gap_percent(data, v, "held_out"),
         evaluations,
+        covariance,
     )
 
 
@@ -134,6 +157,17 @@ class _Layout:
             hi.append(phi / scale)
         z0 = np.clip(np.array(z), np.array(lo), np.array(hi))
         return z0, np.array(lo), np.array(hi)
+
+    def names(self) -> tuple[str, ...]:
+        """The natural parameter of each entry of ``z``, as the model file names them."""
+        return (*BASE_KEYS, *(f"{name}.{pname}" for name, pname, *_ in self.slots))
+
+    def dnatural_dz(self, z: np.ndarray) -> np.ndarray:
+        """``d natural / d z`` of each parameter at ``z`` (each depends on its own entry alone:
+        ``M`` and ``B`` on a log scale, the others scaled)."""
+        b = self.cand.base
+        scales = [self.fscale, self.fscale, *(scale for _, _, scale, _, _ in self.slots)]
+        return np.array([b["M"] * math.exp(z[0]), b["B"] * math.exp(z[1]), *scales])
 
     def candidate(self, z: np.ndarray) -> Candidate:
         b = self.cand.base
@@ -201,6 +235,11 @@ class _TrainingError:
 
     def residual(self, cand: Candidate) -> np.ndarray:
         return self.residuals([cand])[0]
+
+    @property
+    def chunks(self) -> np.ndarray:
+        """Cumulative sizes of each window's training samples in the residual."""
+        return np.cumsum([int(m.sum()) for m in self.masks])
 
     def cost(self, cand: Candidate) -> float:
         return float(np.sum(self.residual(cand) ** 2))
@@ -286,6 +325,18 @@ class _Problem:
         return approx_derivative(lambda x: next(columns), z, **options)
 
 
+@dataclass(frozen=True)
+class _Solution:
+    """A ``least_squares`` solution: the candidate, its layout, the scaled parameters, the
+    Jacobian and residual there."""
+
+    candidate: Candidate
+    layout: _Layout
+    z: np.ndarray
+    jac: np.ndarray
+    residual: np.ndarray
+
+
 def _gradient_fit(
     error: _TrainingError,
     start: Candidate,
@@ -294,12 +345,14 @@ def _gradient_fit(
     fixed: Mapping[str, tuple[str, ...]],
     grid: Mapping[str, tuple[str, ...]],
     max_nfev: int,
-) -> tuple[Candidate, float]:
+) -> tuple[Candidate, float, _Solution | None]:
     """Trust-region fits of the scaled parameters, each followed by the grid search of
-    ``grid``, restarted while a round gains :data:`RESTART_GAIN` of the cost."""
+    ``grid``, restarted while a round gains :data:`RESTART_GAIN` of the cost; with the
+    solution of the ``least_squares`` the best candidate is (None when the grid search
+    moved it, or no fit gained)."""
     from scipy.optimize import least_squares
 
-    best, best_cost = start, start_cost
+    best, best_cost, solution = start, start_cost, None
     for _ in range(RESTARTS):
         layout = _Layout(best, bounds, fixed)
         z0, lo, hi = layout.start()
@@ -312,14 +365,61 @@ def _gradient_fit(
             max_nfev=max_nfev,
             x_scale=1.0,
         )
-        trial = layout.candidate(sol.x)
-        trial, trial_cost = _line_search(error, trial, error.cost(trial), grid, GRID, bounds)
+        fitted = layout.candidate(sol.x)
+        trial, trial_cost = _line_search(error, fitted, error.cost(fitted), grid, GRID, bounds)
         gain = 1.0 - trial_cost / best_cost if best_cost > 0 else 0.0
         if trial_cost < best_cost:
             best, best_cost = trial, trial_cost
+            solution = (
+                _Solution(trial, layout, sol.x, sol.jac, sol.fun) if trial is fitted else None
+            )
         if gain < RESTART_GAIN:
             break
-    return best, best_cost
+    return best, best_cost, solution
+
+
+def _covariance(
+    error: _TrainingError,
+    best: Candidate,
+    bounds: Bounds,
+    fixed: Mapping[str, tuple[str, ...]],
+    solution: _Solution | None,
+) -> ParameterCovariance:
+    """The fitted parameters' covariance at ``best``: from the ``solution`` that found it,
+    else from a Jacobian taken there (the same two-point difference)."""
+    if solution is None or solution.candidate is not best:
+        layout = _Layout(best, bounds, fixed)
+        z, lo, hi = layout.start()
+        problem = _Problem(error, layout, lo, hi)
+        residual = problem.fun(z)
+        solution = _Solution(best, layout, z, problem.jac(z), residual)
+    layout = solution.layout
+    values = [*(float(best.base[k]) for k in BASE_KEYS)]
+    values += [float(best.effects[name][pname]) for name, pname, *_ in layout.slots]
+    return natural_covariance(
+        layout.names(),
+        values,
+        solution.jac,
+        solution.residual,
+        error.chunks,
+        layout.dnatural_dz(solution.z),
+        {f"{name}.{pname}": (lo, hi) for name, pname, _, lo, hi in layout.slots},
+    )
+
+
+def with_covariance(data: DiagnosisData, fit: FitResult, like: FitResult) -> FitResult:
+    """``fit`` with the covariance of the parameters ``like`` (a refit) fitted, for a candidate
+    taken from that refit without a refit of its own (a term dropped from it): a Jacobian at
+    its values. ``fit`` itself when it has a covariance or ``like`` none."""
+    if fit.covariance is not None or like.covariance is None:
+        return fit
+    bounds: dict[str, dict[str, tuple[float, float]]] = {}
+    for key, (lo, hi) in like.covariance.ranges.items():
+        name, pname = key.split(".", 1)
+        if pname in fit.candidate.effects.get(name, {}):
+            bounds.setdefault(name, {})[pname] = (lo, hi)
+    covariance = _covariance(_TrainingError(data), fit.candidate, bounds, {}, None)
+    return replace(fit, covariance=covariance)
 
 
 def refit(
@@ -361,9 +461,12 @@ def refit(
         best, best_cost = _line_search(
             error, best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE, bounds
         )
-    best, best_cost = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
+    best, best_cost, solution = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
     if rugged and error.gap_percent(best_cost) > POLISH_ABOVE * floor:
         polished, p_cost = _simplex(best, bounds, fixed, error.cost)
         if p_cost < (1.0 - RESTART_GAIN) * best_cost:
-            best, best_cost = _gradient_fit(error, polished, p_cost, bounds, fixed, grid, max_nfev)
-    return evaluate(data, best, error.evaluations)
+            best, best_cost, solution = _gradient_fit(
+                error, polished, p_cost, bounds, fixed, grid, max_nfev
+            )
+    evaluations = error.evaluations  # of the fit; the covariance's Jacobian is not counted
+    return evaluate(data, best, evaluations, _covariance(error, best, bounds, fixed, solution))

@@ -26,6 +26,44 @@ from servobench.sim_backend.physics.effects.spec import RunSignals, Screening, S
 MOVING_FRACTION = 0.05
 #: Couplings that exclude each other.
 EXCLUSIVE = ({"resonance", "backlash"},)
+#: Library terms fitted with an effect as part of it. A Stribeck curve's static level may
+#: differ by direction as the Coulomb levels do (a breakaway excess added to each
+#: direction's level), where the library's ``stribeck`` holds one static level: a constant
+#: force beside it reaches the rest, since below the Coulomb levels an offset only shifts
+#: them. The pair is one Stribeck curve with a static level per direction, named
+#: ``stribeck``; without it the curve's fit stops short and a second effect soaks up the rest.
+COMPANIONS = {"stribeck": "offset"}
+
+
+def with_companion(
+    name: str, base: dict[str, float], effects: dict[str, dict[str, float]]
+) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+    """``(base, effects)`` with the companion of effect ``name`` added (when it has one, not
+    yet in the model): the Coulomb levels made equal and their difference carried by the
+    constant force, as the screening's curve has one excess over both levels."""
+    c = COMPANIONS.get(name)
+    if c is None or c in effects:
+        return base, effects
+    p, n = float(base["coulomb_pos"]), float(base["coulomb_neg"])
+    m = 0.5 * (p + n)
+    return {**base, "coulomb_pos": m, "coulomb_neg": m}, {**effects, c: {"offset": 0.5 * (n - p)}}
+
+
+def companion_bounds(name: str, cand: Candidate) -> dict[str, dict[str, tuple[float, float]]]:
+    """Refit bounds of the companion of ``name`` in ``cand``: a force up to the Coulomb
+    level (beyond it the axis would drift: an offset of its own)."""
+    c = COMPANIONS.get(name)
+    if c is None or c not in cand.effects:
+        return {}
+    top = max(float(cand.base["coulomb_pos"]), float(cand.base["coulomb_neg"]), 1e-9)
+    return {c: {"offset": (-top, top)}}
+
+
+def without(effects: dict, name: str, keep: Iterable[str] = ()) -> dict:
+    """``effects`` without ``name`` and its companion (unless the companion is in ``keep``:
+    named for itself)."""
+    c = COMPANIONS.get(name)
+    return {k: v for k, v in effects.items() if k != name and (k != c or c in keep)}
 
 
 def screen_input(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarray]) -> ScreenInput:
@@ -70,11 +108,14 @@ def screen_all(
     and compatible with it."""
     present = tuple(present)
     allowed = library.names() if effects is None else tuple(effects)
-    return {
-        name: library.module(name).screen(ctx)
-        for name in library.names()
-        if name in allowed and compatible(name, present)
-    }
+    out = {}
+    for name in library.names():
+        if name in allowed and compatible(name, present):
+            try:
+                out[name] = library.module(name).screen(ctx)
+            except (ValueError, ZeroDivisionError, FloatingPointError):
+                continue  # its signature cannot be read from this log (an axis mostly at rest)
+    return out
 
 
 @dataclass(frozen=True)
@@ -128,8 +169,9 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
     which = held_out_windows(data)
     best: dict[str, tuple[float, Candidate]] = {}
     for base, guess, kind in trials:
-        guess = library.project(name, guess, base)
-        cand = Candidate(base, {**current.effects, name: guess})
+        base, effects = with_companion(name, base, {**current.effects, name: guess})
+        effects[name] = library.project(name, effects[name], base)
+        cand = Candidate(base, effects)
         try:
             gap = gap_percent(data, simulate(data, cand, which), "held_out")
         except UsageError:

@@ -12,8 +12,13 @@ only when it pays against the best single, a single when it pays against the
 current model. A term that joins a model already holding effects (or comes
 in a pair) must also pay against the model without it refitted from the joint
 fit's values: otherwise a first effect stuck in a poor optimum lets a second
-soak up its residual. Every candidate refitted carries the reason it was
-chosen or rejected (:class:`Tried`). The loop stops when nothing pays, or when the
+soak up its residual. After each round that adds a term, each term of the
+earlier rounds must still pay against the model refitted without it
+(backward elimination, :func:`_eliminate`): a delay named for the residual of a
+resonant load is dropped once the resonance is in. An effect with a companion
+(:data:`.screening.COMPANIONS`: a Stribeck curve with its static level per
+direction) is refitted, kept and dropped with it. Every candidate refitted
+carries the reason it was chosen or rejected (:class:`Tried`). The loop stops when nothing pays, or when the
 model reaches the sensor-noise floor.
 """
 
@@ -26,13 +31,16 @@ from dataclasses import dataclass
 
 from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.evidence import MIN_GAIN, MIN_Z, Payoff, payoff
-from servobench.bench.diagnose.refit import FitResult, evaluate, refit
+from servobench.bench.diagnose.refit import FitResult, evaluate, refit, with_covariance
 from servobench.bench.diagnose.screening import (
+    COMPANIONS,
     QuickScore,
+    companion_bounds,
     compatible,
     quick_score,
     screen_all,
     screen_input,
+    without,
 )
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.sim_backend.physics import effects as library
@@ -103,18 +111,19 @@ def _explained(before: FitResult, after: FitResult, floor: float) -> float:
 
 
 def _ablate(
-    data: DiagnosisData, chosen: tuple[str, ...], fit: FitResult
+    data: DiagnosisData, chosen: tuple[str, ...], fit: FitResult, present: tuple[str, ...] = ()
 ) -> tuple[tuple[str, ...], FitResult, list[str]]:
-    """Drop new terms the fitted model does not need (it does as well on held-out data without)."""
+    """Drop new terms the fitted model does not need (it does as well on held-out data without);
+    a term goes with its companion unless that was ``present`` before it."""
     kept, dropped = chosen, []
     for name in chosen:
         cand = fit.candidate
-        without = Candidate(dict(cand.base), {k: v for k, v in cand.effects.items() if k != name})
-        trial = evaluate(data, without)
+        rest = without(dict(cand.effects), name, present + kept)
+        trial = evaluate(data, Candidate(dict(cand.base), rest))
         if trial.gap_held_out * (1 - MIN_GAIN) <= fit.gap_held_out:
             kept = tuple(n for n in kept if n != name)
             dropped.append(name)
-            fit = trial
+            fit = with_covariance(data, trial, fit)  # evaluated only: its sigma from a Jacobian there
     return kept, fit, dropped
 
 
@@ -130,17 +139,22 @@ class _Fitter:
 
     def fit(self, start: Candidate, new: tuple[str, ...], scan: bool = True) -> FitResult:
         s = self.screens
+        extra = {k: v for n in new for k, v in companion_bounds(n, start).items()}
         return refit(
             self.data,
             start,
-            {**self.bounds, **{n: dict(s[n].bounds) for n in new}},
+            {**extra, **self.bounds, **{n: dict(s[n].bounds) for n in new}},
             {**self.fixed, **{n: tuple(s[n].fixed) for n in new}},
             {n: tuple(s[n].scan) for n in new} if scan else None,
             floor=self.floor,
         )
 
-    def accept(self, names: tuple[str, ...]) -> None:
-        """Later rounds keep refitting accepted terms within their screening's bounds."""
+    def accept(self, names: tuple[str, ...], cand: Candidate) -> None:
+        """Later rounds keep refitting accepted terms (and their companions, as in ``cand``)
+        within their screening's bounds."""
+        for n in names:
+            for k, v in companion_bounds(n, cand).items():
+                self.bounds.setdefault(k, v)
         self.bounds.update({n: dict(self.screens[n].bounds) for n in names})
         self.fixed.update({n: tuple(self.screens[n].fixed) for n in names})
 
@@ -161,7 +175,7 @@ def _refit_ablate(
     kept, dropped = list(chosen), []
     for name in chosen:
         cand = fit.candidate
-        rest = {k: v for k, v in cand.effects.items() if k != name}
+        rest = without(dict(cand.effects), name, (*current.candidate.effects, *kept))
         others = tuple(n for n in kept if n != name)
         trial = fitter.fit(Candidate(dict(cand.base), rest), others, scan=False)
         if not payoff(fitter.data, trial, fit).pays:
@@ -169,6 +183,65 @@ def _refit_ablate(
             dropped.append(name)
             fit = trial
     return tuple(kept), fit, dropped
+
+
+def _companions_pay(
+    fitter: _Fitter, current: FitResult, chosen: tuple[str, ...], fit: FitResult
+) -> tuple[tuple[str, ...], FitResult, list[str]]:
+    """A new term fitted with a companion (:data:`.screening.COMPANIONS`) must pay without
+    it, refitted from the joint fit's values with the companion folded into the base (a
+    Stribeck curve with one static level and the Coulomb levels net of the force); the
+    companion stays only where it pays against that. Otherwise the companion's freedom
+    lets the term stand in for what it is not (drag growing with the square of the speed)."""
+    dropped: list[str] = []
+    for name in chosen:
+        c = COMPANIONS.get(name)
+        cand = fit.candidate
+        if c is None or c not in cand.effects or c in current.candidate.effects or c in chosen:
+            continue
+        o = float(cand.effects[c]["offset"])
+        base = {**cand.base}
+        base["coulomb_pos"] = max(float(base["coulomb_pos"]) - o, 0.0)
+        base["coulomb_neg"] = max(float(base["coulomb_neg"]) + o, 0.0)
+        rest = {k: dict(v) for k, v in cand.effects.items() if k != c}
+        rest[name] = library.project(name, rest[name], base)
+        plain = fitter.fit(Candidate(base, rest), chosen, scan=False)
+        if not payoff(fitter.data, current, plain).pays:
+            dropped.append(name)
+            continue
+        if not payoff(fitter.data, plain, fit).pays:
+            fit = plain
+    if dropped:
+        return (), current, dropped
+    return chosen, fit, []
+
+
+#: Why a term with a companion was dropped (see :func:`_companions_pay`).
+DROPPED_PLAIN = "without its companion it does not pay against the current model"
+
+
+def _eliminate(fitter: _Fitter, steps: list[Step]) -> list[Step]:
+    """Backward elimination: drop a term of an earlier round that the model with the new
+    terms, refitted without it, no longer needs (it does as well on held-out data). A first
+    effect named for a residual a later one explains better (a delay standing in for a
+    resonant load) would otherwise stay named."""
+    fit = steps[-1].fit
+    for step in steps[1:-1]:
+        for name in step.added:
+            cand = fit.candidate
+            others = tuple(n for st in steps[1:] for n in st.added if n != name)
+            rest = without(dict(cand.effects), name, others)
+            trial = fitter.fit(Candidate(dict(cand.base), rest), (), scan=False)
+            if payoff(fitter.data, trial, fit).pays:
+                continue
+            fit = trial
+            steps = [
+                Step(tuple(n for n in st.added if n != name), st.fit, st.evidence)
+                for st in steps
+            ]
+            steps = [st for i, st in enumerate(steps) if i == 0 or st.added]
+            steps[-1] = Step(steps[-1].added, fit, steps[-1].evidence)
+    return steps
 
 
 def _pool(
@@ -270,7 +343,7 @@ def _round(
                 continue
             progress(f"refitting the pair {a} + {b}")
             fa, fb = singles[a].candidate, singles[b].candidate
-            start = Candidate(dict(fa.base), {**fa.effects, b: fb.effects[b]})
+            start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
     chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
     tried = [
@@ -358,10 +431,12 @@ def search(
             rounds.append(rnd)
             stop = "nothing in the library pays on held-out data"
             break
-        chosen, best, dropped = _ablate(data, chosen, best)
+        chosen, best, dropped = _ablate(data, chosen, best, tuple(current.candidate.effects))
         rnd = _with_ablation(rnd, chosen, dropped, best, DROPPED)
         chosen, best, dropped = _refit_ablate(fitter, current, chosen, best)
-        rounds.append(_with_ablation(rnd, chosen, dropped, best, DROPPED_REFIT))
+        rnd = _with_ablation(rnd, chosen, dropped, best, DROPPED_REFIT)
+        chosen, best, dropped = _companions_pay(fitter, current, chosen, best)
+        rounds.append(_with_ablation(rnd, chosen, dropped, best, DROPPED_PLAIN))
         if not chosen:
             # The refit only found a better optimum of the terms already there: keep it, name
             # nothing, and look again from there while it gains.
@@ -378,7 +453,8 @@ def search(
             f"{best.gap_held_out:.3g}%"
             for n in chosen
         }
-        fitter.accept(chosen)
+        fitter.accept(chosen, best.candidate)
         steps.append(Step(chosen, best, evidence))
-        current = best
+        steps = _eliminate(fitter, steps)
+        current = steps[-1].fit
     return steps, SearchTrace(tuple(rounds), floor if math.isfinite(floor) else 0.0, stop)

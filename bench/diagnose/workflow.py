@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
 from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent, prepare
 from servobench.bench.diagnose.families import Family, offset_family
+from servobench.bench.diagnose.screening import COMPANIONS
 from servobench.bench.diagnose.search import SearchTrace, Step, search
 from servobench.bench.diagnose.signatures import Signatures, compute_signatures
 from servobench.bench.diagnose.simulate import Candidate
@@ -90,8 +91,9 @@ class Diagnosis:
 
     @property
     def base(self) -> dict[str, float]:
-        """Base parameters of the final model (refitted with its effects)."""
-        return dict(self.final.base)
+        """Base parameters of the final model (refitted with its effects), the Coulomb levels
+        net of a companion force (:data:`.screening.COMPANIONS`)."""
+        return net_base(self.final, tuple(e.name for e in self.effects))
 
     @property
     def base_before(self) -> dict[str, float]:
@@ -99,10 +101,35 @@ class Diagnosis:
         return dict(self.steps[0].fit.candidate.base)
 
 
-def named_parameters(name: str, values: dict[str, float], base: dict[str, float]) -> dict:
+def companion_force(final: Candidate, named: tuple[str, ...]) -> float:
+    """The constant force [command units] the final model carries as part of a named effect
+    (not named itself), 0 when none."""
+    for owner, c in COMPANIONS.items():
+        if owner in named and c not in named and c in final.effects:
+            return float(final.effects[c]["offset"])
+    return 0.0
+
+
+def net_base(final: Candidate, named: tuple[str, ...]) -> dict[str, float]:
+    """The final base with the Coulomb levels net of a companion force: what the axis shows."""
+    base = dict(final.base)
+    o = companion_force(final, named)
+    if o:
+        base["coulomb_pos"] = float(base["coulomb_pos"]) - o
+        base["coulomb_neg"] = float(base["coulomb_neg"]) + o
+    return base
+
+
+def named_parameters(
+    name: str, values: dict[str, float], base: dict[str, float], force: float = 0.0
+) -> dict:
     """An effect's parameters as reported: unused spline knots left out, the directional
-    viscous coefficients spelled out."""
+    viscous coefficients spelled out, a Stribeck curve's static level in each direction
+    (``fs_pos``, ``fs_neg``, net of the companion ``force``; ``fs`` their mean)."""
     params = dict(values)
+    if name == "stribeck":
+        params["fs_pos"] = params["fs"] - force
+        params["fs_neg"] = params["fs"] + force
     if name == "viscous_asymmetry":
         params["B_pos"] = base["B"] + params["dB"]
         params["B_neg"] = base["B"] - params["dB"]
@@ -151,14 +178,18 @@ def diagnose(
     last = steps[-1].fit
     verdict = judge(data, last.candidate, last.v_sim, last.gap)
     final = last.candidate
+    names = tuple(n for step in steps[1:] for n in step.added)
+    force = companion_force(final, names)
+    base_net = net_base(final, names)
     named = []
     for step in steps[1:]:
         for name in step.added:
-            params = named_parameters(name, dict(final.effects[name]), dict(final.base))
+            params = named_parameters(name, dict(final.effects[name]), dict(final.base), force)
             clause = signatures.support(name)
             evidence = step.evidence[name] if not clause else f"{step.evidence[name]}; {clause}"
             named.append(NamedEffect(name, params, evidence))
-    family = offset_family(final.base, final.effects, data.units.of("u"))
+    shown = {k: v for k, v in final.effects.items() if k in names}
+    family = offset_family(base_net, shown, data.units.of("u"))
     notes = tuple(data.notes) + ((start.note,) if start.note else ())
     return Diagnosis(
         tuple(named),

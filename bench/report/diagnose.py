@@ -6,6 +6,12 @@ refitted with the effects), beside the base fit from before any effect,
 labelled as such; the evidence sentences carry no parameter values of
 their own. The text output and the report lead with the verdict.
 ``model.json`` is described in :mod:`servobench.bench.diagnose.model_file`.
+
+Every fitted parameter carries its 1-sigma (:mod:`servobench.bench.diagnose.sigma`): the
+JSON's ``std`` (keyed as ``units``: the base as ``base_after`` gives it, ``pole``,
+``dc_gain``, and ``"effect.parameter"`` as each effect's ``parameters`` report it, e.g.
+``stribeck.fs_pos``), ``value ± sigma`` in the text, a 1-sigma column in the report's table.
+Parameters held fixed in the fit have none; a coloured training residual is noted.
 """
 
 from __future__ import annotations
@@ -17,13 +23,28 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.diagnose.model_file import model_record, parameter_units, sim_url
+from servobench.bench.diagnose.model_file import (
+    model_record,
+    parameter_units,
+    record_std,
+    sim_url,
+    written_parameters,
+)
+from servobench.bench.diagnose.sigma import candidate_std
+from servobench.bench.diagnose.simulate import Candidate
 from servobench.bench.diagnose.verdict import LABELS
-from servobench.bench.diagnose.workflow import Diagnosis
+from servobench.bench.diagnose.workflow import (
+    Diagnosis,
+    companion_force,
+    named_parameters,
+    net_base,
+)
 
 MODEL_FILE = "model.json"
 REPORT_FILE = "report.md"
 COMPARISON_FILE = "comparison.csv"
+#: The base values the text and the report show.
+_BASE_SHOWN = ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain")
 
 
 def _clean(value):
@@ -44,6 +65,46 @@ def _base_json(base) -> dict:
     return {**b, "pole": -b["B"] / b["M"], "dc_gain": 1.0 / b["B"]}
 
 
+def _reported(cand: Candidate, named: tuple[str, ...]) -> dict[str, float]:
+    """The final model's values as the JSON reports them, keyed as its ``units`` and ``std``:
+    the base net of a companion force, ``pole``, ``dc_gain``; each named effect's parameters
+    as :func:`~servobench.bench.diagnose.workflow.named_parameters` gives them, other terms'
+    as the model file writes them, as ``"effect.parameter"``."""
+    force = companion_force(cand, named)
+    out = _base_json(net_base(cand, named))
+    for name, values in cand.effects.items():
+        if name in named:
+            params = named_parameters(name, dict(values), dict(cand.base), force)
+        else:
+            params = written_parameters(name, values)
+        out.update({f"{name}.{k}": float(v) for k, v in params.items()})
+    return out
+
+
+def parameter_std(d: Diagnosis) -> dict[str, float]:
+    """1-sigma of every value of the final model a fitted parameter moves (see the module
+    docstring); empty when the final fit has no covariance, NaN where the data do not
+    determine a parameter."""
+    cov = d.steps[-1].fit.covariance
+    if cov is None:
+        return {}
+    named = tuple(e.name for e in d.effects)
+    return candidate_std(d.final, cov, lambda c: _reported(c, named))
+
+
+def colour_note(d: Diagnosis) -> str:
+    """The note on a coloured training residual of the final fit (empty when white)."""
+    cov = d.steps[-1].fit.covariance
+    colour = None if cov is None else cov.colour
+    return colour.note("the final fit's training") if colour is not None and colour.coloured else ""
+
+
+def notes(d: Diagnosis) -> list[str]:
+    """The diagnosis' notes and the coloured-residual note."""
+    note = colour_note(d)
+    return list(d.notes) + ([note] if note else [])
+
+
 def model_json(d: Diagnosis) -> dict:
     """The content of ``model.json`` (:mod:`servobench.bench.diagnose.model_file`)."""
     return _clean(
@@ -55,6 +116,7 @@ def model_json(d: Diagnosis) -> dict:
             verdict=d.verdict.verdict,
             comparison=d.data.comparison,
             source=d.data.source,
+            std=record_std(d.final, d.steps[-1].fit.covariance),
         )
     )
 
@@ -85,6 +147,7 @@ def _rounds_json(d: Diagnosis) -> list[dict]:
 def to_json(d: Diagnosis) -> dict:
     """The one JSON object ``servobench diagnose --json`` prints; the verdict comes first."""
     v = d.verdict
+    std = parameter_std(d)
     out = {
         "verdict": v.verdict,
         "noise_floor_percent": v.floor.percent,
@@ -100,6 +163,7 @@ def to_json(d: Diagnosis) -> dict:
         "base_start": d.start.source,
         "sim_url": sim_url(d.final),
         "units": parameter_units(d.final, d.data.units),
+        "std": std,
         "noise": {
             "sensor_percent": v.floor.sensor_percent,
             "repeat_percent": v.floor.repeat_percent,
@@ -121,7 +185,7 @@ def to_json(d: Diagnosis) -> dict:
             for s in d.steps
         ],
         "families": [f.as_dict() for f in d.families],
-        "notes": list(d.notes),
+        "notes": notes(d),
         "comparison": d.data.comparison,
         "velocity": "derived from position" if d.data.derived else "measured",
         "findings": d.signatures.findings(),
@@ -131,13 +195,24 @@ def to_json(d: Diagnosis) -> dict:
     return _clean(out)
 
 
-def _params_text(d: Diagnosis, name: str, params: dict, sep: str = " = ") -> str:
+def _pm(value: float, std: float | None, digits: int = 4) -> str:
+    """``value ± sigma`` (sigma to two significant digits), the value alone without one."""
+    text = f"{value:.{digits}g}"
+    if std is None:
+        return text
+    return f"{text} ± {std:.2g}" if math.isfinite(std) else f"{text} ± ?"
+
+
+def _params_text(
+    d: Diagnosis, name: str, params: dict, sep: str = " = ", std: dict | None = None
+) -> str:
     units = parameter_units(d.final, d.data.units)
+    std = parameter_std(d) if std is None else std
     parts = []
     for k, value in params.items():
         unit = units.get(f"{name}.{k}") or (units["B"] if k in ("B_pos", "B_neg") else "")
         unit = "" if unit in ("", "1") else f" {unit}"
-        parts.append(f"{k}{sep}{value:.4g}{unit}")
+        parts.append(f"{k}{sep}{_pm(value, std.get(f'{name}.{k}'))}{unit}")
     return ", ".join(parts)
 
 
@@ -151,11 +226,18 @@ def summary_lines(d: Diagnosis) -> list[str]:
     lines.append(f"velocity gap: {d.gap_before:.3g}% before, {d.gap_after:.3g}% after")
     if not d.effects:
         lines.append(f"no effect named: {d.trace.stop}")
+    std = parameter_std(d)
     for i, e in enumerate(d.effects, 1):
-        lines.append(f"{i}. {e.name} ({_params_text(d, e.name, e.parameters, '=')})")
+        lines.append(f"{i}. {e.name} ({_params_text(d, e.name, e.parameters, '=', std)})")
         lines.append(f"   {e.evidence}")
+    b = _base_json(d.base)
+    lines.append(
+        "final base: "
+        + ", ".join(f"{k}={_pm(float(b[k]), std.get(k))}" for k in _BASE_SHOWN)
+        + " (1-sigma)"
+    )
     lines += [f"note: {f.sentence}" for f in d.families]
-    lines += [f"note: {n}" for n in d.notes]
+    lines += [f"note: {n}" for n in notes(d)]
     lines.append(f"diagnosed plant: {sim_url(d.final)}")
     return lines
 
@@ -183,15 +265,33 @@ def write_model(d: Diagnosis, path: str | Path) -> Path:
 def _model_table(d: Diagnosis) -> list[str]:
     units = parameter_units(d.final, d.data.units)
     before, after = _base_json(d.base_before), _base_json(d.base)
+    before_std = _base_std(d.steps[0].fit)
+    std = parameter_std(d)
     effects = "+".join(d.final.names)
     head = f"refitted with {effects}" if effects else "refitted (no effect added)"
     lines = [
-        f"| parameter | base fit, before any effect | final model, {head} | unit |",
-        "| --- | --- | --- | --- |",
+        f"| parameter | base fit, before any effect | final model, {head} "
+        "| 1-sigma, before | 1-sigma, final | unit |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
-    for k in ("M", "B", "coulomb_pos", "coulomb_neg", "pole", "dc_gain"):
-        lines.append(f"| {k} | {before[k]:.4g} | {after[k]:.4g} | {units[k]} |")
+    for k in _BASE_SHOWN:
+        lines.append(
+            f"| {k} | {before[k]:.4g} | {after[k]:.4g} | {_sigma(before_std.get(k))} "
+            f"| {_sigma(std.get(k))} | {units[k]} |"
+        )
     return lines
+
+
+def _sigma(std: float | None) -> str:
+    """A 1-sigma to two significant digits, ``-`` when there is none."""
+    return "-" if std is None else f"{std:.2g}" if math.isfinite(std) else "?"
+
+
+def _base_std(fit) -> dict[str, float]:
+    """1-sigma of a base-only fit's :func:`_base_json` values (empty without a covariance)."""
+    if fit.covariance is None:
+        return {}
+    return candidate_std(fit.candidate, fit.covariance, lambda c: _base_json(c.base))
 
 
 def _rounds_md(d: Diagnosis) -> list[str]:
@@ -249,12 +349,14 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     ]
     if not d.effects:
         lines.append(f"None: {d.trace.stop}.")
+    std = parameter_std(d)
     for i, e in enumerate(d.effects, 1):
-        lines.append(f"{i}. **{e.name}** ({_params_text(d, e.name, e.parameters)}): {e.evidence}.")
+        text = _params_text(d, e.name, e.parameters, std=std)
+        lines.append(f"{i}. **{e.name}** ({text}): {e.evidence}.")
     lines += ["", f"Diagnosed plant, to simulate or serve: `{sim_url(d.final)}`", ""]
-    if d.families or d.notes:
+    if d.families or notes(d):
         lines += ["## Notes", ""] + [f"- {f.sentence}" for f in d.families]
-        lines += [f"- {n}" for n in d.notes] + [""]
+        lines += [f"- {n}" for n in notes(d)] + [""]
     lines += ["## Steps", "", "| model | gap [%] | held-out gap [%] |", "| --- | --- | --- |"]
     for s in d.steps:
         names = s.fit.candidate.names

@@ -16,7 +16,15 @@ Inputs (``inputs=``):
   excitation ``u1`` and ``u2 = 0.9 u1`` (:mod:`servobench.bench.procedure.excitation`),
   with its design in the log's metadata;
 * ``square``, ``sine``, ``triangle``: one run of the classic test commands,
-  period :data:`WAVE_PERIOD_S`.
+  period :data:`WAVE_PERIOD_S`;
+* ``single``: one run of the ``two-level`` command (its first amplitude);
+* ``closed``: the SIDBE pair added to a host's hold loop that keeps the axis in a
+  travel window, as ``sidbe`` streams it on a limited-travel axis
+  (:mod:`servobench.bench.testing.closed_case`).
+
+Velocity-sensor noise: white, coloured (low-passed white) or quantised (the
+reading rounded to a step, ``noise_step``). :mod:`servobench.bench.testing.sized_cases`
+draws each effect at a size in units of the Coulomb level (or of its own natural scale).
 
 Plants outside the library (``outside=``) add a term no effect module
 models: ``spring`` (a force pulling the axis towards the middle of its
@@ -48,7 +56,7 @@ AMPLITUDE_RATIO = 2.0
 #: Velocity-sensor noise as a fraction of the steady speed at run-2 amplitude.
 NOISE_FRACTION = 0.002
 #: The command shapes a case can be excited with.
-INPUTS = ("two-level", "sidbe", "square", "sine", "triangle")
+INPUTS = ("two-level", "sidbe", "square", "sine", "triangle", "single", "closed")
 #: Period of the square, sine and triangle commands [s] and the length of their one run [s].
 WAVE_PERIOD_S = 1.0
 WAVE_RUN_S = 4.0
@@ -87,6 +95,8 @@ class HiddenCase:
     commands : tuple of (run, ndarray)
         Commands drawn with the plant (position friction needs them to place its knots);
         empty: :func:`case_commands` draws them.
+    noise_step : float
+        Step [units/s] the velocity reading is rounded to (0: not quantised).
     """
 
     effect: str | None
@@ -97,6 +107,7 @@ class HiddenCase:
     noise_colour_hz: float = 0.0
     outside: dict[str, float] = field(default_factory=dict)
     commands: tuple[tuple[int, np.ndarray], ...] = ()
+    noise_step: float = 0.0
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -286,9 +297,12 @@ def case_commands(case: HiddenCase, rng: np.random.Generator) -> list[tuple[int,
             (1, excitation(rng, n, CASE_FS_HZ, case.amplitude)),
             (2, excitation(rng, n, CASE_FS_HZ, AMPLITUDE_RATIO * case.amplitude)),
         ]
-    if case.inputs == "sidbe":
+    if case.inputs in ("sidbe", "closed"):
         exc = _sidbe(case)
         return exc.runs()
+    if case.inputs == "single":
+        n = int(CASE_RUN_S * CASE_FS_HZ)
+        return [(1, excitation(rng, n, CASE_FS_HZ, case.amplitude))]
     n = int(WAVE_RUN_S * CASE_FS_HZ)
     return [(1, wave(case.inputs, n, CASE_FS_HZ, WAVE_PEAK * case.amplitude))]
 
@@ -315,6 +329,13 @@ def log_metadata(case: HiddenCase) -> dict[str, object]:
 
 def _true_motion(case: HiddenCase, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free ``(v, x)`` of one run from rest, outside terms included."""
+    model = rich_model(case)
+    v, x, _ = model.simulate(np.asarray(u, dtype=float), 1.0 / CASE_FS_HZ, PlantState())
+    return v, x
+
+
+def rich_model(case: HiddenCase) -> RichModel:
+    """The case's plant as the simulator runs it, outside terms included."""
     terms = collect_terms(case.params)
     out = case.outside
     if "spring" in out:
@@ -328,9 +349,21 @@ def _true_motion(case: HiddenCase, u: np.ndarray) -> tuple[np.ndarray, np.ndarra
             if previous is None
             else (lambda speed, d: previous(speed, d) + c * speed * speed)
         )
-    model = RichModel(case.params, terms)
-    v, x, _ = model.simulate(np.asarray(u, dtype=float), 1.0 / CASE_FS_HZ, PlantState())
-    return v, x
+    return RichModel(case.params, terms)
+
+
+def sensor_noise(case: HiddenCase, rng: np.random.Generator, n: int) -> np.ndarray:
+    """The velocity sensor's noise of one run: white, or coloured (quantisation is applied to
+    the reading, :func:`read_velocity`)."""
+    if case.noise_colour_hz:
+        return coloured(rng, n, case.params.noise, case.noise_colour_hz)
+    return rng.normal(0.0, case.params.noise, n)
+
+
+def read_velocity(case: HiddenCase, v: np.ndarray) -> np.ndarray:
+    """The logged reading of velocity ``v`` (noise included): rounded to ``noise_step``."""
+    step = case.noise_step
+    return step * np.round(v / step) if step else v
 
 
 def coloured(rng: np.random.Generator, n: int, std: float, corner_hz: float) -> np.ndarray:
@@ -346,7 +379,15 @@ def write_case_log(case: HiddenCase, path: str | Path, rng: np.random.Generator)
     """Simulate the runs (each from rest) and write ``run,t,u,v,x``; the effects are not named."""
     path = Path(path)
     seed = int(rng.integers(2**31))
-    plain = not case.outside and not case.noise_colour_hz
+    if case.inputs == "closed":
+        from servobench.bench.testing.closed_case import ClosedPlant, write_closed_log
+
+        plant = ClosedPlant(
+            case.params.M, case.params.B, CASE_FS_HZ, SIDBE_PERIOD_S, _sidbe(case).design.metadata(),
+            rich_model(case), lambda g, n: sensor_noise(case, g, n), lambda v: read_velocity(case, v),
+        )  # fmt: skip
+        return write_closed_log(plant, path, case_commands(case, rng), seed)
+    plain = not case.outside and not case.noise_colour_hz and not case.noise_step
     with LogWriter(path, log_metadata(case)) as writer:
         for number, u in case_commands(case, rng):
             noise_rng = np.random.default_rng(seed + number)
@@ -355,10 +396,7 @@ def write_case_log(case: HiddenCase, path: str | Path, rng: np.random.Generator)
                 v, x = plant.step_block(u, 1.0 / CASE_FS_HZ)
             else:
                 v, x = _true_motion(case, u)
-                if case.noise_colour_hz:
-                    v = v + coloured(noise_rng, v.size, case.params.noise, case.noise_colour_hz)
-                else:
-                    v = v + noise_rng.normal(0.0, case.params.noise, v.size)
+                v = read_velocity(case, v + sensor_noise(case, noise_rng, v.size))
             t = np.arange(u.size) / CASE_FS_HZ
             writer.append_block(np.full(u.size, number), t, u, v, x)
     return path

@@ -1,0 +1,68 @@
+"""Issue 30: a handful of the naming benchmark's random cases (``benchmarks/diagnose_cases.py``).
+
+Each is a case of ``--cases 300 --seed 1`` (its number there in the name), with
+its size, excitation and sensor noise: the four excitations (SIDBE pair, single
+run, square wave, closed loop in a travel window), the three noises (white,
+coloured, quantised), a control with nothing hidden and a Stribeck curve. The
+hidden effect must be named alone, the gap shrink at least 3 times where it is
+at least 3 times the noise floor, and a Stribeck curve be refitted within 5 %.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from servobench.bench.diagnose.workflow import diagnose
+from servobench.bench.log.io import read_log
+from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
+from servobench.bench.testing.sized_cases import sized_case
+
+pytestmark = pytest.mark.slow  # six diagnoses, one after the other
+
+#: ``number: (effect, size, inputs, noise, seed)``, as the benchmark draws them.
+CASES = {
+    1: ("stribeck", 2.8716236178431096, "sidbe", "white", 669652944),
+    2: ("viscous_asymmetry", 1.5583161224314392, "single", "quantised", 551886181),
+    6: ("cogging", 1.6337447237016287, "closed", "white", 823155374),
+    23: ("position_friction", 2.6913427410414514, "closed", "white", 1013418405),
+    76: ("time_delay", 2.515089268817809, "square", "coloured", 913638093),
+    108: (None, 0.8304471040479893, "sidbe", "coloured", 990144555),
+}
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    folder = Path(tmp_path_factory.mktemp("cases"))
+
+    def run(number: int) -> dict:
+        effect, size, inputs, noise, seed = CASES[number]
+        rng = np.random.default_rng(seed)
+        case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
+        d = diagnose(read_log(write_case_log(case, folder / f"case-{number}.csv", rng)))
+        return {"case": case, "diagnosis": d}
+
+    return CaseResults(run)
+
+
+@pytest.mark.parametrize("number", sorted(CASES))
+def test_the_hidden_effect_is_named_alone(results, number):
+    effect = CASES[number][0]
+    d = results[number]["diagnosis"]
+    assert [e.name for e in d.effects] == ([effect] if effect else []), d.trace.stop
+
+
+@pytest.mark.parametrize("number", sorted(CASES))
+def test_the_gap_shrinks_three_times_where_it_shows(results, number):
+    d = results[number]["diagnosis"]
+    if d.gap_before >= 3 * d.verdict.floor.percent and CASES[number][0]:
+        assert d.gap_after <= d.gap_before / 3, (d.gap_before, d.gap_after)
+
+
+def test_the_stribeck_curve_is_refitted_within_5_percent(results):
+    case, d = results[1]["case"], results[1]["diagnosis"]
+    true, got = case.effects["stribeck"], d.effects[0].parameters
+    assert got["vs"] == pytest.approx(true["vs"], rel=0.05)
+    assert (got["fs_pos"], got["fs_neg"]) == pytest.approx((true["fs"], true["fs"]), rel=0.05)

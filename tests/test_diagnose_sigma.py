@@ -1,0 +1,141 @@
+"""The diagnosed model's 1-sigma hold: errors over stated sigma on plants with a known effect.
+
+Hidden-effect plants (:mod:`servobench.bench.testing.hidden_effects`, white velocity-sensor
+noise) with a Stribeck curve or a viscous asymmetry, a few seeds each, are diagnosed; every
+parameter the diagnosis reports (the base as ``base_after``, the effect's parameters,
+derived ones too) is compared with the plant's true value in units of its stated sigma.
+The sigmas hold when those ratios have an rms near 1 (a wide band: a handful of cases) and
+most lie within 2 sigma; a sigma 5 times too small or too large falls outside.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import servobench as sb
+from servobench.bench.diagnose.data import prepare
+from servobench.bench.diagnose.refit import evaluate, refit, with_covariance
+from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.log.io import read_log
+from servobench.bench.report.diagnose import summary_lines
+from servobench.bench.testing.hidden_effects import random_case, write_case_log
+
+#: (hidden effect, seed) of each case: the diagnosis names the effect in each.
+CASES = [("viscous_asymmetry", s) for s in (1, 2, 3, 4)] + [("stribeck", s) for s in (1, 2, 3, 5)]
+#: Band of the rms of error / sigma over all parameters and cases, and the least share within 2 sigma.
+RMS_BAND = (0.4, 2.5)
+WITHIN_2_SIGMA = 0.75
+BASE = ("M", "B", "coulomb_pos", "coulomb_neg")
+
+
+def truth(case) -> dict[str, float]:
+    """The plant's true values, keyed as the diagnosis' JSON ``std``."""
+    p = case.params
+    out = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
+    if "stribeck" in case.effects:
+        fs, vs = case.effects["stribeck"]["fs"], case.effects["stribeck"]["vs"]
+        out |= {"stribeck.fs": fs, "stribeck.vs": vs, "stribeck.fs_pos": fs, "stribeck.fs_neg": fs}
+    if "viscous_asymmetry" in case.effects:
+        dB = case.effects["viscous_asymmetry"]["dB"]
+        out |= {
+            "viscous_asymmetry.dB": dB,
+            "viscous_asymmetry.B_pos": p.B + dB,
+            "viscous_asymmetry.B_neg": p.B - dB,
+        }
+    return {k: float(v) for k, v in out.items()}
+
+
+def reported(doc: dict) -> dict[str, float]:
+    """The final model's values in the JSON, keyed as its ``std``."""
+    out = {k: doc["base_after"][k] for k in BASE}
+    for e in doc["effects"]:
+        out |= {f"{e['name']}.{k}": v for k, v in e["parameters"].items()}
+    return out
+
+
+@pytest.fixture(scope="module")
+def diagnosed(tmp_path_factory) -> list[tuple[str, dict, dict, dict, list[str]]]:
+    """``(effect, JSON, model.json record, true values, text lines)`` of each case."""
+    folder = tmp_path_factory.mktemp("sigma")
+    out = []
+    for effect, seed in CASES:
+        rng = np.random.default_rng(seed)
+        case = random_case(effect, rng)
+        log = sb.read_log(write_case_log(case, Path(folder) / f"{effect}{seed}.csv", rng))
+        result = sb.diagnose(log)
+        text = summary_lines(result.details)
+        out.append((effect, result.to_dict(), result.model.to_dict(), truth(case), text))
+    return out
+
+
+def test_errors_over_sigma_hold(diagnosed):
+    ratios = []
+    for effect, doc, _, true, _ in diagnosed:
+        assert [e["name"] for e in doc["effects"]] == [effect]
+        values, std = reported(doc), doc["std"]
+        for key, value in true.items():
+            assert std.get(key) is not None and std[key] > 0, (effect, key, std)
+            ratios.append((values[key] - value) / std[key])
+    z = np.array(ratios)
+    rms = math.sqrt(float(np.mean(z**2)))
+    within = float(np.mean(np.abs(z) <= 2.0))
+    assert RMS_BAND[0] <= rms <= RMS_BAND[1], (rms, np.round(z, 2))
+    assert within >= WITHIN_2_SIGMA, (within, np.round(z, 2))
+
+
+def test_every_fitted_parameter_has_a_sigma(diagnosed):
+    for _, doc, model, _, _ in diagnosed:
+        std = doc["std"]
+        for key in (*BASE, "pole", "dc_gain"):
+            assert isinstance(std.get(key), float) and std[key] > 0, (key, std)
+        (entry,) = doc["effects"]
+        for key in entry["parameters"]:
+            sigma = std.get(f"{entry['name']}.{key}")
+            assert isinstance(sigma, float) and sigma > 0, (entry, std)
+        # model.json: the raw base and every effect parameter of the plant written.
+        for name, params in model["effects"].items():
+            for key in params:
+                assert isinstance(model["std"].get(f"{name}.{key}"), float), (name, key)
+        assert all(isinstance(model["std"].get(k), float) for k in BASE), model["std"]
+
+
+def test_text_gives_value_plus_minus_sigma(diagnosed):
+    effect, _, _, _, text = diagnosed[0]
+    (line,) = [x for x in text if x.startswith(f"1. {effect} (")]
+    assert line.count(" ± ") == len(line.split(", ")), line
+    (base,) = [x for x in text if x.startswith("final base: ")]
+    assert base.count(" ± ") == 6, base
+
+
+def test_held_parameters_have_no_sigma(tmp_path):
+    rng = np.random.default_rng(7)
+    case = random_case("viscous_asymmetry", rng)
+    data = prepare(read_log(write_case_log(case, tmp_path / "va.csv", rng)))
+    p = case.params
+    base = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
+    fit = refit(data, Candidate(base, dict(case.effects)), bounds={})
+    assert set(fit.std) == set(BASE)
+    assert all(math.isfinite(s) and s > 0 for s in fit.std.values())
+
+
+def test_a_candidate_taken_from_a_refit_gets_the_refit_s_sigma(tmp_path):
+    """``with_covariance``: a candidate only evaluated (a term dropped from a refit) gets the
+    sigma of the parameters the refit fitted, from a Jacobian at its values."""
+    rng = np.random.default_rng(8)
+    case = random_case("viscous_asymmetry", rng)
+    data = prepare(read_log(write_case_log(case, tmp_path / "va.csv", rng)))
+    p, dB = case.params, case.effects["viscous_asymmetry"]["dB"]
+    base = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
+    bounds = {"viscous_asymmetry": {"dB": (-0.9 * p.B, 0.9 * p.B)}}
+    fit = refit(data, Candidate(base, {"viscous_asymmetry": {"dB": dB}}), bounds)
+    assert set(fit.std) == {*BASE, "viscous_asymmetry.dB"}
+    taken = evaluate(data, fit.candidate)
+    assert taken.std == {}
+    again = with_covariance(data, taken, fit)
+    assert set(again.std) == set(fit.std)
+    for key, sigma in fit.std.items():
+        assert again.std[key] == pytest.approx(sigma, rel=0.05), key
