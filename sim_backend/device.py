@@ -199,7 +199,7 @@ class SimulatedDevice:
                 f"not clock={clock_mode}: a lock-step drive is clocked by its host"
             )
         self.params = params
-        self.plant = Plant(params)
+        self.plant = Plant(params, compiled=False)  # a drive's loop never waits on a compile
         self.cycle_s = float(cycle_s)
         self.max_command = float(max_command)
         self.watchdog_s = watchdog_s

@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
-from servobench.sim_backend.physics.rich_plant import build_model
+from servobench.sim_backend.physics.effects import collect_terms
+from servobench.sim_backend.physics.rich_plant import RichModel, build_model
 
 __all__ = ["Plant", "PlantParams", "PlantState", "simulate", "simulate_coulomb"]
 
@@ -29,13 +30,19 @@ class Plant:
         The physics.
     rng : numpy.random.Generator, optional
         Source of sensor noise; by default seeded from ``params.seed``.
+    compiled : bool
+        Integrate effects with the compiled kernels (:mod:`.kernels`); False keeps the
+        reference loops, which give the same numbers: a drive's own loop must never stop for
+        a just-in-time compile or a cache load.
     """
 
-    def __init__(self, params: PlantParams, rng: np.random.Generator | None = None) -> None:
+    def __init__(
+        self, params: PlantParams, rng: np.random.Generator | None = None, compiled: bool = True
+    ) -> None:
         self.params = params
         self.rng = rng if rng is not None else np.random.default_rng(params.seed)
         self.state = PlantState()
-        self._model = _make_model(params)
+        self._model = _make_model(params, compiled)
 
     def reset(self, v: float = 0.0, x: float = 0.0) -> None:
         self.state = PlantState(v, x)
@@ -106,10 +113,10 @@ class _CoulombModel:
         return simulate_coulomb(u, dt_s, self.params, state)
 
 
-def _make_model(params: PlantParams):
+def _make_model(params: PlantParams, compiled: bool = True):
     if not params.effects:
         return _CoulombModel(params)
-    return build_model(params)
+    return build_model(params) if compiled else RichModel(params, collect_terms(params), reference=True)
 
 
 def simulate(
