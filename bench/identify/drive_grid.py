@@ -272,10 +272,10 @@ def _decide_actions(segment: Segment, grid: DriveGrid, model, k: np.ndarray, ka:
     # rows in doubt among them take the other tick in the share the changes showed.
     share = np.mean([ka[r] == alt[r] for r in doubtful])
     still = np.setdiff1d(np.flatnonzero(alt != ka), doubtful)
-    still = still[alt[still] != ka[still]]
-    if still.size and share > 0:
-        pick = still[np.unique(np.round(np.linspace(0, still.size - 1, int(round(share * still.size)))).astype(int))]
-        ka[pick] = alt[pick] if int(round(share * still.size)) else ka[pick]
+    count = int(round(share * still.size))
+    if count:
+        pick = still[np.unique(np.round(np.linspace(0, still.size - 1, count)).astype(int))]
+        ka[pick] = alt[pick]
     return ka
 
 
