@@ -273,3 +273,20 @@ def test_identify_and_diagnose_refuse_and_accept_motion_by_one_rule():
             check()
         words.append(str(err.value).split(" in ")[0])
     assert words[0] == words[1]
+
+
+def test_backlash_screens_a_position_quantised_coarser_than_a_samples_travel():
+    """A slow axis read by a coarse encoder: most samples repeat the last position, so the
+    median step is nil. The screen once tried gaps from 0 (numpy's geomspace refuses it)."""
+    from servobench.bench.diagnose.screening import screen_input
+    from servobench.sim_backend.physics.effects import backlash
+
+    params = PlantParams(M=0.2, B=2.0, coulomb_pos=0.4, coulomb_neg=0.3)
+    log = plant_log(params)
+    runs = [RunData(r.run, r.t, r.u, r.v, np.round(r.x / 0.01) * 0.01) for r in log.runs]
+    data = prepare(make_log(runs))
+    steps = np.concatenate([np.abs(np.diff(s.position)) for s in data.segments])
+    assert np.median(steps) == 0.0  # the case: a nil median step
+    truth = Candidate({"M": 0.2, "B": 2.0, "coulomb_pos": 0.4, "coulomb_neg": 0.3})
+    s = backlash.screen(screen_input(data, truth, simulate(data, truth)))
+    assert s.guess["gap"] > 0 and all(a["gap"] > 0 for a in s.alternatives)

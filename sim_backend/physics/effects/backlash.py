@@ -72,10 +72,12 @@ def screen(ctx: ScreenInput) -> Screening:
     coef0, sse0 = base_fit(ctx)
     a = ctx.cat("a_f")[m]
     x_all = [r.x for r in ctx.runs]
-    step = float(np.median(np.abs(np.concatenate([np.diff(x) for x in x_all]))))
     span = float(max(np.ptp(x) for x in x_all))
+    # the smallest gap tried: the median step (0 where the position is quantised coarser than a
+    # sample's travel, so most steps are nil), never below a millionth of the travel
+    step = max(float(np.median(np.abs(np.concatenate([np.diff(x) for x in x_all])))), 1e-6 * span)
     best = None
-    for gap in np.geomspace(max(step, 1e-6 * span), 0.2 * span, 30):
+    for gap in np.geomspace(step, 0.2 * span, 30):
         eng = np.concatenate([engaged(x, gap) for x in x_all])[m]
         coef, sse = regress([*cols, a * eng], y)
         if coef[0] > 0 and coef[4] > 0 and (best is None or sse < best[0]):
