@@ -16,13 +16,22 @@ started. The workers take files in collection order (xdist's reordering by
 number of tests is off), so a slow file collected last would run alone at
 the end while the other workers sit idle: the slow files start first and the
 short ones fill in around them.
+
+A test that judges a model's accuracy on a served drive streaming in real time
+takes :func:`realtime_bench` first: one such bench at a time across the
+workers. A bench machine runs one real-time host, its cyclic thread at
+SCHED_FIFO pinned to one core; two at once on two cores pin two such threads
+(and two real-time drives spinning on their byte times) to the same
+processors, which no bench does. Other work, time-shared, runs beside it.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 
 import peers
 import psutil
@@ -65,3 +74,17 @@ def pytest_configure(config: pytest.Config) -> None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
     items.sort(key=lambda item: item.path not in slow_files)  # stable: order kept within each
+
+
+@pytest.fixture
+def realtime_bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Held while the test streams to a served drive in real time: one such test at a time over
+    all workers (a lock file in the session's shared temporary folder; see the module doc)."""
+    root = tmp_path_factory.getbasetemp()
+    root = root.parent if root.name.startswith("popen-gw") else root
+    with open(root / "realtime-bench.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

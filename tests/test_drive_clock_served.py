@@ -31,7 +31,8 @@ import pytest
 
 from servobench.bench.testing.served import ServedSim
 
-pytestmark = pytest.mark.slow
+#: one real-time bench at a time over the workers (conftest.realtime_bench)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("realtime_bench")]
 
 TRUE = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
 PLANT = "sim://?M=0.01&B=1&fc_pos=0.5&fc_neg=0.4&seed={seed}"
@@ -81,8 +82,9 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
         # 1.85 % once where the host missed 193 of 1600 cycles and ran 570 late
         bound = 2.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
-    assert max(abs(e) for e in errors.values()) <= bound, errors
-    assert model["fit_percent"] >= fit_floor
+    seen = (errors, model["fit_percent"], model["timing"], record)  # what a failure shows
+    assert max(abs(e) for e in errors.values()) <= bound, seen
+    assert model["fit_percent"] >= fit_floor, seen
     # the issue asks 0.05 ms (or a tenth of the tick); Modbus RTU without stamps, at the 50 Hz its
     # link carries with brackets of +-1.1 ms, states a sigma of up to 0.05 ms: there 3 sigma holds
     near = max(0.05e-3, tick / 10, 3.0 * model["std"]["delay_s"])

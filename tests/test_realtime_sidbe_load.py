@@ -23,7 +23,8 @@ import pytest
 from servobench.bench.log.io import read_log
 from servobench.bench.testing.served import ServedSim
 
-pytestmark = pytest.mark.slow
+#: one real-time bench at a time over the workers (conftest.realtime_bench)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("realtime_bench")]
 
 PLANT = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
 SIM = "sim://?M=0.01&B=1&fc_pos=0.5&fc_neg=0.4"
