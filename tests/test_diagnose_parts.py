@@ -290,3 +290,19 @@ def test_backlash_screens_a_position_quantised_coarser_than_a_samples_travel():
     truth = Candidate({"M": 0.2, "B": 2.0, "coulomb_pos": 0.4, "coulomb_neg": 0.3})
     s = backlash.screen(screen_input(data, truth, simulate(data, truth)))
     assert s.guess["gap"] > 0 and all(a["gap"] > 0 for a in s.alternatives)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_cogging_periodogram_peak_is_the_direct_sine_and_cosine_one(seed):
+    """The screen's periodogram (block products of exponentials) picks the frequency the direct
+    sum of sines and cosines picks, on an irregular travel with a line buried in noise."""
+    from servobench.sim_backend.physics.effects.cogging import _peak
+
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.uniform(0.0, 1e-3, 3000))
+    e = 0.3 * np.sin(2 * np.pi * x / rng.uniform(0.01, 0.1) + 1.0) + rng.normal(size=x.size)
+    k_lo, k_hi, count = 2 * np.pi * 3 / np.ptp(x), 2 * np.pi / 6e-3, 700
+    ks = np.linspace(k_lo, k_hi, count)
+    s, c = np.sin(ks[:, None] * x), np.cos(ks[:, None] * x)
+    power = (s @ e) ** 2 / np.sum(s * s, axis=1) + (c @ e) ** 2 / np.sum(c * c, axis=1)
+    assert _peak(k_lo, k_hi, count, x, e) == ks[np.argmax(power)]

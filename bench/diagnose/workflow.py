@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+from servobench.bench.blas_threads import one_blas_thread
 from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
 from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent, prepare
 from servobench.bench.diagnose.families import Family, offset_family
@@ -166,6 +167,16 @@ def diagnose(
     UsageError
         Unknown effect names, a non-positive horizon.
     """
+    with one_blas_thread():  # see bench.blas_threads: thousands of small, tall solves
+        return _diagnose(log, horizon_s, effects, progress)
+
+
+def _diagnose(
+    log: ExperimentLog,
+    horizon_s: float | None,
+    effects: Iterable[str] | None,
+    progress: Callable[[str], None] | None,
+) -> Diagnosis:
     say = progress or (lambda _m: None)
     allowed = None if effects is None else tuple(library.module(n).EFFECT.name for n in effects)
     data = prepare(log, horizon_s)

@@ -55,6 +55,9 @@ SUBHARMONICS = (2, 3)
 #: Fewest periods over the travel searched, and accepted for a fundamental.
 MIN_PERIODS = 3.0
 MIN_PERIODS_FUNDAMENTAL = 1.5
+#: Frequencies per block of the periodogram, and at most this many complex values held at once.
+PEAK_BLOCK = 64
+PEAK_ELEMENTS = 2_000_000
 
 
 def contribute(p, plant, terms: Terms) -> None:
@@ -63,14 +66,24 @@ def contribute(p, plant, terms: Terms) -> None:
     terms.position_forces.append(SineForce(amp, k, phase))
 
 
-def _peak(ks: np.ndarray, x: np.ndarray, e: np.ndarray) -> float:
-    """Spatial frequency [rad/unit] among ``ks`` where ``e`` has the most sin/cos power over ``x``."""
-    power = np.empty(ks.size)
-    for i in range(0, ks.size, 200):
-        kk = ks[i : i + 200, None] * x[None, :]
-        s, c = np.sin(kk), np.cos(kk)
-        ss, cc = np.einsum("ij,ij->i", s, s), np.einsum("ij,ij->i", c, c)
-        power[i : i + 200] = (s @ e) ** 2 / ss + (c @ e) ** 2 / cc
+def _peak(k_lo: float, k_hi: float, count: int, x: np.ndarray, e: np.ndarray) -> float:
+    """Spatial frequency [rad/unit] among ``count`` evenly spaced from ``k_lo`` to ``k_hi`` where
+    ``e`` has the most sin/cos power over the positions ``x``.
+
+    ``exp(i k x)`` for a block of consecutive frequencies is the block's first times
+    ``exp(i j dk x)``, computed once: one complex product per frequency and sample instead of a
+    sine and a cosine (the powers agree to 1e-13 relative). ``sum sin^2`` and ``sum cos^2`` are
+    ``(n -+ Re sum exp(2 i k x)) / 2``.
+    """
+    ks = np.linspace(k_lo, k_hi, count)
+    dk = ks[1] - ks[0] if count > 1 else 0.0
+    block = int(max(1, min(PEAK_BLOCK, PEAK_ELEMENTS // max(x.size, 1), count)))
+    steps = np.exp(1j * dk * np.arange(block)[:, None] * x[None, :])
+    power = np.empty(count)
+    for i in range(0, count, block):
+        z = np.exp(1j * ks[i] * x)[None, :] * steps[: min(block, count - i)]
+        se, z2 = z @ e, np.einsum("ij,ij->i", z, z).real
+        power[i : i + z.shape[0]] = se.imag**2 / (0.5 * (x.size - z2)) + se.real**2 / (0.5 * (x.size + z2))
     return float(ks[int(np.argmax(power))])
 
 
@@ -93,15 +106,14 @@ def screen(ctx: ScreenInput) -> Screening:
             0.0, {"amp": 0.0, "period": span, "phase": 0.0}, bounds0, "travel too short"
         )
     nk = int(min(MAX_FREQUENCIES, max(50, 4 * (k_hi - k_lo) * span / (2 * math.pi))))
-    ks = np.linspace(k_lo, k_hi, nk)
     # The periodogram needs no more than a few thousand samples; the regression below uses all.
     pick = slice(None, None, max(1, x.size // PERIODOGRAM_SAMPLES))
     x_p, e_p = x[pick], e[pick]
-    k = _peak(ks, x_p, e_p)
+    k = _peak(k_lo, k_hi, nk, x_p, e_p)
     # Refine on all samples between the neighbouring grid lines: a period off by a fraction of
     # a percent already drifts by a good part of a period over a long travel.
-    step_k = ks[1] - ks[0]
-    k = _peak(np.linspace(k - step_k, k + step_k, REFINE), x, e)
+    step_k = (k_hi - k_lo) / (nk - 1)
+    k = _peak(k - step_k, k + step_k, REFINE, x, e)
 
     def fit_at(k: float) -> tuple[dict[str, float], np.ndarray, float]:
         coef, sse = regress([*cols, np.sin(k * x), np.cos(k * x)], y)
@@ -114,7 +126,7 @@ def screen(ctx: ScreenInput) -> Screening:
     others = []
     for m in SUBHARMONICS:
         if k / m >= 2 * math.pi * MIN_PERIODS_FUNDAMENTAL / span:
-            km = _peak(np.linspace(k / m - step_k, k / m + step_k, REFINE), x, e)
+            km = _peak(k / m - step_k, k / m + step_k, REFINE, x, e)
             others.append(fit_at(km)[0])
     period, amp = guess["period"], guess["amp"]
     longest = max([period] + [g["period"] for g in others])

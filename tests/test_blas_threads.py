@@ -1,0 +1,40 @@
+"""``diagnose`` runs its solves on one BLAS thread and gives the user's setting back."""
+
+from __future__ import annotations
+
+import numpy as np
+from threadpoolctl import threadpool_info, threadpool_limits
+
+from servobench.bench.blas_threads import one_blas_thread
+from servobench.bench.diagnose.workflow import diagnose
+from servobench.bench.log.io import ExperimentLog, RunData
+from servobench.sim_backend.physics.plant import PlantParams, simulate
+
+
+def _blas_threads() -> list[int]:
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_one_blas_thread_inside_and_the_setting_restored_after():
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        assert before and max(before) == 2  # numpy's BLAS is loaded and set to 2
+        with one_blas_thread():
+            assert _blas_threads() == [1] * len(before)
+        assert _blas_threads() == before
+
+
+def test_diagnose_runs_on_one_blas_thread():
+    fs, n = 500.0, 1500
+    rng = np.random.default_rng(3)
+    runs = []
+    for number in (1, 2):
+        u = np.repeat(rng.choice([-2.0, 2.0], n // 50 + 1), 50)[:n] * number
+        v, x = simulate(u, fs, PlantParams(M=0.2, B=2.0, coulomb_pos=0.4, coulomb_neg=0.3), rng)
+        runs.append(RunData(number, np.arange(n) / fs, u, v, x))
+    seen: list[list[int]] = []
+    with threadpool_limits(limits=2, user_api="blas"):
+        diagnose(ExperimentLog(tuple(runs), {}, fs, True, "test"), progress=lambda _m: seen.append(_blas_threads()))
+        after = _blas_threads()
+    assert seen and all(set(s) == {1} for s in seen)
+    assert max(after) == 2
