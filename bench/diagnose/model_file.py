@@ -8,6 +8,10 @@
   (``100 (1 - ||v - v_sim|| / ||v - mean v||)`` of the final model over the
   diagnosis' comparison, equal to ``100 - gap_percent``) and ``method``
   (``"diagnose"``);
+* ``delay_s``: the action delay the diagnosed model acts with [s], as every
+  servobench model carries it: the ``time_delay`` effect's ``delay`` where one
+  was named, else 0 (the model simulates without a delay). ``program`` designs
+  with it; ``validate`` and ``simulate`` take the effect itself;
 * ``effects``: ``{effect name: {parameter: value}}`` in the order they were
   added, with the library's parameter names (:mod:`servobench.sim_backend.physics.effects`,
   e.g. ``{"stribeck": {"fs": 1.25, "vs": 0.3}}``); empty when none was named;
@@ -43,8 +47,9 @@ from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects import position_friction
 from servobench.units import SignalUnits
 
-#: Base keys, as ``servobench identify --json`` names them.
+#: Base keys, as ``servobench identify --json`` names them, and the delay's.
 BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
+DELAY_KEY = "delay_s"
 METHOD = "diagnose"
 
 
@@ -71,7 +76,7 @@ def written_parameters(name: str, params: Mapping[str, float]) -> dict[str, floa
 
 def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
-    out = dict(units.parameters())
+    out = {**units.parameters(), DELAY_KEY: "s"}
     for name, values in cand.effects.items():
         kept = written_parameters(name, values)
         for p in library.spec(name).params:
@@ -80,11 +85,18 @@ def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     return out
 
 
+def delay_of(cand: Candidate) -> float:
+    """The action delay [s] ``cand`` simulates with: its ``time_delay``'s, else 0."""
+    return float(cand.effects["time_delay"]["delay"]) if "time_delay" in cand.effects else 0.0
+
+
 def record_values(cand: Candidate) -> dict[str, float]:
     """The parameters ``model.json`` gives, keyed as its ``units`` and ``std``: the base keys,
-    ``pole``, ``dc_gain`` and ``"effect.parameter"``."""
+    ``pole``, ``dc_gain``, ``delay_s`` (where a delay was named) and ``"effect.parameter"``."""
     b = {k: float(cand.base[k]) for k in BASE_KEYS}
     out = {**b, "pole": -b["B"] / b["M"], "dc_gain": 1.0 / b["B"]}
+    if "time_delay" in cand.effects:
+        out[DELAY_KEY] = delay_of(cand)
     for name, values in cand.effects.items():
         out.update({f"{name}.{k}": v for k, v in written_parameters(name, values).items()})
     return out
@@ -116,6 +128,7 @@ def model_record(
         "dc_gain": 1.0 / b["B"],
         "coulomb_pos": b["coulomb_pos"],
         "coulomb_neg": b["coulomb_neg"],
+        DELAY_KEY: delay_of(cand),
         "fit_percent": 100.0 - gap_percent,
         "method": METHOD,
         "effects": {n: written_parameters(n, p) for n, p in cand.effects.items()},
