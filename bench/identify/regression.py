@@ -274,6 +274,10 @@ def noise_std_from_residual(residual: np.ndarray, a: float) -> float:
     return float(MAD_TO_STD * np.median(np.abs(r)) / math.sqrt(1.0 + a * a))
 
 
+#: A fit of M or B that moves this many e-folds from its start has diverged [natural log].
+DIVERGED_LOG = 30.0
+
+
 def fit_pairs_irregular(
     pairs: Pairs, start: tuple[float, float, float, float], weights: np.ndarray | None = None
 ) -> ZohFit:
@@ -291,17 +295,24 @@ def fit_pairs_irregular(
         )
     pos, neg = pairs.pos.astype(float), pairs.neg.astype(float)
     root_w = 1.0 if weights is None else np.sqrt(weights)
+    M0, B0, fp0, fn0 = start
+    lo, hi = np.log([M0, B0]) - DIVERGED_LOG, np.log([M0, B0]) + DIVERGED_LOG
 
     def residual(p: np.ndarray) -> np.ndarray:
-        M, B = math.exp(p[0]), math.exp(p[1])
+        # held inside e^+-DIVERGED_LOG of the start: beyond, exp overflows (a diverged step)
+        M, B = math.exp(min(max(p[0], lo[0]), hi[0])), math.exp(min(max(p[1], lo[1]), hi[1]))
         a = np.exp(-B * pairs.dt / M)
         b = (1.0 - a) / B
         return root_w * (pairs.v1 - a * pairs.v0 - b * (pairs.u - p[2] * pos + p[3] * neg))
 
-    M0, B0, fp0, fn0 = start
     sol = least_squares(
         residual, [math.log(M0), math.log(B0), fp0, fn0], method="lm", xtol=1e-14, ftol=1e-14
     )
+    if not (np.all(np.isfinite(sol.x)) and np.all(sol.x[:2] > lo) and np.all(sol.x[:2] < hi)):
+        raise IdentificationError(
+            f"the pair regression on irregular intervals diverged from M {M0:.4g}, B {B0:.4g}: "
+            "too few pairs with clear motion between the host's stalls (raise the amplitude)"
+        )
     M, B, fp, fn = math.exp(sol.x[0]), math.exp(sol.x[1]), float(sol.x[2]), float(sol.x[3])
     dt = float(np.mean(pairs.dt))
     a = math.exp(-B * dt / M)
