@@ -238,8 +238,42 @@ def place_reads(segment: Segment, grid: DriveGrid, model=None) -> Placement:
     if doubt.any():
         switches = np.maximum.accumulate(grid.instant(ka))
         v_k, v_alt = _velocity_at(grid.instant(k), grid.instant(alt), segment.u, switches, model, float(v[0]))
-        k = np.maximum.accumulate(np.where(doubt & (np.abs(v_alt - v) < np.abs(v_k - v)), alt, k))
+        take = doubt & (np.abs(v_alt - v) < np.abs(v_k - v))
+        k = np.maximum.accumulate(np.where(_share_undecided(take, doubt, below, v, v_k, v_alt), alt, k))
     return Placement(k, ka)
+
+
+#: A read in doubt is decided by the simulation where its two candidate ticks' velocities differ
+#: by more than this many times the model's robust residual scale on the reads not in doubt.
+DECISIVE = 3.0
+
+
+def _share_undecided(take: np.ndarray, doubt: np.ndarray, below: np.ndarray, v: np.ndarray,
+                     v_k: np.ndarray, v_alt: np.ndarray) -> np.ndarray:  # fmt: skip
+    """``take`` (a read in doubt takes its other tick), with the reads the simulation cannot
+    decide set in the share the decided ones of their side showed.
+
+    On a steady stretch (a command held until the axis settled: every command change's own
+    read) the two ticks' velocities are alike, and the choice is the noise's; but the host's
+    bracket is off the drive's read alike for every read of a run (a port's latency), so the
+    decided reads (in the transients) show on which side the reads fall, and how often.
+    Without decided reads on a side, its undecided reads keep the bracket's middle.
+    """
+    clear = ~doubt
+    scale = 1.4826 * float(np.median(np.abs(v_k - v)[clear])) if clear.any() else 0.0
+    decided = doubt & (np.abs(v_alt - v_k) > DECISIVE * scale)
+    out = take.copy()
+    for side in (below, ~below):
+        known, open_ = decided & side, doubt & side & ~decided
+        if not known.any() or not open_.any():
+            out[open_] = False if not known.any() else out[open_]
+            continue
+        rows = np.flatnonzero(open_)
+        count = int(round(float(np.mean(take[known])) * rows.size))
+        out[rows] = False
+        if count:
+            out[rows[np.unique(np.round(np.linspace(0, rows.size - 1, count)).astype(int))]] = True
+    return out
 
 
 def _decide_actions(segment: Segment, grid: DriveGrid, model, k: np.ndarray, ka: np.ndarray,
@@ -302,8 +336,14 @@ def grid_scale(instants: np.ndarray) -> float:
 
 def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None = None) -> float:
     """The mean action delay [s] on ``grid`` over every run: one tick without a command lead; with
-    one, the mean over the rows of ticks from each sample to its command's action (each run's
-    :class:`Placement` from ``placed``, keyed by run, where given)."""
+    one, the mean over the samples whose command changed of ticks from the sample to its
+    command's action (each run's :class:`Placement` from ``placed``, keyed by run, where given).
+
+    Only a change shows its delay in the motion: a command that repeats the one before acts
+    alike from either tick, so the log cannot tell the repeats' delays, and a mean over them
+    would be the placement's guess (the drive's record counts the same: its
+    ``mean_change_delay_s``). Every row's offset is taken from this mean.
+    """
     if grid.lead_s <= 0:
         return _grid_of(grid, data.segments[0].run).period_s
     total, count = 0.0, 0
@@ -313,8 +353,10 @@ def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None 
         k = p.sample
         last = np.concatenate((np.flatnonzero(np.diff(k) != 0), [k.size - 1]))
         first = np.concatenate(([0], last[:-1] + 1))
-        total += float(np.sum(p.action[last] - k[first])) * g.period_s
-        count += first.size
+        u = np.asarray(s.u, dtype=float)[last]
+        change = np.concatenate(([True], u[1:] != u[:-1]))
+        total += float(np.sum(p.action[last][change] - k[first][change])) * g.period_s
+        count += int(np.count_nonzero(change))
     return total / count if count else _grid_of(grid, data.segments[0].run).period_s
 
 
@@ -400,15 +442,19 @@ def by_simulation(data: Dataset) -> bool:
     """Whether a grid on ``data`` is judged by the model's simulation, not its pairs: with a command
     lead, or where fewer than :data:`MIN_SWITCH_PAIRS` pairs hold a command change (every change
     reverses the axis within its interval, and such intervals are no pairs)."""
-    if data.min_delay_s < 0:
-        return True
+    return data.min_delay_s < 0 or switch_pairs(data) < MIN_SWITCH_PAIRS
+
+
+def switch_pairs(data: Dataset) -> int:
+    """Sample pairs of ``data`` that hold a command change without a reversal (a pair's two
+    velocities of one sign): the only pairs in which the drive's delay shows."""
     held = 0
     for s in data.segments:
         v, u = np.asarray(s.v), np.asarray(s.u)
         change = np.concatenate(([False], u[1:-1] != u[:-2]))  # u[k] differs from u[k - 1]
         same = ((v[:-1] > 0) & (v[1:] > 0)) | ((v[:-1] < 0) & (v[1:] < 0))
         held += int(np.count_nonzero(change & same))
-    return held < MIN_SWITCH_PAIRS
+    return held
 
 
 def find_run_grids(

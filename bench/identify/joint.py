@@ -55,6 +55,7 @@ import numpy as np
 
 from servobench.bench.identify.dataset import Dataset, Segment, initial_velocity
 from servobench.bench.identify.delay import effective_command
+from servobench.bench.identify.drive_grid import MIN_SWITCH_PAIRS, switch_pairs
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
 from servobench.bench.identify.idim import identify_idim
@@ -144,10 +145,15 @@ def identify_joint(
 
     fit = _solve(_pairs(data), data, None)
     delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
-    if math.isnan(delay_std) and any(s.act_offset_s is not None for s in data.segments):
-        # the pairs cannot tell the delay (no curvature) and the commands act each at its own
-        # offset from it (a located grid behind a command lead): the simulation tells it
-        delay_s = _delay_by_simulation(data, _model(fit, delay_s)).delay_s
+    blind = switch_pairs(data) < MIN_SWITCH_PAIRS
+    if blind or (math.isnan(delay_std) and any(s.act_offset_s is not None for s in data.segments)):
+        # the pairs cannot tell the delay: no pair holds a command switch (every switch reversed
+        # the axis within its interval), so the scan's minimum is the noise's (a jittered serial
+        # log once took 0.9 cycles there, and the mass collapsed); or there is no curvature and
+        # the commands act each at its own offset (a located grid behind a command lead). The
+        # simulation tells it; the output-error refinement gives its sigma.
+        scanned, delay_s = delay_s, _delay_by_simulation(data, _model(fit, delay_s)).delay_s
+        delay_std = math.nan if blind and delay_s != scanned else delay_std
         fit = _solve(_pairs(delayed(data, delay_s, fit.M / fit.B)), delayed(data, delay_s, fit.M / fit.B), fit)
     ddata = delayed(data, delay_s, fit.M / fit.B)
     sigma = noise_std_from_residual(fit.residual, fit.theta[0])
