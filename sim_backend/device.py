@@ -321,9 +321,9 @@ class SimulatedDevice:
                 return
             if self.tick is not None:  # from the first tick after its arrival
                 self.timed.latch_at(self.tick.instant(self._tick_k + 1), self._command)
-                self._timing.command(self._tick_k + 1)
+                self._timing.command(self._tick_k + 1, self._command)
                 return
-            self._timing.command()
+            self._timing.command(0, self._command)
             if self.timed is not None:
                 self.timed.latch(self._wall_due, self._command)
 

@@ -20,8 +20,11 @@ needs apart from the physics:
   paired with the first read at or after its arrival, and its effective
   action delay ``action tick instant - sample tick instant`` [s] (the
   plant's own transport delay, the ``delay`` effect, is physics and not
-  counted); reads that returned the tick the previous read returned; ticks
-  that passed unread between two reads. With ``tick_s == 0`` a command acts
+  counted); the same mean over the commands that changed the value in force
+  (``mean_change_delay_s``: a command that repeats the one before acts alike
+  from either tick, so only a change shows its delay in the axis's motion, and
+  a log can tell no other); reads that returned the tick the previous read
+  returned; ticks that passed unread between two reads. With ``tick_s == 0`` a command acts
   at its arrival: every delay is 0 and no tick repeats or is skipped.
 """
 
@@ -99,14 +102,20 @@ class TimingRecord:
         self._delay_min: int | None = None
         self._delay_max: int | None = None
         self._pending: int | None = None  # action tick of the command awaiting its read
+        self._pending_value: float | None = None
+        self._last_value: float | None = None  # value of the last command paired with a read
         self._last_read: int | None = None  # tick the previous read returned
+        self.changes = 0
+        self._change_delay_sum = 0  # [ticks]
 
-    def command(self, action_tick: int = 0) -> None:
-        """A command that takes force at tick ``action_tick`` (tick 0: at its arrival).
+    def command(self, action_tick: int = 0, value: float | None = None) -> None:
+        """A command that takes force at tick ``action_tick`` (tick 0: at its arrival), of
+        ``value`` (None: unknown, counted as a change).
 
         A later command before the next read replaces it (it never acts).
         """
         self._pending = int(action_tick)
+        self._pending_value = value
 
     def read(self, tick: int = 0, counted: bool = True) -> None:
         """A read that returned the sample of tick ``tick`` (tick 0: of its own instant).
@@ -130,6 +139,11 @@ class TimingRecord:
             self._delay_sum += delay
             self._delay_min = delay if self._delay_min is None else min(self._delay_min, delay)
             self._delay_max = delay if self._delay_max is None else max(self._delay_max, delay)
+            value = self._pending_value
+            if value is None or value != self._last_value:
+                self.changes += 1
+                self._change_delay_sum += delay
+            self._last_value = value
 
     def exchanges(self, n: int) -> None:
         """``n`` lock-step exchanges at once (a block): ``n`` commands and reads, no delay."""
@@ -137,19 +151,24 @@ class TimingRecord:
             return
         self._pending = None
         self.commands += int(n)
+        self.changes += int(n)  # values not seen: each counted a change (its delay is 0)
+        self._last_value = None
         self.reads += int(n)
         self._delay_min = min(self._delay_min or 0, 0)
         self._delay_max = max(self._delay_max or 0, 0)
 
     def as_dict(self) -> dict[str, float | int]:
-        """``tick_s``, ``phase_s``, ``commands``, ``mean/min/max_delay_s``, ``reads``,
-        ``repeated_reads``, ``skipped_ticks`` (delays 0 before the first command)."""
-        n = self.commands
+        """``tick_s``, ``phase_s``, ``commands``, ``mean/min/max_delay_s``, ``changes``,
+        ``mean_change_delay_s``, ``reads``, ``repeated_reads``, ``skipped_ticks`` (delays 0
+        before the first command)."""
+        n, c = self.commands, self.changes
         return {
             "tick_s": self.tick_s,
             "phase_s": self.phase_s,
             "commands": n,
             "mean_delay_s": self._delay_sum / n * self.tick_s if n else 0.0,
+            "changes": c,
+            "mean_change_delay_s": self._change_delay_sum / c * self.tick_s if c else 0.0,
             "min_delay_s": (self._delay_min or 0) * self.tick_s,
             "max_delay_s": (self._delay_max or 0) * self.tick_s,
             "reads": self.reads,

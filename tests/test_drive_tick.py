@@ -222,6 +222,33 @@ def test_the_record_pairs_a_command_with_the_next_read():
     assert rec["mean_delay_s"] == rec["min_delay_s"] == pytest.approx(-T, abs=1e-15)
 
 
+def test_the_record_s_change_mean_counts_only_commands_that_change_the_value():
+    """ODrive-like split requests: a command a fraction of a tick before its read acts with no
+    tick or with one. A repeat acts alike from either; the change mean is over the changes."""
+    dev, clock, grid = ticked()
+    k = grid.index_at(clock.now) + 1
+    plan = [(1.0, 0.2, 0.5), (1.0, 0.6, 0.9), (-1.0, 0.6, 0.9), (-1.0, 0.2, 0.5), (2.0, 0.2, 0.5)]
+    for i, (u, sent, read) in enumerate(plan):  # (value, command's and read's share of tick k+i)
+        at(clock, grid, k + i, sent)
+        dev.set_command(u)
+        at(clock, grid, k + i, read)
+        dev.sample()
+    rec = dev.timing()
+    # delays [ticks]: 1 (no tick between), 1, 1, 1, 1 -- all acting from the next tick
+    assert rec["commands"] == 5 and rec["changes"] == 3
+    assert rec["mean_change_delay_s"] == pytest.approx(T, abs=1e-15)
+    dev2, clock2, grid2 = ticked()
+    k2 = grid2.index_at(clock2.now) + 1
+    for i, (u, crossed) in enumerate([(1.0, True), (1.0, False), (-1.0, True), (-1.0, False)]):
+        at(clock2, grid2, k2 + i, 0.9)
+        dev2.set_command(u)  # a tick falls between command and read where crossed: delay 0
+        at(clock2, grid2, k2 + i + (1 if crossed else 0), 0.1 if crossed else 0.95)
+        dev2.sample()
+    rec2 = dev2.timing()
+    assert rec2["changes"] == 2 and rec2["mean_change_delay_s"] == pytest.approx(0.0, abs=1e-15)
+    assert rec2["mean_delay_s"] == pytest.approx(0.5 * T, abs=1e-15)  # the repeats' ticks count here
+
+
 def test_an_ethercat_sync0_samples_the_last_tick_and_its_outputs_act_from_the_next():
     """DC-synchronous EtherCAT (as tests/test_ethercat_slave.py sets it up), a 250 µs tick:
     the inputs of a SYNC0 event are the last tick's, 0x10F8 is that tick's DC system time, and
@@ -371,7 +398,8 @@ def test_tick_zero_still_keeps_a_record():
         dev.exchange(1.0)
     assert dev.timing() == {
         "tick_s": 0.0, "phase_s": 0.0, "commands": 5, "mean_delay_s": 0.0, "min_delay_s": 0.0,
-        "max_delay_s": 0.0, "reads": 5, "repeated_reads": 0, "skipped_ticks": 0,
+        "max_delay_s": 0.0, "changes": 1, "mean_change_delay_s": 0.0, "reads": 5,
+        "repeated_reads": 0, "skipped_ticks": 0,
     }  # fmt: skip
 
 
