@@ -36,6 +36,9 @@ from servobench.units import SignalUnits
 JITTER_RTOL = 1e-3
 #: Fewest samples a run must have.
 MIN_SAMPLES = 20
+#: Fewest sample pairs holding a command change for the pairs to show the drive's delay
+#: (:meth:`Dataset.switch_pairs`); with fewer, the model's simulation shows it.
+MIN_SWITCH_PAIRS = 20
 #: Initial velocities within this many noise deviations of zero are taken as rest.
 REST_SIGMAS = 3.0
 
@@ -218,6 +221,19 @@ class Dataset:
     def timing_uncertain(self) -> bool:
         """True when some sample instant is known only within an interval (``t_unc``)."""
         return any(s.t_unc is not None for s in self.segments)
+
+    def switch_pairs(self) -> int:
+        """Sample pairs that hold a command change without a reversal (a pair's two velocities
+        of one sign): the only pairs in which the drive's delay shows. Fewer than
+        :data:`MIN_SWITCH_PAIRS`: every change reverses the axis within its interval, and the
+        delay shows in the simulation only."""
+        held = 0
+        for s in self.segments:
+            v, u = np.asarray(s.v), np.asarray(s.u)
+            change = np.concatenate(([False], u[1:-1] != u[:-2]))  # u[k] differs from u[k - 1]
+            same = ((v[:-1] > 0) & (v[1:] > 0)) | ((v[:-1] < 0) & (v[1:] < 0))
+            held += int(np.count_nonzero(change & same))
+        return held
 
     @property
     def has_excitation(self) -> bool:

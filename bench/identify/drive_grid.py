@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset, Segment
+from servobench.bench.identify.dataset import MIN_SWITCH_PAIRS, Dataset, Segment
 from servobench.errors import IdentificationError
 
 #: Phases tried per tick in each window.
@@ -70,8 +70,6 @@ REFINE_STEPS = 12
 WINDOW_S = 0.5
 #: Fewest pairs a window needs to read its phase.
 MIN_WINDOW_PAIRS = 50
-#: Fewest pairs holding a command change for the pairs to judge a grid (else its simulation does).
-MIN_SWITCH_PAIRS = 20
 
 
 @dataclass(frozen=True)
@@ -442,19 +440,7 @@ def by_simulation(data: Dataset) -> bool:
     """Whether a grid on ``data`` is judged by the model's simulation, not its pairs: with a command
     lead, or where fewer than :data:`MIN_SWITCH_PAIRS` pairs hold a command change (every change
     reverses the axis within its interval, and such intervals are no pairs)."""
-    return data.min_delay_s < 0 or switch_pairs(data) < MIN_SWITCH_PAIRS
-
-
-def switch_pairs(data: Dataset) -> int:
-    """Sample pairs of ``data`` that hold a command change without a reversal (a pair's two
-    velocities of one sign): the only pairs in which the drive's delay shows."""
-    held = 0
-    for s in data.segments:
-        v, u = np.asarray(s.v), np.asarray(s.u)
-        change = np.concatenate(([False], u[1:-1] != u[:-2]))  # u[k] differs from u[k - 1]
-        same = ((v[:-1] > 0) & (v[1:] > 0)) | ((v[:-1] < 0) & (v[1:] < 0))
-        held += int(np.count_nonzero(change & same))
-    return held
+    return data.min_delay_s < 0 or data.switch_pairs() < MIN_SWITCH_PAIRS
 
 
 def find_run_grids(

@@ -53,9 +53,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from servobench.bench.identify.dataset import Dataset, Segment, initial_velocity
+from servobench.bench.identify.dataset import MIN_SWITCH_PAIRS, Dataset, Segment, initial_velocity
 from servobench.bench.identify.delay import effective_command
-from servobench.bench.identify.drive_grid import MIN_SWITCH_PAIRS, switch_pairs
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.identify.frequency import steady_average
 from servobench.bench.identify.idim import identify_idim
@@ -145,7 +144,7 @@ def identify_joint(
 
     fit = _solve(_pairs(data), data, None)
     delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
-    blind = switch_pairs(data) < MIN_SWITCH_PAIRS
+    blind = data.switch_pairs() < MIN_SWITCH_PAIRS
     if blind or (math.isnan(delay_std) and any(s.act_offset_s is not None for s in data.segments)):
         # the pairs cannot tell the delay: no pair holds a command switch (every switch reversed
         # the axis within its interval), so the scan's minimum is the noise's (a jittered serial
