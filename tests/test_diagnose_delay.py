@@ -3,8 +3,8 @@
 Issue 28: every model carries the drive's action delay ``delay_s``, and
 ``program`` designs with it. A diagnosis that names ``time_delay`` gives its
 delay as ``delay_s`` in ``base_after`` (JSON), ``model.json`` and ``std``; one
-that names none gives 0 and no sigma; ``program`` on the diagnosed model sees
-one cycle plus that delay.
+that names none states no delay (no ``delay_s``, as before); ``program`` on the
+diagnosed model sees one cycle plus the delay.
 """
 
 from __future__ import annotations
@@ -45,12 +45,13 @@ def test_a_named_delay_is_the_model_s_delay_s_and_program_designs_with_it(tmp_pa
     assert pi.delay_cycles == pytest.approx(1.0 + named * FS_HZ)
 
 
-def test_without_a_named_delay_the_model_acts_at_once(tmp_path):
+def test_without_a_named_delay_the_diagnosis_states_none(tmp_path):
     _, result = _diagnosed("viscous_asymmetry", 1, tmp_path)
     assert "time_delay" not in result.effects
     doc = result.to_dict()
-    assert doc["base_after"]["delay_s"] == 0.0 and "delay_s" not in doc["std"]
+    assert "delay_s" not in doc["base_after"] and "delay_s" not in doc["std"]
     record = json.loads((tmp_path / "diagnosis" / "model.json").read_text())
-    assert record["delay_s"] == 0.0
+    assert "delay_s" not in record and "delay_s" not in record["units"]
+    assert result.model.delay is None
     pi = sb.program(sb.load_model(tmp_path / "diagnosis" / "model.json"), fs_hz=FS_HZ).velocity_pi
     assert pi.delay_cycles == pytest.approx(1.0)

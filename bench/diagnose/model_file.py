@@ -8,10 +8,10 @@
   (``100 (1 - ||v - v_sim|| / ||v - mean v||)`` of the final model over the
   diagnosis' comparison, equal to ``100 - gap_percent``) and ``method``
   (``"diagnose"``);
-* ``delay_s``: the action delay the diagnosed model acts with [s], as every
-  servobench model carries it: the ``time_delay`` effect's ``delay`` where one
-  was named, else 0 (the model simulates without a delay). ``program`` designs
-  with it; ``validate`` and ``simulate`` take the effect itself;
+* ``delay_s``: where a ``time_delay`` was named, its ``delay`` [s], the action
+  delay as every servobench model carries it (``program`` designs the PI with
+  it; ``validate`` and ``simulate`` take the effect itself); absent where none
+  was named (the diagnosis states no delay, as before);
 * ``effects``: ``{effect name: {parameter: value}}`` in the order they were
   added, with the library's parameter names (:mod:`servobench.sim_backend.physics.effects`,
   e.g. ``{"stribeck": {"fs": 1.25, "vs": 0.3}}``); empty when none was named;
@@ -76,7 +76,7 @@ def written_parameters(name: str, params: Mapping[str, float]) -> dict[str, floa
 
 def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     """Unit of every parameter of a model: base keys, ``"effect.parameter"``, and u, v, x."""
-    out = {**units.parameters(), DELAY_KEY: "s"}
+    out = {**units.parameters(), **{k: "s" for k in delay_of(cand)}}
     for name, values in cand.effects.items():
         kept = written_parameters(name, values)
         for p in library.spec(name).params:
@@ -85,9 +85,9 @@ def parameter_units(cand: Candidate, units: SignalUnits) -> dict[str, str]:
     return out
 
 
-def delay_of(cand: Candidate) -> float:
-    """The action delay [s] ``cand`` simulates with: its ``time_delay``'s, else 0."""
-    return float(cand.effects["time_delay"]["delay"]) if "time_delay" in cand.effects else 0.0
+def delay_of(cand: Candidate) -> dict[str, float]:
+    """``{"delay_s": the named time_delay's delay [s]}``, empty where none was named."""
+    return {DELAY_KEY: float(cand.effects["time_delay"]["delay"])} if "time_delay" in cand.effects else {}
 
 
 def record_values(cand: Candidate) -> dict[str, float]:
@@ -95,8 +95,7 @@ def record_values(cand: Candidate) -> dict[str, float]:
     ``pole``, ``dc_gain``, ``delay_s`` (where a delay was named) and ``"effect.parameter"``."""
     b = {k: float(cand.base[k]) for k in BASE_KEYS}
     out = {**b, "pole": -b["B"] / b["M"], "dc_gain": 1.0 / b["B"]}
-    if "time_delay" in cand.effects:
-        out[DELAY_KEY] = delay_of(cand)
+    out.update(delay_of(cand))
     for name, values in cand.effects.items():
         out.update({f"{name}.{k}": v for k, v in written_parameters(name, values).items()})
     return out
@@ -128,7 +127,7 @@ def model_record(
         "dc_gain": 1.0 / b["B"],
         "coulomb_pos": b["coulomb_pos"],
         "coulomb_neg": b["coulomb_neg"],
-        DELAY_KEY: delay_of(cand),
+        **delay_of(cand),
         "fit_percent": 100.0 - gap_percent,
         "method": METHOD,
         "effects": {n: written_parameters(n, p) for n, p in cand.effects.items()},

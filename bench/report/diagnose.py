@@ -11,7 +11,7 @@ Every fitted parameter carries its 1-sigma (:mod:`servobench.bench.diagnose.sigm
 JSON's ``std`` (keyed as ``units``: the base as ``base_after`` gives it, ``pole``,
 ``dc_gain``, and ``"effect.parameter"`` as each effect's ``parameters`` report it, e.g.
 ``stribeck.fs_pos``; ``delay_s`` beside ``time_delay.delay`` where a delay was named: the
-``delay_s`` of ``base_after``, the diagnosed model's action delay, 0 without one),
+``delay_s`` of ``base_after``, the diagnosed model's action delay, absent without one),
 ``value ± sigma`` in the text, a 1-sigma column in the report's table.
 Parameters held fixed in the fit have none; a coloured training residual is noted.
 """
@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from servobench.bench.diagnose.model_file import (
-    DELAY_KEY,
     delay_of,
     model_record,
     parameter_units,
@@ -95,8 +94,7 @@ def parameter_std(d: Diagnosis) -> dict[str, float]:
     named = tuple(e.name for e in d.effects)
 
     def reported(c: Candidate) -> dict[str, float]:
-        out = _reported(c, named)
-        return {**out, DELAY_KEY: delay_of(c)} if "time_delay" in c.effects else out
+        return {**_reported(c, named), **delay_of(c)}
 
     return candidate_std(d.final, cov, reported)
 
@@ -168,7 +166,7 @@ def to_json(d: Diagnosis) -> dict:
             for e in d.effects
         ],
         "base_before": _base_json(d.base_before),
-        "base_after": {**_base_json(d.base), DELAY_KEY: delay_of(d.final)},
+        "base_after": {**_base_json(d.base), **delay_of(d.final)},
         "base_start": d.start.source,
         "sim_url": sim_url(d.final),
         "units": parameter_units(d.final, d.data.units),
