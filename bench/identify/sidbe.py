@@ -142,7 +142,7 @@ def _friction_sampled(
 ) -> tuple[float, float, float, float, float]:
     dt = data.dt_s
     a = math.exp(-B * dt / M)
-    b = (1.0 - a) / B
+    b = -math.expm1(-B * dt / M) / B  # (1 - a) / B without the cancellation: never 0
     vs = [s.v for s in data.segments]
     # the command held over each interval that moves the block as the delayed ones do
     # (padded to n: the pairs read u[k] for k < n - 1 only)
@@ -183,7 +183,7 @@ def _friction_std(data: Dataset, fit, threshold: float, sigma: float) -> tuple[f
 
     def levels(M: float, B: float, delay_s: float) -> np.ndarray:
         a = math.exp(-B * dt / M)
-        b = (1.0 - a) / B
+        b = -math.expm1(-B * dt / M) / B
         sums, counts = np.zeros(2), np.zeros(2)
         for (v, _), s, m in zip(segments, data.segments, masks, strict=True):
             u = effective_command(s.u, dt, delay_s, M / B)[: v.size - 1]
@@ -207,7 +207,7 @@ def _friction_std(data: Dataset, fit, threshold: float, sigma: float) -> tuple[f
             grad[:, j] = (levels(*up) - levels(*down)) / (up[j] - down[j])
         var += np.einsum("ij,jk,ik->i", grad, cov, grad)
     a = math.exp(-fit.B * dt / fit.M)
-    b = (1.0 - a) / fit.B
+    b = -math.expm1(-fit.B * dt / fit.M) / fit.B
     gamma = _noise_autocovariance(data, sigma)
     weights = parzen(np.arange(gamma.size) / gamma.size)
     for m in masks:
