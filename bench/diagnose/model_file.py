@@ -43,13 +43,13 @@ from typing import Any
 
 from servobench.bench.diagnose.sigma import ParameterCovariance, candidate_std
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.model.servo import DELAY_KEY
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects import position_friction
 from servobench.units import SignalUnits
 
-#: Base keys, as ``servobench identify --json`` names them, and the delay's.
+#: Base keys, as ``servobench identify --json`` names them.
 BASE_KEYS = ("M", "B", "coulomb_pos", "coulomb_neg")
-DELAY_KEY = "delay_s"
 METHOD = "diagnose"
 
 

@@ -172,11 +172,9 @@ def onto_grid(
     t = np.asarray(segment.t, dtype=float)
     placed = place_reads(segment, grid) if placed is None else placed
     k = placed.sample
-    keep = np.concatenate(([True], np.diff(k) != 0))
     if np.any(np.diff(k) < 0):
         raise IdentificationError("the log's instants go back: no tick grid can hold them")
-    first = np.flatnonzero(keep)
-    last = np.concatenate((first[1:] - 1, [t.size - 1]))
+    first, last = _merged_rows(k)
     t_new = grid.instant(k[first])
 
     def pick(a, rows):
@@ -192,6 +190,12 @@ def onto_grid(
         t_unc=pick(segment.t_unc, first), dt_s=np.diff(t_new), act_offset_s=offsets,
     )  # fmt: skip
     return moved, int(t.size - first.size)
+
+
+def _merged_rows(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first and the last read of each run of equal ticks ``k`` (the reads one sample merges)."""
+    first = np.flatnonzero(np.concatenate(([True], np.diff(k) != 0)))
+    return first, np.concatenate((first[1:] - 1, [k.size - 1]))
 
 
 @dataclass(frozen=True)
@@ -262,13 +266,9 @@ def _share_undecided(take: np.ndarray, doubt: np.ndarray, below: np.ndarray, v: 
     decided = doubt & (np.abs(v_alt - v_k) > DECISIVE * scale)
     out = take.copy()
     for side in (below, ~below):
-        known, open_ = decided & side, doubt & side & ~decided
-        if not known.any() or not open_.any():
-            out[open_] = False if not known.any() else out[open_]
-            continue
-        rows = np.flatnonzero(open_)
-        count = int(round(float(np.mean(take[known])) * rows.size))
+        known, rows = decided & side, np.flatnonzero(doubt & side & ~decided)
         out[rows] = False
+        count = int(round(float(np.mean(take[known])) * rows.size)) if known.any() else 0
         if count:
             out[rows[np.unique(np.round(np.linspace(0, rows.size - 1, count)).astype(int))]] = True
     return out
@@ -349,8 +349,7 @@ def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None 
         g = _grid_of(grid, s.run)
         p = place_reads(s, g) if not placed or placed.get(s.run) is None else placed[s.run]
         k = p.sample
-        last = np.concatenate((np.flatnonzero(np.diff(k) != 0), [k.size - 1]))
-        first = np.concatenate(([0], last[:-1] + 1))
+        first, last = _merged_rows(k)
         u = np.asarray(s.u, dtype=float)[last]
         change = np.concatenate(([True], u[1:] != u[:-1]))
         total += float(np.sum(p.action[last][change] - k[first][change])) * g.period_s
