@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pytest
 
-from servobench.bench.testing.served import ServedSim
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 
 #: one real-time bench at a time over the workers (conftest.realtime_bench)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("realtime_bench")]
@@ -54,7 +54,7 @@ def _sidbe(transport: str, tick: float, stamps: bool, tmp_path: Path, seed: int)
         args.append("--no-timestamp")
     with ServedSim(transport, PLANT.format(seed=seed), args) as served:
         proc = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url, "--json",
+            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url + PATIENT_KEYS[transport], "--json",
              "--no-plots", "--out", str(tmp_path / "run"), *SHORT],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip

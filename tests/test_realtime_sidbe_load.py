@@ -21,7 +21,7 @@ from contextlib import contextmanager
 import pytest
 
 from servobench.bench.log.io import read_log
-from servobench.bench.testing.served import ServedSim
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 
 #: one real-time bench at a time over the workers (conftest.realtime_bench)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("realtime_bench")]
@@ -60,7 +60,7 @@ def test_default_sidbe_in_real_time_under_load(transport, stamped, tmp_path):
     args += [] if stamped or transport == "serial" else ["--no-timestamp"]
     with two_busy_processes(), ServedSim(transport, SIM, args) as served:
         proc = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url, "--json",
+            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url + PATIENT_KEYS[transport], "--json",
              "--out", str(tmp_path / "run"), *SHORT],
             capture_output=True, text=True, timeout=300,
         )  # fmt: skip
