@@ -111,6 +111,8 @@ def identify(
     for grid, moved, merged, again in tried[:1]:
         if not trial or refit_kept(result.fit_percent, again.fit_percent):
             best = (grid, moved, again, merged)
+    if best is not None and not trial and best[0].lead_s <= 0:
+        best = _placed_by_pairs(data, *best, method, resonance)
     if best is not None:
         grid, moved, again, merged = best
 
@@ -145,6 +147,22 @@ def _relocated(data: Dataset, grid, moved: Dataset, merged: int, again: Identifi
     if again2.fit_percent > again.fit_percent:
         return better, moved2, merged2, again2
     return grid, moved, merged, again
+
+
+def _placed_by_pairs(data: Dataset, grid, moved: Dataset, again: IdentificationResult, merged: int, method: str,
+                     resonance: bool):  # fmt: skip
+    """``(grid, moved, result, merged)`` with the reads whose bracket holds a tick placed by the
+    pairs of the model identified on ``grid`` (one request carries command and sample:
+    :func:`~servobench.bench.identify.pair_placement.place_by_pairs`), kept where that verifies
+    better."""
+    moved2, merged2 = on_grid(data, grid, again.model, pairs=True)
+    try:
+        again2 = identify_data(moved2, method, resonance=resonance)
+    except IdentificationError:
+        return grid, moved, again, merged
+    if again2.fit_percent > again.fit_percent:
+        return grid, moved2, again2, merged2
+    return grid, moved, again, merged
 
 
 def _number(text: str | None) -> float:

@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from servobench.bench.identify.dataset import MIN_SWITCH_PAIRS, Dataset, Segment
+from servobench.bench.identify.pair_placement import place_by_pairs
 from servobench.errors import IdentificationError
 
 #: Phases tried per tick in each window.
@@ -212,9 +213,12 @@ class Placement:
 ACTION_DOUBT = 0.15
 
 
-def place_reads(segment: Segment, grid: DriveGrid, model=None) -> Placement:
+def place_reads(segment: Segment, grid: DriveGrid, model=None, pairs: bool = False) -> Placement:
     """Each read's sample and action tick on ``grid`` (:class:`Placement`); with ``model``, and a
-    command lead, a read whose instants are in doubt decided by ``model``'s simulation.
+    command lead, a read whose instants are in doubt decided by ``model``'s simulation; without a
+    lead, and ``pairs``, by ``model``'s one-step pairs around it
+    (:func:`~servobench.bench.identify.pair_placement.place_by_pairs`: a read and its command
+    move together).
 
     The command of a read arrived ``lead_s`` before it and acts from the first
     tick after; where a tick lies within the doubt of that arrival
@@ -228,8 +232,14 @@ def place_reads(segment: Segment, grid: DriveGrid, model=None) -> Placement:
     """
     t = np.asarray(segment.t, dtype=float)
     k, ka = grid.index(t), grid.action_index(t)
-    if model is None or grid.lead_s <= 0 or segment.t_unc is None or t.size < 2:
+    if model is None or segment.t_unc is None or t.size < 2:
         return Placement(k, ka)
+    if grid.lead_s <= 0:
+        if not pairs:
+            return Placement(k, ka)
+        k = place_by_pairs(t, segment.t_unc, segment.u, segment.v, k, grid.instant, grid.period_s,
+                           model.to_plant_params())  # fmt: skip
+        return Placement(k, k + 1.0)
     unc = np.asarray(segment.t_unc, dtype=float)
     v = np.asarray(segment.v, dtype=float)
     ka = _decide_actions(segment, grid, model, k, ka, np.maximum(unc, ACTION_DOUBT * grid.tick_s))
@@ -357,12 +367,12 @@ def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None 
     return total / count if count else _grid_of(grid, data.segments[0].run).period_s
 
 
-def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None) -> tuple[Dataset, int]:
+def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None, pairs: bool = False) -> tuple[Dataset, int]:
     """Every run of ``data`` on the grid (:func:`onto_grid`; its own where ``grid`` holds one per
-    run), and the reads merged in all; with ``model`` and a command lead, the reads near a tick
-    placed by it (:func:`place_reads`)."""
+    run), and the reads merged in all; with ``model`` and a command lead (or ``pairs``), the
+    reads near a tick placed by it (:func:`place_reads`)."""
     segments, merged = [], 0
-    placed = {s.run: place_reads(s, _grid_of(grid, s.run), model) for s in data.segments}
+    placed = {s.run: place_reads(s, _grid_of(grid, s.run), model, pairs) for s in data.segments}
     mean_delay = grid_delay_s(data, grid, placed) if grid.lead_s > 0 else None
     for s in data.segments:
         moved, n = onto_grid(s, _grid_of(grid, s.run), mean_delay, placed[s.run])
@@ -456,8 +466,8 @@ def find_run_grids(
             return None
         grids.append((seg.run, g))
     found = RunGrids(tuple(grids), 1.0)
-    try:
-        moved, _ = on_grid(data, found, model)
+    try:  # (one request carrying both: the reads near a tick placed by the pairs)
+        moved, _ = on_grid(data, found, model if simulated else replace(model, delay_s=tick), pairs=not simulated)
         if found.grids[0][1].simulated:
             placed = {seg.run: place_reads(seg, found.for_run(seg.run), model) for seg in data.segments}
             baseline = _simulation_ms(data, model)
@@ -542,7 +552,7 @@ def find_grid_at(
         if cost < best_cost:
             best_cost, grid = cost, trial
     try:
-        moved, _ = on_grid(data, grid)
+        moved, _ = on_grid(data, grid) if simulated else on_grid(data, grid, model, pairs=True)
         if simulated:
             best = _simulation_ms(moved, replace(model, delay_s=grid_delay_s(data, grid)))
         else:

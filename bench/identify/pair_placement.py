@@ -1,0 +1,147 @@
+"""Reads near a drive tick placed by the model's one-step pairs, where one request carries both.
+
+Where one request carries the command and asks for the sample (Modbus FC23,
+a CANopen SYNC, an EtherCAT frame: no command lead), a read taken at the
+drive's tick ``k`` holds that tick's sample, and its command acts from tick
+``k + 1``. The host knows the request's arrival only within its bracket
+``t +- t_unc``; where a tick of the located grid lies inside it, the read may
+belong to the tick before or after the one its logged instant gives
+(:meth:`~servobench.bench.identify.drive_grid.DriveGrid.index`). Such a read,
+misplaced by one tick, moves its sample and its command's action together,
+which costs the fit wherever the axis is in a transient (a tick of a 10 ms
+time constant is 2.5-10 % of a step at 0.25-1 ms).
+
+:func:`place_by_pairs` decides each such read by the pairs around it: the
+exact one-step response of the model (stick-slip, the command in force over
+each tick) from the sample before to the read, and from the read to the
+samples after. The reads move where the pairs then fit better by more than
+:data:`PAIR_DECISIVE` squared residual scales per read moved, all at once
+(dynamic programming along the run); on a steady stretch both ticks predict
+alike and the read keeps its logged tick (where it costs nothing).
+
+Pure: arrays in, tick indices out; no transport.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Moving a read off its logged tick costs this many residual scales, squared: a read moves only
+#: where its pairs then fit better by that much (a three-sigma decision).
+PAIR_DECISIVE = 3.0
+#: The most ticks a read may move from its logged one (where its bracket holds them: a host that
+#: stalled knows a read's instant only within several ticks).
+MAX_SHIFT = 4
+
+
+def place_by_pairs(
+    t_s: np.ndarray,
+    t_unc_s: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    k: np.ndarray,
+    tick_instant,
+    tick_s: float,
+    params,
+) -> np.ndarray:
+    """The sample ticks ``k`` with each read whose bracket holds a tick decided by its pairs.
+
+    All reads at once: each may take its logged tick or one up to
+    :data:`MAX_SHIFT` ticks before or after it (where its bracket allows), and the ticks that leave the least
+    sum of squared pair residuals, plus :data:`PAIR_DECISIVE` squared residual
+    scales for every read moved, are found by dynamic programming along the
+    run (a run of misplaced reads moves together, which one read at a time
+    cannot: each alone agrees with its misplaced neighbours).
+
+    Parameters
+    ----------
+    t_s, t_unc_s : ndarray, shape (n,)
+        The reads' logged instants and half-brackets [s].
+    u, v : ndarray, shape (n,)
+        Command and velocity per read; ``u[i]`` acts from tick ``k[i] + 1``.
+    k : ndarray, shape (n,)
+        Each read's tick as its logged instant gives it (non-decreasing).
+    tick_instant : callable
+        Tick index -> its instant on the log's clock [s].
+    tick_s : float
+        The tick on the log's clock [s].
+    params : PlantParams
+        The model the pairs are judged under.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The ticks, non-decreasing.
+    """
+    t = np.asarray(t_s, dtype=float)
+    unc = np.asarray(t_unc_s, dtype=float)
+    u = np.asarray(u, dtype=float)
+    v = np.asarray(v, dtype=float)
+    k = np.asarray(k, dtype=float)
+    n = k.size
+    if n < 3:
+        return k.copy()
+    reach = int(np.clip(np.ceil(2.0 * float(np.max(unc)) / tick_s), 1, MAX_SHIFT))
+    shifts = np.arange(-reach, reach + 1, dtype=float)
+    cand = k[:, None] + shifts[None, :]  # (n, shifts)
+    allowed = (tick_instant(cand) <= t[:, None] + unc[:, None]) & (tick_instant(cand + 1.0) > t[:, None] - unc[:, None])
+    allowed[:, reach] = True  # the logged tick itself
+    if allowed.sum() == n:
+        return k.copy()
+    u_first = np.concatenate(([0.0], u[:-2]))  # pair (j - 1, j): over its first tick, u[j - 2]
+    e = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], tick_s, params)
+    steps = np.diff(k) > 0
+    scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][steps]))) if steps.any() else 0.0
+    if not scale > 0:
+        return k.copy()
+    moved = (PAIR_DECISIVE * scale) ** 2 * (shifts != 0.0)
+    pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)  # (n - 1, S, S): never back
+    cost = np.where(allowed[0], moved, np.inf)
+    back = np.zeros((n - 1, shifts.size), dtype=int)
+    for j in range(1, n):
+        total = cost[:, None] + pair[j - 1]
+        back[j - 1] = np.argmin(total, axis=0)
+        cost = total[back[j - 1], np.arange(shifts.size)] + np.where(allowed[j], moved, np.inf)
+    state = np.empty(n, dtype=int)
+    state[-1] = int(np.argmin(cost))
+    for j in range(n - 1, 0, -1):
+        state[j - 1] = back[j - 1, state[j]]
+    return cand[np.arange(n), state]
+
+
+def _pair_errors(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s: float, params) -> np.ndarray:
+    """Residuals of pairs of samples ``v_a`` at ticks ``k_a`` and ``v_b`` at ``k_b`` (broadcast;
+    the leading axis is the pair's): ``v_b`` less the model's exact stick-slip response from
+    ``v_a`` under ``u_first`` over the first tick and ``u_rest`` over the others. Two reads of one
+    tick hold one sample (residual ``v_b - v_a``)."""
+    shape = np.broadcast_shapes(np.shape(k_a), np.shape(k_b))
+    ticks = np.broadcast_to(k_b - k_a, shape)
+    ones = np.ones(shape)
+    col = (slice(None),) + (None,) * (len(shape) - 1)
+    va, vb = v_a[col] * ones, v_b[col] * ones
+    mid = _step(va, u_first[col] * ones, np.where(ticks >= 1, tick_s, 0.0), params)
+    end = _step(mid, u_rest[col] * ones, np.maximum(ticks - 1.0, 0.0) * tick_s, params)
+    return vb - end
+
+
+def _step(v: np.ndarray, u: np.ndarray, dt: np.ndarray, params) -> np.ndarray:
+    """The exact stick-slip velocity after ``dt`` [s] under a constant command ``u`` from ``v``
+    (elementwise; the piecewise exponential of
+    :func:`~servobench.bench.identify.simulation.simulate_variable_dt`)."""
+    M, B = params.M, params.B
+    fcp, fcn = params.coulomb_pos, params.coulomb_neg
+    bkp, bkn = params.breakaway_pos, params.breakaway_neg
+    tau = M / B
+    forward = (v > 0) | ((v == 0) & (u > bkp))
+    backward = (v < 0) | ((v == 0) & (u < -bkn))
+    f = np.where(forward, fcp, -fcn)
+    vinf = (u - f) / B
+    vn = vinf + (v - vinf) * np.exp(-dt / tau)
+    keeps = np.where(forward, vn > 0, vn < 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = tau * np.log((v - vinf) / -vinf)
+    sticks = (-bkn <= u) & (u <= bkp)
+    f2 = np.where(u > bkp, fcp, -fcn)
+    after = np.where(sticks, 0.0, (u - f2) / B * (1.0 - np.exp(-(dt - tc) / tau)))
+    moving = forward | backward
+    return np.where(moving & keeps, vn, np.where(moving, after, 0.0))
