@@ -111,13 +111,14 @@ def identify(
     for grid, moved, merged, again in tried[:1]:
         if not trial or refit_kept(result.fit_percent, again.fit_percent):
             best = (grid, moved, again, merged)
+    placer = None  # the model whose pairs placed the reads near a tick
     if best is not None and not trial and best[0].lead_s <= 0:
-        best = _placed_by_pairs(data, *best, method, resonance)
+        best, placer = _placed_by_pairs(data, *best, method, resonance)
     if best is not None:
         grid, moved, again, merged = best
 
-        def regrid(d: Dataset) -> Dataset:
-            return on_grid(d, grid)[0]
+        def regrid(d: Dataset) -> Dataset:  # the timing figure's draws, placed as the log was
+            return on_grid(d, grid, placer, pairs=placer is not None)[0]
 
         data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
@@ -151,18 +152,18 @@ def _relocated(data: Dataset, grid, moved: Dataset, merged: int, again: Identifi
 
 def _placed_by_pairs(data: Dataset, grid, moved: Dataset, again: IdentificationResult, merged: int, method: str,
                      resonance: bool):  # fmt: skip
-    """``(grid, moved, result, merged)`` with the reads whose bracket holds a tick placed by the
-    pairs of the model identified on ``grid`` (one request carries command and sample:
+    """``((grid, moved, result, merged), placer)`` with the reads whose bracket holds a tick placed
+    by the pairs of the model identified on ``grid`` (one request carries command and sample:
     :func:`~servobench.bench.identify.pair_placement.place_by_pairs`), kept where that verifies
-    better."""
+    better; ``placer``: that model, or None where the placement was not kept."""
     moved2, merged2 = on_grid(data, grid, again.model, pairs=True)
     try:
         again2 = identify_data(moved2, method, resonance=resonance)
     except IdentificationError:
-        return grid, moved, again, merged
+        return (grid, moved, again, merged), None
     if again2.fit_percent > again.fit_percent:
-        return grid, moved2, again2, merged2
-    return grid, moved, again, merged
+        return (grid, moved2, again2, merged2), again.model
+    return (grid, moved, again, merged), None
 
 
 def _number(text: str | None) -> float:
