@@ -90,3 +90,16 @@ def test_the_pairs_step_is_the_exact_stick_slip_simulation():
     want = [simulate_variable_dt(np.array([a, 0.0]), np.array([d]), plant, b)[-1]
             for a, d, b in zip(u, dt, v0, strict=True)]
     np.testing.assert_allclose(_step(v0, u, dt, plant), want, rtol=1e-12, atol=1e-14)
+
+
+def test_a_read_the_host_stalled_on_takes_the_tick_its_pairs_fit():
+    logged, unc, u, v, k_true, v_tick = _log(7)
+    i = 1500 + int(np.argmax(np.abs(np.diff(v[1500:1600]))))  # a read in a transient
+    unc = unc.copy()
+    unc[i] = 2.2e-3  # the host knows its instant within 9 ticks either way
+    logged = logged.copy()
+    logged[i] += 1.5e-3  # and logged it 6 ticks late
+    k0, k = _place(logged, unc, u, v)
+    assert k0[i] - k_true[i] >= 5
+    assert k[i] == k_true[i]
+    assert _cost(k, k_true, v_tick) < 1e-6 * _cost(k0, k_true, v_tick)

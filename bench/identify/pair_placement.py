@@ -26,9 +26,18 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Moving a read off its logged tick costs this many residual scales, squared: a read moves only
-#: where its pairs then fit better by that much (a three-sigma decision).
+#: A read's shift from its logged tick differing from the read before's costs this many residual
+#: scales, squared: the shift changes only where the pairs then fit better by that much (a
+#: three-sigma decision). The host's bracket sits off the drive's arrival alike for neighbouring
+#: reads (a port's latency; a host cycle a whole number of ticks keeps their phase), so a stretch of
+#: reads moves together at the cost of one change, however long.
 PAIR_DECISIVE = 3.0
+#: Each bracket widened by this share of the tick: the grid's phase on the host's clock is located
+#: from the data, within a few microseconds (a read 2 us outside its bracket's tick was seen).
+PHASE_SLACK = 0.05
+#: Moving a read off its logged tick costs this share of that: where every tick fits alike (a steady
+#: axis) the read keeps its logged one.
+TIE_SHARE = 1e-3
 #: The most ticks a read may move from its logged one (where its bracket holds them: a host that
 #: stalled knows a read's instant only within several ticks).
 MAX_SHIFT = 4
@@ -49,9 +58,12 @@ def place_by_pairs(
     All reads at once: each may take its logged tick or one up to
     :data:`MAX_SHIFT` ticks before or after it (where its bracket allows), and the ticks that leave the least
     sum of squared pair residuals, plus :data:`PAIR_DECISIVE` squared residual
-    scales for every read moved, are found by dynamic programming along the
-    run (a run of misplaced reads moves together, which one read at a time
-    cannot: each alone agrees with its misplaced neighbours).
+    scales wherever a read's shift differs from the read before's, are found
+    by dynamic programming along the run (a run of misplaced reads moves
+    together, which one read at a time cannot: each alone agrees with its
+    misplaced neighbours). A read whose bracket reaches further (the host
+    stalled on it) then takes, of every tick its bracket holds, the one its
+    own two pairs fit best, its neighbours as placed.
 
     Parameters
     ----------
@@ -81,32 +93,86 @@ def place_by_pairs(
     n = k.size
     if n < 3:
         return k.copy()
-    reach = int(np.clip(np.ceil(2.0 * float(np.max(unc)) / tick_s), 1, MAX_SHIFT))
+    unc = unc + PHASE_SLACK * tick_s  # the grid's phase is located only so well
+    reach = int(np.clip(np.ceil(2.0 * float(np.quantile(unc, 0.99)) / tick_s), 1, MAX_SHIFT))
     shifts = np.arange(-reach, reach + 1, dtype=float)
-    cand = k[:, None] + shifts[None, :]  # (n, shifts)
-    allowed = (tick_instant(cand) <= t[:, None] + unc[:, None]) & (tick_instant(cand + 1.0) > t[:, None] - unc[:, None])
-    allowed[:, reach] = True  # the logged tick itself
-    if allowed.sum() == n:
-        return k.copy()
-    u_first = np.concatenate(([0.0], u[:-2]))  # pair (j - 1, j): over its first tick, u[j - 2]
-    e = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], tick_s, params)
-    steps = np.diff(k) > 0
-    scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][steps]))) if steps.any() else 0.0
-    if not scale > 0:
-        return k.copy()
-    moved = (PAIR_DECISIVE * scale) ** 2 * (shifts != 0.0)
+    first = np.floor(_tick_at(tick_instant, k, t - unc))
+    last = np.floor(_tick_at(tick_instant, k, t + unc))
+    wide = (first < k - reach) | (last > k + reach)  # the host stalled on it: placed alone
+    centre = k.copy()
+    scale = None
+    for judged in (False, True):  # the stalled reads' pairs left out, then judged where they were put
+        cand = centre[:, None] + shifts[None, :]  # (n, S)
+        allowed = (tick_instant(cand) <= t[:, None] + unc[:, None]) & (
+            tick_instant(cand + 1.0) > t[:, None] - unc[:, None])  # fmt: skip
+        allowed[:, reach] = True  # the logged tick itself (a stalled read: where it was put)
+        allowed[wide] = shifts == 0.0
+        if allowed.sum() == n and not wide.any():
+            return k.copy()
+        u_first = np.concatenate(([0.0], u[:-2]))  # pair (j - 1, j): over its first tick, u[j - 2]
+        e = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], tick_s, params)
+        if scale is None:
+            steps = np.diff(k) > 0
+            scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][steps & ~wide[1:] & ~wide[:-1]])))
+            if not scale > 0:
+                return k.copy()
+        if not judged:
+            e[wide[:-1] | wide[1:]] = 0.0
+        placed = _viterbi(cand, allowed, e, shifts, (PAIR_DECISIVE * scale) ** 2)
+        for i in np.flatnonzero(wide).tolist():
+            placed[i] = _best_alone(i, placed, first[i], last[i], u, v, tick_s, params)
+        if not wide.any():
+            break
+        centre = np.where(wide, placed, k)
+    return placed
+
+
+def _viterbi(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float) -> np.ndarray:
+    """The ticks of ``cand`` (n, S), one per read among the ``allowed``, that leave the least sum of
+    the squared pair residuals ``e`` (n - 1, S, S), ``bar`` per change of shift between reads and
+    :data:`TIE_SHARE` of it per read off its logged tick (``shifts`` 0)."""
+    n, size = cand.shape
+    moved = TIE_SHARE * bar * (shifts != 0.0)
+    switch = bar * (shifts[:, None] != shifts[None, :])  # (S, S): the offset changes between reads
     pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)  # (n - 1, S, S): never back
     cost = np.where(allowed[0], moved, np.inf)
-    back = np.zeros((n - 1, shifts.size), dtype=int)
+    back = np.zeros((n - 1, size), dtype=int)
     for j in range(1, n):
-        total = cost[:, None] + pair[j - 1]
+        total = cost[:, None] + pair[j - 1] + switch
         back[j - 1] = np.argmin(total, axis=0)
-        cost = total[back[j - 1], np.arange(shifts.size)] + np.where(allowed[j], moved, np.inf)
+        cost = total[back[j - 1], np.arange(size)] + np.where(allowed[j], moved, np.inf)
     state = np.empty(n, dtype=int)
     state[-1] = int(np.argmin(cost))
     for j in range(n - 1, 0, -1):
         state[j - 1] = back[j - 1, state[j]]
     return cand[np.arange(n), state]
+
+
+def _tick_at(tick_instant, k: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The (fractional) tick index of instants ``t`` [s], near ticks ``k`` (the grid is linear)."""
+    at, step = tick_instant(k), tick_instant(k + 1.0) - tick_instant(k)
+    return k + (t - at) / step
+
+
+def _best_alone(i: int, k: np.ndarray, first: float, last: float, u: np.ndarray, v: np.ndarray,
+                tick_s: float, params) -> float:  # fmt: skip
+    """Of ticks ``first`` to ``last`` (within its neighbours'), the one read ``i``'s two pairs fit best."""
+    lo = max(first, k[i - 1] if i > 0 else -np.inf)
+    hi = min(last, k[i + 1] if i + 1 < k.size else np.inf)
+    if not lo <= hi:
+        return float(k[i])
+    c = np.arange(lo, hi + 1.0)
+    cost = np.zeros(c.size)
+    if i > 0:
+        before = u[i - 2] if i >= 2 else 0.0
+        e = _pair_errors(np.full(c.size, k[i - 1]), c, np.full(c.size, v[i - 1]), np.full(c.size, v[i]),
+                         np.full(c.size, before), np.full(c.size, u[i - 1]), tick_s, params)  # fmt: skip
+        cost += e * e
+    if i + 1 < k.size:
+        e = _pair_errors(c, np.full(c.size, k[i + 1]), np.full(c.size, v[i]), np.full(c.size, v[i + 1]),
+                         np.full(c.size, u[i - 1] if i >= 1 else 0.0), np.full(c.size, u[i]), tick_s, params)  # fmt: skip
+        cost += e * e
+    return float(c[int(np.argmin(cost))])
 
 
 def _pair_errors(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s: float, params) -> np.ndarray:
