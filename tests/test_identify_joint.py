@@ -141,3 +141,24 @@ def test_a_served_serial_log_whose_pairs_hold_no_switch_takes_its_delay_from_the
         assert got == pytest.approx(want, rel=0.01)
     assert result.fit_percent > 99.0
     assert 0.0 <= result.model.delay_s <= 1e-3  # the drive's record: 0.76 ms over all commands
+
+
+def test_a_served_serial_log_whose_constant_delay_overshoots_its_tick_finds_the_tick():
+    """``tests/data/served_serial_2ms_tick_below_delay.csv``: a default ``sidbe`` against a served
+    ODrive-protocol drive with a 2 ms tick of its own (plant M 0.01, B 1, Coulomb 0.5 / 0.4), at
+    200 Hz. The rows' delays differ (the command a request ahead of its query), and the constant
+    delay identified overshot the tick: 2.40 +- 0.13 ms, where the drive's record shows a mean of
+    1.66 ms over the changed commands. Only ticks from the delay on were tried, no grid was
+    located, and the model came out 5.1 % off with a fit of 95.7 %. The nominal tick below the
+    delay is tried too now."""
+    from pathlib import Path
+
+    from servobench.bench.log.io import read_log
+
+    log = read_log(Path(__file__).parent / "data" / "served_serial_2ms_tick_below_delay.csv")
+    result = identify(log)
+    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
+                      (result.model.coulomb_neg, 0.4)):  # fmt: skip
+        assert got == pytest.approx(want, rel=0.01)
+    assert result.fit_percent > 99.0
+    assert result.model.delay_s == pytest.approx(1.661e-3, abs=0.2e-3)  # the tick's tenth
