@@ -130,16 +130,7 @@ def test_a_served_serial_log_whose_pairs_hold_no_switch_takes_its_delay_from_the
     the noise's: it took 0.9 cycles there, the instrumental fit then diverged (a traceback from
     ``math.exp`` overflowing; with that caught, a mass of 3e-8 and a fit of 79 %). The delay now
     comes from the simulation, as where the pairs show no curvature."""
-    from pathlib import Path
-
-    from servobench.bench.log.io import read_log
-
-    log = read_log(Path(__file__).parent / "data" / "served_serial_1ms_blind_pairs.csv")
-    result = identify(log)
-    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
-                      (result.model.coulomb_neg, 0.4)):  # fmt: skip
-        assert got == pytest.approx(want, rel=0.01)
-    assert result.fit_percent > 99.0
+    result = _served_plant_within_1_percent("served_serial_1ms_blind_pairs.csv")
     assert 0.0 <= result.model.delay_s <= 1e-3  # the drive's record: 0.76 ms over all commands
 
 
@@ -151,14 +142,20 @@ def test_a_served_serial_log_whose_constant_delay_overshoots_its_tick_finds_the_
     1.66 ms over the changed commands. Only ticks from the delay on were tried, no grid was
     located, and the model came out 5.1 % off with a fit of 95.7 %. The nominal tick below the
     delay is tried too now."""
+    result = _served_plant_within_1_percent("served_serial_2ms_tick_below_delay.csv")
+    assert result.model.delay_s == pytest.approx(1.661e-3, abs=0.2e-3)  # the tick's tenth
+
+
+def _served_plant_within_1_percent(name: str):
+    """``identify`` on the kept served log ``tests/data/<name>`` (plant M 0.01, B 1, Coulomb
+    0.5 / 0.4), checked within 1 % and a fit over 99 %."""
     from pathlib import Path
 
     from servobench.bench.log.io import read_log
 
-    log = read_log(Path(__file__).parent / "data" / "served_serial_2ms_tick_below_delay.csv")
-    result = identify(log)
+    result = identify(read_log(Path(__file__).parent / "data" / name))
     for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
                       (result.model.coulomb_neg, 0.4)):  # fmt: skip
         assert got == pytest.approx(want, rel=0.01)
     assert result.fit_percent > 99.0
-    assert result.model.delay_s == pytest.approx(1.661e-3, abs=0.2e-3)  # the tick's tenth
+    return result
