@@ -159,15 +159,3 @@ def _served_plant_within_1_percent(name: str):
         assert got == pytest.approx(want, rel=0.01)
     assert result.fit_percent > 99.0
     return result
-
-
-def test_a_served_modbus_rtu_log_with_a_tick_of_a_160th_of_its_cycle_finds_the_tick():
-    """``tests/data/served_rtu_0125ms_tick.csv``: a default ``sidbe`` against a served Modbus RTU
-    drive without its time stamp, a 0.125 ms tick of its own, at the 50 Hz the link carries. The
-    grid search went down to a hundredth of the cycle (0.2 ms): no grid, the constant delay
-    0.138 ms against the record's 0.125, M 0.084 % off with a predicted 0.080 %. Searched down
-    to a two-hundredth, the tick is located and the reads placed by the pairs."""
-    result = _served_plant_within_1_percent("served_rtu_0125ms_tick.csv")
-    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0)):
-        assert got == pytest.approx(want, rel=1e-4)
-    assert result.model.delay_s == pytest.approx(0.125e-3, abs=0.0125e-3)  # the tick's tenth

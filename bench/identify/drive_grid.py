@@ -443,9 +443,8 @@ def find_drive_grids(data: Dataset, model, delay_std_s: float = 0.0, min_gain: f
         bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
         ticks = [t for t in ticks if t >= 2.0 * bracket]
     elif simulated:  # the delay was read from a simulation that trades it against the mass: any tick
-        # a two-hundredth of a cycle or more (finer ticks leave no mark at the log's rate; Modbus RTU at
-        # 50 Hz with a 0.125 ms tick: 0.084 % off and the delay 0.013 ms off before it was searched)
-        ticks = sorted((t for t in NICE_TICKS_S if t >= 0.005 * data.dt_s), key=lambda t: abs(t - model.delay_s))
+        # a hundredth of a cycle or more (finer ticks leave no mark at the log's rate)
+        ticks = sorted((t for t in NICE_TICKS_S if t >= 0.01 * data.dt_s), key=lambda t: abs(t - model.delay_s))
     found = [g for t in ticks if (g := find_run_grids(data, model, t, lead, min_gain, simulated))]
     return sorted(found, key=lambda g: -g.gain)
 

@@ -113,11 +113,7 @@ def place_by_pairs(
         e = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], tick_s, params)
         if scale is None:
             steps = np.diff(k) > 0
-            narrow = steps & ~wide[1:] & ~wide[:-1]
-            narrow = narrow if narrow.any() else steps  # every read stalled-wide (a slow link, a fine tick)
-            if not narrow.any():
-                return k.copy()
-            scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][narrow])))
+            scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][steps & ~wide[1:] & ~wide[:-1]])))
             if not scale > 0:
                 return k.copy()
         if not judged:
