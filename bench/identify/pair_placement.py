@@ -14,10 +14,12 @@ time constant is 2.5-10 % of a step at 0.25-1 ms).
 :func:`place_by_pairs` decides each such read by the pairs around it: the
 exact one-step response of the model (stick-slip, the command in force over
 each tick) from the sample before to the read, and from the read to the
-samples after. The reads move where the pairs then fit better by more than
-:data:`PAIR_DECISIVE` squared residual scales per read moved, all at once
-(dynamic programming along the run); on a steady stretch both ticks predict
-alike and the read keeps its logged tick (where it costs nothing).
+samples after, all reads of a run at once (dynamic programming along the
+run). A change of shift between neighbouring reads costs
+:data:`PAIR_DECISIVE` squared residual scales, so a stretch of reads moves
+together; on a steady stretch every tick predicts alike and a read keeps its
+logged one (where it costs nothing). A read the host stalled on is placed
+alone among every tick its bracket holds.
 
 Pure: arrays in, tick indices out; no transport.
 """
@@ -56,8 +58,9 @@ def place_by_pairs(
     """The sample ticks ``k`` with each read whose bracket holds a tick decided by its pairs.
 
     All reads at once: each may take its logged tick or one up to
-    :data:`MAX_SHIFT` ticks before or after it (where its bracket allows), and the ticks that leave the least
-    sum of squared pair residuals, plus :data:`PAIR_DECISIVE` squared residual
+    :data:`MAX_SHIFT` ticks before or after it (where its bracket allows), and
+    the ticks that leave the least sum of squared pair residuals, plus
+    :data:`PAIR_DECISIVE` squared residual
     scales wherever a read's shift differs from the read before's, are found
     by dynamic programming along the run (a run of misplaced reads moves
     together, which one read at a time cannot: each alone agrees with its
