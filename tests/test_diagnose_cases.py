@@ -20,7 +20,7 @@ from servobench.bench.log.io import read_log
 from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
-pytestmark = pytest.mark.slow  # six diagnoses, one after the other
+pytestmark = pytest.mark.slow  # nine diagnoses, one after the other
 
 #: ``number: (effect, size, inputs, noise, seed)``, as the benchmark draws them.
 CASES = {
@@ -30,7 +30,16 @@ CASES = {
     23: ("position_friction", 2.6913427410414514, "closed", "white", 1013418405),
     76: ("time_delay", 2.515089268817809, "square", "coloured", 913638093),
     108: (None, 0.8304471040479893, "sidbe", "coloured", 990144555),
+    # Cogging wells deeper than the breakaway: the refit must search the base friction with
+    # the amplitude (a rugged surface), and a trapped axis travels under two periods.
+    222: ("cogging", 2.089137430271495, "single", "coloured", 1719139267),
+    270: ("cogging", 1.859965857405888, "sidbe", "coloured", 919936532),
 }
+#: Closed loop hunting in a play: the base model is far off (no Coulomb friction), backlash
+#: screens low, and only a refit of every effect that beats the base finds it. The hidden model
+#: itself leaves a gap of about 25 % here (the hunting is chaotic over the 0.5 s horizon), so
+#: the gap is held to halve, not to shrink three times.
+FAR_OFF = {164: ("backlash", 2.93533607371622, "closed", "white", 1446883356)}
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +47,7 @@ def results(tmp_path_factory):
     folder = Path(tmp_path_factory.mktemp("cases"))
 
     def run(number: int) -> dict:
-        effect, size, inputs, noise, seed = CASES[number]
+        effect, size, inputs, noise, seed = {**CASES, **FAR_OFF}[number]
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         d = diagnose(read_log(write_case_log(case, folder / f"case-{number}.csv", rng)))
@@ -66,3 +75,10 @@ def test_the_stribeck_curve_is_refitted_within_5_percent(results):
     true, got = case.effects["stribeck"], d.effects[0].parameters
     assert got["vs"] == pytest.approx(true["vs"], rel=0.05)
     assert (got["fs_pos"], got["fs_neg"]) == pytest.approx((true["fs"], true["fs"]), rel=0.05)
+
+
+@pytest.mark.parametrize("number", sorted(FAR_OFF))
+def test_a_missing_effect_far_from_the_floor_is_named(results, number):
+    d = results[number]["diagnosis"]
+    assert [e.name for e in d.effects] == [FAR_OFF[number][0]], d.trace.stop
+    assert d.gap_after <= d.gap_before / 2, (d.gap_before, d.gap_after)

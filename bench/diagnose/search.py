@@ -18,7 +18,11 @@ earlier rounds must still pay against the model refitted without it
 resonant load is dropped once the resonance is in. An effect with a companion
 (:data:`.screening.COMPANIONS`: a Stribeck curve with its static level per
 direction) is refitted, kept and dropped with it. Every candidate refitted
-carries the reason it was chosen or rejected (:class:`Tried`). The loop stops when nothing pays, or when the
+carries the reason it was chosen or rejected (:class:`Tried`). Where nothing of a
+round's pool pays and the model is still far above the noise floor
+(:data:`WIDEN_ABOVE`), every other effect whose quick guess beats it is refitted
+too: a base model far off (a closed loop hunting in a play) can hide the
+missing effect's signature. The loop stops when nothing pays, or when the
 model reaches the sensor-noise floor.
 """
 
@@ -60,6 +64,10 @@ FLOOR_FACTOR = 1.25
 #: Pairs are tried only when the best single leaves more than this share of the
 #: unexplained (above-noise) residual energy.
 PAIR_BELOW = 0.8
+#: When nothing in the pool pays and the held-out gap is above this multiple of the noise
+#: floor, every other effect whose quick guess beats the current model is refitted too: far
+#: from the floor a screening read off a poor base model can rank the missing effect low.
+WIDEN_ABOVE = 5.0
 
 Progress = Callable[[str], None]
 
@@ -346,6 +354,18 @@ def _round(
             start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
     chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
+    if not chosen and current.gap_held_out > WIDEN_ABOVE * fitter.floor:
+        wider = [
+            n
+            for n in sorted(quick, key=lambda n: quick[n].held_out_gap)
+            if n not in singles and quick[n].held_out_gap < current.gap_held_out
+        ]
+        for i, n in enumerate(wider, 1):
+            progress(f"refitting {n} (nothing paid so far; {i}/{len(wider)})")
+            fits = [fitter.fit(start, (n,)) for start in quick[n].starts]
+            singles[n] = _best_start(fitter.data, n, fits)
+        if wider:
+            chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
     tried = [
         Tried((n,), f.gap_held_out, (n,) == chosen, reasons.get((n,), ""))
         for n, f in singles.items()

@@ -55,6 +55,10 @@ SUBHARMONICS = (2, 3)
 #: Fewest periods over the travel searched, and accepted for a fundamental.
 MIN_PERIODS = 3.0
 MIN_PERIODS_FUNDAMENTAL = 1.5
+#: Fewest periods over the travel of the long-period alternative, and its frequencies: wells
+#: deeper than the breakaway trap the axis, which then travels only a period or two.
+MIN_PERIODS_TRAPPED = 1.0
+TRAPPED_FREQUENCIES = 60
 #: Frequencies per block of the periodogram, and at most this many complex values held at once.
 PEAK_BLOCK = 64
 PEAK_ELEMENTS = 2_000_000
@@ -128,6 +132,9 @@ def screen(ctx: ScreenInput) -> Screening:
         if k / m >= 2 * math.pi * MIN_PERIODS_FUNDAMENTAL / span:
             km = _peak(k / m - step_k, k / m + step_k, REFINE, x, e)
             others.append(fit_at(km)[0])
+    k_trapped = 2 * math.pi * MIN_PERIODS_TRAPPED / span
+    if k_trapped < k_lo:
+        others.append(fit_at(_peak(k_trapped, k_lo, TRAPPED_FREQUENCIES, x, e))[0])
     period, amp = guess["period"], guess["amp"]
     longest = max([period] + [g["period"] for g in others])
     bounds = {
@@ -141,4 +148,8 @@ def screen(ctx: ScreenInput) -> Screening:
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     score = explained(sse0, sse, 3, y.size)
-    return Screening(score, guess, bounds, evidence, base=base, alternatives=tuple(others))
+    # Wells deeper than the breakaway hold the axis: where it sticks, and so the rest of the run,
+    # turns on the base friction and the amplitude together -- a rugged surface.
+    return Screening(
+        score, guess, bounds, evidence, base=base, scan=("amp",), alternatives=tuple(others)
+    )
