@@ -17,10 +17,11 @@ import pytest
 
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.log.io import read_log
+from servobench.bench.report.diagnose import to_json
 from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
-pytestmark = pytest.mark.slow  # nine diagnoses, one after the other
+pytestmark = pytest.mark.slow  # ten diagnoses, one after the other
 
 #: ``number: (effect, size, inputs, noise, seed)``, as the benchmark draws them.
 CASES = {
@@ -40,6 +41,9 @@ CASES = {
 #: itself leaves a gap of about 25 % here (the hunting is chaotic over the 0.5 s horizon), so
 #: the gap is held to halve, not to shrink three times.
 FAR_OFF = {164: ("backlash", 2.93533607371622, "closed", "white", 1446883356)}
+#: A two-level SIDBE pair through a quantized command: each run's two levels only move, which a
+#: saturation or a dead zone does as well. The report must say the log cannot tell them apart.
+TIED = {82: ("quantization", 2.330902093314011, "sidbe", "coloured", 539334954)}
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +51,7 @@ def results(tmp_path_factory):
     folder = Path(tmp_path_factory.mktemp("cases"))
 
     def run(number: int) -> dict:
-        effect, size, inputs, noise, seed = {**CASES, **FAR_OFF}[number]
+        effect, size, inputs, noise, seed = {**CASES, **FAR_OFF, **TIED}[number]
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         d = diagnose(read_log(write_case_log(case, folder / f"case-{number}.csv", rng)))
@@ -82,3 +86,17 @@ def test_a_missing_effect_far_from_the_floor_is_named(results, number):
     d = results[number]["diagnosis"]
     assert [e.name for e in d.effects] == [FAR_OFF[number][0]], d.trace.stop
     assert d.gap_after <= d.gap_before / 2, (d.gap_before, d.gap_after)
+
+
+@pytest.mark.parametrize("number", sorted(TIED))
+def test_effects_the_log_cannot_tell_apart_are_reported_as_rivals(results, number):
+    effect = TIED[number][0]
+    d = results[number]["diagnosis"]
+    assert len(d.effects) == 1, d.trace.stop
+    first = d.effects[0]
+    assert effect in (first.name, *first.rivals), (first.name, first.rivals)
+    assert first.rivals, "the effects that fit as well are not reported"
+    assert d.gap_after <= d.gap_before / 3, (d.gap_before, d.gap_after)
+    note = [n for n in d.notes if "cannot tell them apart" in n]
+    assert len(note) == 1 and first.name in note[0] and all(r in note[0] for r in first.rivals)
+    assert to_json(d)["effects"][0]["rivals"] == list(first.rivals)

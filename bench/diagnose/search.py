@@ -31,7 +31,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.evidence import MIN_GAIN, MIN_Z, Payoff, payoff
@@ -74,11 +74,13 @@ Progress = Callable[[str], None]
 
 @dataclass(frozen=True)
 class Step:
-    """One accepted addition (or the base model, with ``added == ()``)."""
+    """One accepted addition (or the base model, with ``added == ()``); ``rivals`` names, per
+    effect added alone, the other effects that fit the held-out data as well (:func:`_rivals`)."""
 
     added: tuple[str, ...]
     fit: FitResult
     evidence: dict[str, str]
+    rivals: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -93,12 +95,14 @@ class Tried:
 
 @dataclass(frozen=True)
 class Round:
-    """One round: the current model's held-out gap [%], the candidates refitted, and the
-    effects screened but not refitted ``(name, screening score, quick held-out gap [%])``."""
+    """One round: the current model's held-out gap [%], the candidates refitted, the
+    effects screened but not refitted ``(name, screening score, quick held-out gap [%])``, and
+    the effects that fit as well as the single one chosen (:func:`_rivals`)."""
 
     reference_gap: float
     tried: tuple[Tried, ...]
     not_refitted: tuple[tuple[str, float, float], ...]
+    rivals: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -244,11 +248,16 @@ def _eliminate(fitter: _Fitter, steps: list[Step]) -> list[Step]:
                 continue
             fit = trial
             steps = [
-                Step(tuple(n for n in st.added if n != name), st.fit, st.evidence)
+                Step(
+                    tuple(n for n in st.added if n != name),
+                    st.fit,
+                    st.evidence,
+                    {k: v for k, v in st.rivals.items() if k != name},
+                )
                 for st in steps
             ]
             steps = [st for i, st in enumerate(steps) if i == 0 or st.added]
-            steps[-1] = Step(steps[-1].added, fit, steps[-1].evidence)
+            steps[-1] = replace(steps[-1], fit=fit)
     return steps
 
 
@@ -309,6 +318,27 @@ def _decide(
             "candidate that pays"
         )
     return chosen, fit, reasons
+
+
+def _rivals(
+    data: DiagnosisData,
+    current: FitResult,
+    singles: dict[str, FitResult],
+    chosen: tuple[str, ...],
+) -> tuple[str, ...]:
+    """The other singles that pay against the current model and that the chosen single does
+    not pay against, best first: effects the log cannot tell apart from the one named (a
+    saturation, a dead zone and a quantization of a two-level command all only change its
+    two levels)."""
+    if len(chosen) != 1:
+        return ()
+    best = singles[chosen[0]]
+    out = [
+        n
+        for n, f in singles.items()
+        if n != chosen[0] and payoff(data, current, f).pays and not payoff(data, f, best).pays
+    ]
+    return tuple(sorted(out, key=lambda n: singles[n].gap_held_out))
 
 
 def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitResult:
@@ -375,7 +405,8 @@ def _round(
         for n in fitter.screens
         if n not in singles
     )
-    return chosen, best, Round(current.gap_held_out, tuple(tried), skipped)
+    rivals = _rivals(fitter.data, current, singles, chosen)
+    return chosen, best, Round(current.gap_held_out, tuple(tried), skipped, rivals)
 
 
 #: Why ablation dropped terms (see :func:`_ablate` and :func:`_refit_ablate`).
@@ -404,7 +435,7 @@ def _with_ablation(
         )
         for t in rnd.tried
     )
-    return Round(rnd.reference_gap, tried, rnd.not_refitted)
+    return Round(rnd.reference_gap, tried, rnd.not_refitted, rnd.rivals)
 
 
 def search(
@@ -461,7 +492,7 @@ def search(
             # The refit only found a better optimum of the terms already there: keep it, name
             # nothing, and look again from there while it gains.
             if best.gap_held_out < current.gap_held_out:
-                steps[-1] = Step(steps[-1].added, best, steps[-1].evidence)
+                steps[-1] = replace(steps[-1], fit=best)
                 gained = best.gap_held_out <= (1 - MIN_GAIN) * current.gap_held_out
                 current = best
                 if gained:
@@ -474,7 +505,8 @@ def search(
             for n in chosen
         }
         fitter.accept(chosen, best.candidate)
-        steps.append(Step(chosen, best, evidence))
+        rivals = {chosen[0]: rnd.rivals} if len(chosen) == 1 and rnd.rivals else {}
+        steps.append(Step(chosen, best, evidence, rivals))
         steps = _eliminate(fitter, steps)
         current = steps[-1].fit
     return steps, SearchTrace(tuple(rounds), floor if math.isfinite(floor) else 0.0, stop)

@@ -40,11 +40,13 @@ __all__ = ["Diagnosis", "NamedEffect", "diagnose"]
 @dataclass(frozen=True)
 class NamedEffect:
     """An effect the diagnosis added: name, fitted parameters (those of the final model), the
-    signature that named it."""
+    signature that named it, and its rivals: effects that fit the held-out data as well when
+    it was named (the log cannot tell them apart; it is named for the lower held-out gap)."""
 
     name: str
     parameters: dict[str, float]
     evidence: str
+    rivals: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,18 @@ def net_base(final: Candidate, named: tuple[str, ...]) -> dict[str, float]:
         base["coulomb_pos"] = float(base["coulomb_pos"]) - o
         base["coulomb_neg"] = float(base["coulomb_neg"]) + o
     return base
+
+
+def rival_note(e: NamedEffect) -> str:
+    """The note that says an effect was named among others the log cannot tell apart."""
+    others = " and ".join(e.rivals) if len(e.rivals) < 3 else ", ".join(e.rivals)
+    verb = "fits" if len(e.rivals) == 1 else "fit"
+    return (
+        f"{e.name} is named for the lowest held-out gap, but {others} {verb} the held-out data "
+        "as well, within what the noise allows: this log cannot tell them apart. Excite so that "
+        "they differ (a command with more levels and amplitudes than a two-level pair, or the "
+        "axis over more of its travel) and diagnose that log"
+    )
 
 
 def named_parameters(
@@ -198,10 +212,12 @@ def _diagnose(
             params = named_parameters(name, dict(final.effects[name]), dict(final.base), force)
             clause = signatures.support(name)
             evidence = step.evidence[name] if not clause else f"{step.evidence[name]}; {clause}"
-            named.append(NamedEffect(name, params, evidence))
+            rivals = step.rivals.get(name, ())
+            named.append(NamedEffect(name, params, evidence, rivals))
     shown = {k: v for k, v in final.effects.items() if k in names}
     family = offset_family(base_net, shown, data.units.of("u"))
     notes = tuple(data.notes) + ((start.note,) if start.note else ())
+    notes += tuple(rival_note(e) for e in named if e.rivals)
     return Diagnosis(
         tuple(named),
         steps[0].fit.gap,

@@ -162,7 +162,12 @@ def to_json(d: Diagnosis) -> dict:
         "gap_before": d.gap_before,
         "gap_after": d.gap_after,
         "effects": [
-            {"name": e.name, "parameters": dict(e.parameters), "evidence": e.evidence}
+            {
+                "name": e.name,
+                "parameters": dict(e.parameters),
+                "evidence": e.evidence,
+                "rivals": list(e.rivals),
+            }
             for e in d.effects
         ],
         "base_before": _base_json(d.base_before),
