@@ -40,7 +40,8 @@ def test_json_is_one_object_and_out_writes_csv_and_report(diagnosed):
     assert text.strip().startswith("{") and text.strip().endswith("}")
     assert [e["name"] for e in obj["effects"]][:1] == ["deadzone"]
     first = obj["effects"][0]
-    assert set(first) == {"name", "parameters", "evidence"}
+    assert set(first) == {"name", "parameters", "evidence", "rivals"}
+    assert isinstance(first["rivals"], list) and "deadzone" not in first["rivals"]
     assert first["parameters"]["width"] > 0 and "dead band" in first["evidence"]
     assert obj["gap_after"] < obj["gap_before"]
     with open(out / "comparison.csv", newline="") as fh:
