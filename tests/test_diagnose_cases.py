@@ -21,7 +21,7 @@ from servobench.bench.report.diagnose import to_json
 from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
-pytestmark = pytest.mark.slow  # ten diagnoses, one after the other
+pytestmark = pytest.mark.slow  # twelve diagnoses, one after the other
 
 #: ``number: (effect, size, inputs, noise, seed)``, as the benchmark draws them.
 CASES = {
@@ -35,6 +35,11 @@ CASES = {
     # the amplitude (a rugged surface), and a trapped axis travels under two periods.
     222: ("cogging", 2.089137430271495, "single", "coloured", 1719139267),
     270: ("cogging", 1.859965857405888, "sidbe", "coloured", 919936532),
+    # A play whose first refit sticks in a poor optimum: a second term (a Stribeck curve, a
+    # viscous asymmetry) soaks up its residual until the play's rugged parameters are scanned
+    # again in the model without that term.
+    56: ("backlash", 0.6927095212513469, "sidbe", "coloured", 1206594658),
+    188: ("backlash", 2.5130652670773643, "single", "white", 1027945035),
 }
 #: Closed loop hunting in a play: the base model is far off (no Coulomb friction), backlash
 #: screens low, and only a refit of every effect that beats the base finds it. The hidden model

@@ -15,7 +15,10 @@ fit's values: otherwise a first effect stuck in a poor optimum lets a second
 soak up its residual. After each round that adds a term, each term of the
 earlier rounds must still pay against the model refitted without it
 (backward elimination, :func:`_eliminate`): a delay named for the residual of a
-resonant load is dropped once the resonance is in. An effect with a companion
+resonant load is dropped once the resonance is in; when the search ends, every
+term of a model holding several must (a Stribeck curve that made up for a play
+stuck in a poor optimum goes once the play is refitted). Models refitted
+without a term rescan their other terms' rugged parameters. An effect with a companion
 (:data:`.screening.COMPANIONS`: a Stribeck curve with its static level per
 direction) is refitted, kept and dropped with it. Every candidate refitted
 carries the reason it was chosen or rejected (:class:`Tried`). Where nothing of a
@@ -148,16 +151,25 @@ class _Fitter:
     bounds: dict[str, dict]
     fixed: dict[str, tuple]
     screens: dict[str, Screening]
+    scans: dict[str, tuple] = field(default_factory=dict)
 
-    def fit(self, start: Candidate, new: tuple[str, ...], scan: bool = True) -> FitResult:
+    def fit(
+        self, start: Candidate, new: tuple[str, ...], scan: bool = True, rescan: bool = False
+    ) -> FitResult:
+        """Refit ``start`` with its ``new`` terms in their screening's bounds; ``scan``: scan
+        the new terms' rugged parameters; ``rescan``: those of the accepted terms too (a model
+        refitted without a term, whose rugged neighbours may have to move far)."""
         s = self.screens
         extra = {k: v for n in new for k, v in companion_bounds(n, start).items()}
+        scans = {n: tuple(s[n].scan) for n in new} if scan else {}
+        if rescan:
+            scans.update({n: self.scans[n] for n in start.effects if self.scans.get(n)})
         return refit(
             self.data,
             start,
             {**extra, **self.bounds, **{n: dict(s[n].bounds) for n in new}},
             {**self.fixed, **{n: tuple(s[n].fixed) for n in new}},
-            {n: tuple(s[n].scan) for n in new} if scan else None,
+            {n: v for n, v in scans.items() if v} or None,
             floor=self.floor,
         )
 
@@ -169,6 +181,7 @@ class _Fitter:
                 self.bounds.setdefault(k, v)
         self.bounds.update({n: dict(self.screens[n].bounds) for n in names})
         self.fixed.update({n: tuple(self.screens[n].fixed) for n in names})
+        self.scans.update({n: tuple(self.screens[n].scan) for n in names})
 
 
 def _refit_ablate(
@@ -189,7 +202,7 @@ def _refit_ablate(
         cand = fit.candidate
         rest = without(dict(cand.effects), name, (*current.candidate.effects, *kept))
         others = tuple(n for n in kept if n != name)
-        trial = fitter.fit(Candidate(dict(cand.base), rest), others, scan=False)
+        trial = fitter.fit(Candidate(dict(cand.base), rest), others, rescan=True)
         if not payoff(fitter.data, trial, fit).pays:
             kept.remove(name)
             dropped.append(name)
@@ -232,18 +245,20 @@ def _companions_pay(
 DROPPED_PLAIN = "without its companion it does not pay against the current model"
 
 
-def _eliminate(fitter: _Fitter, steps: list[Step]) -> list[Step]:
-    """Backward elimination: drop a term of an earlier round that the model with the new
-    terms, refitted without it, no longer needs (it does as well on held-out data). A first
-    effect named for a residual a later one explains better (a delay standing in for a
-    resonant load) would otherwise stay named."""
+def _eliminate(fitter: _Fitter, steps: list[Step], final: bool = False) -> list[Step]:
+    """Backward elimination: drop a term of an earlier round (of every round, ``final``) that
+    the model with the new terms, refitted without it, no longer needs (it does as well on
+    held-out data). A first effect named for a residual a later one explains better (a delay
+    standing in for a resonant load) would otherwise stay named; and a term a later round's
+    refit of its neighbours made redundant (a Stribeck curve that made up for a play stuck in
+    a poor optimum) is dropped once the search ends."""
     fit = steps[-1].fit
-    for step in steps[1:-1]:
+    for step in steps[1:] if final else steps[1:-1]:
         for name in step.added:
             cand = fit.candidate
             others = tuple(n for st in steps[1:] for n in st.added if n != name)
             rest = without(dict(cand.effects), name, others)
-            trial = fitter.fit(Candidate(dict(cand.base), rest), (), scan=False)
+            trial = fitter.fit(Candidate(dict(cand.base), rest), (), rescan=True)
             if payoff(fitter.data, trial, fit).pays:
                 continue
             fit = trial
@@ -509,4 +524,6 @@ def search(
         steps.append(Step(chosen, best, evidence, rivals))
         steps = _eliminate(fitter, steps)
         current = steps[-1].fit
+    if sum(len(st.added) for st in steps) > 1:  # a lone term already paid against the base
+        steps = _eliminate(fitter, steps, final=True)
     return steps, SearchTrace(tuple(rounds), floor if math.isfinite(floor) else 0.0, stop)
