@@ -9,8 +9,9 @@ region shrinks early: the gradient fit restarts while it keeps gaining.
 Parameters a screening marks *fixed* (a quantization step, on which the error
 is piecewise constant) are searched on a small grid after the gradient fit.
 Candidates with *scan* parameters (a play that closes or not before a
-reversal) get a coordinate search of those and of the base friction and
-inertia before it, and a Nelder-Mead polish after it. Only training samples
+reversal, cogging wells that hold the axis) get a coordinate search of those and
+of the base friction and inertia before it, and a Nelder-Mead polish after it;
+the gradient fit from the start itself is kept where it ends lower. Only training samples
 enter the cost; held-out samples judge the result.
 
 The Jacobian is ``least_squares``'s own two-point finite difference (same steps, same
@@ -456,12 +457,17 @@ def refit(
     rugged = any(scan.values())
     error = _TrainingError(data)
     best, best_cost = cand, error.cost(cand)
+    plain = None
     if rugged:
-        # Rugged surfaces: search the base friction and inertia with the rugged parameters.
+        # Rugged surfaces: search the base friction and inertia with the rugged parameters,
+        # and keep the gradient fit from the start itself where that ends lower.
+        plain = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
         best, best_cost = _line_search(
             error, best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE, bounds
         )
     best, best_cost, solution = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
+    if plain is not None and plain[1] < best_cost:
+        best, best_cost, solution = plain
     if rugged and error.gap_percent(best_cost) > POLISH_ABOVE * floor:
         polished, p_cost = _simplex(best, bounds, fixed, error.cost)
         if p_cost < (1.0 - RESTART_GAIN) * best_cost:

@@ -70,7 +70,7 @@ PAIR_BELOW = 0.8
 #: When nothing in the pool pays and the held-out gap is above this multiple of the noise
 #: floor, every other effect whose quick guess beats the current model is refitted too: far
 #: from the floor a screening read off a poor base model can rank the missing effect low.
-WIDEN_ABOVE = 5.0
+WIDEN_ABOVE = 2.0
 
 Progress = Callable[[str], None]
 
