@@ -399,7 +399,8 @@ def _round(
             start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
     chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
-    if not chosen and current.gap_held_out > WIDEN_ABOVE * fitter.floor:
+    far = fitter.floor > 0 and current.gap_held_out > WIDEN_ABOVE * fitter.floor
+    if not chosen and far:  # (a floor of 0: no sensor noise known, no scale for "far")
         wider = [
             n
             for n in sorted(quick, key=lambda n: quick[n].held_out_gap)

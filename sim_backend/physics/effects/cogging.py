@@ -59,6 +59,8 @@ MIN_PERIODS_FUNDAMENTAL = 1.5
 #: deeper than the breakaway trap the axis, which then travels only a period or two.
 MIN_PERIODS_TRAPPED = 1.0
 TRAPPED_FREQUENCIES = 60
+#: Wells whose amplitude reaches this share of the smaller Coulomb level can hold the axis.
+WELL_SHARE = 0.5
 #: Frequencies per block of the periodogram, and at most this many complex values held at once.
 PEAK_BLOCK = 64
 PEAK_ELEMENTS = 2_000_000
@@ -148,8 +150,17 @@ def screen(ctx: ScreenInput) -> Screening:
     )
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     score = explained(sse0, sse, 3, y.size)
-    # Wells deeper than the breakaway hold the axis: where it sticks, and so the rest of the run,
-    # turns on the base friction and the amplitude together -- a rugged surface.
+    # Wells near the breakaway hold the axis: where it sticks, and so the rest of the run, turns
+    # on the base friction and the amplitude together -- a rugged surface, scanned. Shallow ones
+    # (a screw's pitch error beside a large friction) are not: the gradient refit suffices.
+    breakaway = min(base["coulomb_pos"], base["coulomb_neg"])
+    deep = max([amp] + [g["amp"] for g in others]) >= WELL_SHARE * breakaway
     return Screening(
-        score, guess, bounds, evidence, base=base, scan=("amp",), alternatives=tuple(others)
+        score,
+        guess,
+        bounds,
+        evidence,
+        base=base,
+        scan=("amp",) if deep else (),
+        alternatives=tuple(others),
     )
