@@ -40,3 +40,23 @@ def test_the_stated_sigma_covers_the_error(clean, kind):
     assert delay["within2"] >= WITHIN_2 and not math.isnan(delay["rms"]), delay
     if kind == "coloured":
         assert all(any("coloured" in n for n in c["notes"]) for c in cases)
+
+
+@pytest.fixture(scope="module")
+def delayed(tmp_path_factory):
+    return clean_log(
+        tmp_path_factory.mktemp("coverage") / "delayed", periods=3, period_s=2.0, delay_s=DELAY_S
+    )
+
+
+#: A plant delay inside the range [s]: the delay's truth off its bound, where its rms is 1 too.
+DELAY_S = 0.0004
+
+
+def test_the_delay_s_sigma_covers_its_error_off_its_bound(delayed):
+    cases = [coverage_case(delayed, "white", seed, "joint", DELAY_S) for seed in SEEDS]
+    delay = summarise(cases)["delay_s"]
+    assert delay["unstated"] == 0, delay
+    assert RMS_BAND[0] <= delay["rms"] <= RMS_BAND[1], delay
+    assert delay["within2"] >= WITHIN_2, delay
+    assert all(abs(c["error"]["delay_s"]) < 0.5 * DELAY_S for c in cases), cases
