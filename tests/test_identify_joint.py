@@ -146,6 +146,22 @@ def test_a_served_serial_log_whose_constant_delay_overshoots_its_tick_finds_the_
     assert result.model.delay_s == pytest.approx(1.661e-3, abs=0.2e-3)  # the tick's tenth
 
 
+def test_a_served_serial_log_whose_rows_act_apart_from_their_samples_predicts_its_error():
+    """``tests/data/served_serial_0125ms_tick_split_requests.csv``: a default ``sidbe`` (two
+    periods of 2 s) against a served ODrive-protocol drive with a 0.125 ms tick of its own, at
+    200 Hz. The command and the query are two requests: each command acts at the drive's tick
+    after it arrives, each query returns the tick before, so the rows' delays spread over two
+    ticks (the drive's record: -0.375 to -0.125 ms). No grid is located at this tick and the
+    model holds one delay: M -0.12 %, B -0.18 %, Coulomb +0.14 % / +0.29 %. The timing figure's
+    draws moved each row's instant with its command; they predicted 0.21 % for that 0.29 %. Each
+    draw now moves where the command acts apart from its row's sample too."""
+    result = _served_plant_within_1_percent("served_serial_0125ms_tick_split_requests.csv")
+    true = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
+    worst = max(abs(100.0 * (getattr(result.model, k) / v - 1.0)) for k, v in true.items())
+    assert 0.1 < worst < 1.0  # the log shows the rows' delay spread
+    assert result.timing is not None and result.timing.model_error_max_pct >= worst
+
+
 def _served_plant_within_1_percent(name: str):
     """``identify`` on the kept served log ``tests/data/<name>`` (plant M 0.01, B 1, Coulomb
     0.5 / 0.4), checked within 1 % and a fit over 99 %."""
