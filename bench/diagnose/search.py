@@ -78,7 +78,7 @@ Progress = Callable[[str], None]
 @dataclass(frozen=True)
 class Step:
     """One accepted addition (or the base model, with ``added == ()``); ``rivals`` names, per
-    effect added alone, the other effects that fit the held-out data as well (:func:`_rivals`)."""
+    effect added alone, the other effects that fit the held-out data as well (:func:`_decide`)."""
 
     added: tuple[str, ...]
     fit: FitResult
@@ -100,7 +100,7 @@ class Tried:
 class Round:
     """One round: the current model's held-out gap [%], the candidates refitted, the
     effects screened but not refitted ``(name, screening score, quick held-out gap [%])``, and
-    the effects that fit as well as the single one chosen (:func:`_rivals`)."""
+    the effects that fit as well as the single one chosen (:func:`_decide`)."""
 
     reference_gap: float
     tried: tuple[Tried, ...]
@@ -304,8 +304,12 @@ def _why_not(p: Payoff, against: str) -> str:
 
 def _decide(
     data: DiagnosisData, current: FitResult, singles: dict[str, FitResult], pairs: dict
-) -> tuple[tuple[str, ...], FitResult | None, dict[tuple[str, ...], str]]:
-    """The round's choice, its fit, and the reason for every candidate's outcome."""
+) -> tuple[tuple[str, ...], FitResult | None, dict[tuple[str, ...], str], tuple[str, ...]]:
+    """The round's choice, its fit, the reason for every candidate's outcome, and the chosen
+    single's rivals: the other singles that pay against the current model and that it does
+    not pay against, best first -- effects the log cannot tell apart from the one named (a
+    saturation, a dead zone and a quantization of a two-level command all only move its
+    two levels)."""
     reasons: dict[tuple[str, ...], str] = {}
     pays = {n: payoff(data, current, f) for n, f in singles.items()}
     eligible = sorted((n for n in singles if pays[n].pays), key=lambda n: singles[n].gap_held_out)
@@ -332,28 +336,10 @@ def _decide(
             f"held-out gap {current.gap_held_out:.3g}% -> {fit.gap_held_out:.3g}%, the best "
             "candidate that pays"
         )
-    return chosen, fit, reasons
-
-
-def _rivals(
-    data: DiagnosisData,
-    current: FitResult,
-    singles: dict[str, FitResult],
-    chosen: tuple[str, ...],
-) -> tuple[str, ...]:
-    """The other singles that pay against the current model and that the chosen single does
-    not pay against, best first: effects the log cannot tell apart from the one named (a
-    saturation, a dead zone and a quantization of a two-level command all only change its
-    two levels)."""
-    if len(chosen) != 1:
-        return ()
-    best = singles[chosen[0]]
-    out = [
-        n
-        for n, f in singles.items()
-        if n != chosen[0] and payoff(data, current, f).pays and not payoff(data, f, best).pays
-    ]
-    return tuple(sorted(out, key=lambda n: singles[n].gap_held_out))
+    rivals = ()
+    if len(chosen) == 1:
+        rivals = tuple(n for n in eligible[1:] if not payoff(data, singles[n], fit).pays)
+    return chosen, fit, reasons, rivals
 
 
 def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitResult:
@@ -398,7 +384,7 @@ def _round(
             fa, fb = singles[a].candidate, singles[b].candidate
             start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
-    chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
+    chosen, best, reasons, rivals = _decide(fitter.data, current, singles, pairs)
     far = fitter.floor > 0 and current.gap_held_out > WIDEN_ABOVE * fitter.floor
     if not chosen and far:  # (a floor of 0: no sensor noise known, no scale for "far")
         wider = [
@@ -411,7 +397,7 @@ def _round(
             fits = [fitter.fit(start, (n,)) for start in quick[n].starts]
             singles[n] = _best_start(fitter.data, n, fits)
         if wider:
-            chosen, best, reasons = _decide(fitter.data, current, singles, pairs)
+            chosen, best, reasons, rivals = _decide(fitter.data, current, singles, pairs)
     tried = [
         Tried((n,), f.gap_held_out, (n,) == chosen, reasons.get((n,), ""))
         for n, f in singles.items()
@@ -421,7 +407,6 @@ def _round(
         for n in fitter.screens
         if n not in singles
     )
-    rivals = _rivals(fitter.data, current, singles, chosen)
     return chosen, best, Round(current.gap_held_out, tuple(tried), skipped, rivals)
 
 
