@@ -52,6 +52,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -271,6 +272,17 @@ def print_row(r: dict[str, object], load_name: str) -> None:
     )
 
 
+def _keep(out: Path, into: Path) -> None:
+    """Copy a failed case's run folder ``out`` and its drive record (``out``.state.json) into ``into``."""
+    into.mkdir(parents=True, exist_ok=True)
+    if out.is_dir():
+        shutil.copytree(out, into / out.name, dirs_exist_ok=True)
+    state = out.with_suffix(".state.json")
+    if state.exists():
+        shutil.copy2(state, into / f"{out.name}.state.json")
+    print(f"  kept in {into / out.name}")
+
+
 # ------------------------------------------------------------------ main
 def _list(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
@@ -289,6 +301,8 @@ def main() -> None:
     ap.add_argument("--loads", default="idle,busy", help="idle,busy")
     ap.add_argument("--stamps", default="yes,no")
     ap.add_argument("--repeat", type=int, default=1, help="runs per case")
+    ap.add_argument("--keep-failed", type=Path, default=None, metavar="DIR",
+                    help="copy each failed case's run folder and the served drive's record here")  # fmt: skip
     ap.add_argument("--ethercat-runs", type=int, default=None,
                     help="default sidbe runs against the EtherCAT slave without real-time priority "
                     f"(default {ETHERCAT_RUNS} when ethercat is among the transports, else 0)")  # fmt: skip
@@ -335,6 +349,8 @@ def main() -> None:
                                 )
                                 r = one(transport, tick_s, stamp, seed, out, extra)
                                 print_row(r, load_name)
+                                if args.keep_failed and ("error" in r or r["failed"]):
+                                    _keep(out, args.keep_failed)
                                 sys.stdout.flush()
                                 ran += 1
                                 passed += "error" not in r and not r["failed"]

@@ -10,8 +10,7 @@ time constant of 10 ms, so a 1 ms tick left unmodelled costs M about 30 %).
 
 Judged per case, the issue's bounds: M, B and each Coulomb level within
 0.5 % with stamps and 1 % without (2 % for Modbus RTU at 0.25 ms in a loaded
-suite: open); fit >= 99 % (98 % for ODrive serial, whose command and query
-are two requests: open); without stamps, a run beyond
+suite: open); fit >= 99 %; without stamps, a run beyond
 those bounds passes only where its timing figure says so (not within
 accuracy, the true error within two of its predicted 1 sigma: a loaded suite
 may starve the host);
@@ -76,11 +75,6 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
         # 1.39 % off (predicted 0.62 %) where the host's jitter reached 53 ms and no grid was
         # located, where the benchmark's runs come within 0.035 %
         bound = 2.0
-    split = transport == "serial"  # the torque line and the feedback query are two requests
-    if split:
-        # NOT the issue's 99 % in a loaded suite (open): a fresh-clone suite gave 98.66 % at 0.25 ms
-        # (errors within 0.41 %, predicted 0.69 %) where the host stalled 149 ms and missed 127 cycles
-        fit_floor = 98.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
     seen = {"errors": errors, "fit": model["fit_percent"], "timing": model["timing"], "record": record}
     print("seen:", json.dumps(seen, default=str))  # what a failure shows, whole
@@ -104,10 +98,9 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
     assert model["std"]["delay_s"] is not None and model["std"]["delay_s"] > 0
     timing = model["timing"]
     assert timing["delay_s"] == pytest.approx(model["delay_s"])
-    # the predicted model error covers the true one (or both are the registers' rounding); not
-    # where the rows' delays differ (split requests), which the prediction does not model, nor on
+    # the predicted model error covers the true one (or both are the registers' rounding); not on
     # Modbus RTU without stamps, where it fell short (0.40 % against 0.65 %) in a loaded suite (open)
-    if not split and (stamps or transport != "modbus-rtu"):
+    if stamps or transport != "modbus-rtu":
         assert timing["model_error_max_pct"] >= worst or worst < 0.01, (timing["model_error_pct"], errors)
     if stamps:
         assert model["clock_source"] == "drive"

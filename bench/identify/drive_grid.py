@@ -437,11 +437,13 @@ def find_drive_grids(data: Dataset, model, delay_std_s: float = 0.0, min_gain: f
     lead = max(-data.min_delay_s, 0.0)
     simulated = by_simulation(data)
     # a tick longer than the host's cycle leaves too few distinct ticks to place the reads on,
-    # and one shorter than twice the reads' typical bracket cannot be told from their scatter
+    # and one shorter than the reads' typical bracket cannot be told from their scatter (twice
+    # that left a served serial drive's 0.125 ms tick, brackets of +-0.09 ms, unlocated: fits
+    # 99.5 % and M up to 0.3 % off, where the grid gives 99.9 % and 0.1 %)
     ticks = nominal_ticks_s(model.delay_s, delay_std_s, lead, data.dt_s)
     if lead > 0:
         bracket = float(np.median(np.concatenate([s.t_unc for s in data.segments if s.t_unc is not None])))
-        ticks = [t for t in ticks if t >= 2.0 * bracket]
+        ticks = [t for t in ticks if t >= bracket]
     elif simulated:  # the delay was read from a simulation that trades it against the mass: any tick
         # a hundredth of a cycle or more (finer ticks leave no mark at the log's rate)
         ticks = sorted((t for t in NICE_TICKS_S if t >= 0.01 * data.dt_s), key=lambda t: abs(t - model.delay_s))
