@@ -570,6 +570,62 @@ def find_grid_at(
     return replace(grid, gain=baseline / best)
 
 
+def phased_by_placed_pairs(data: Dataset, model, grid: RunGrids) -> RunGrids:
+    """``grid`` with each run's phase read again by ``model``'s pairs once they place the reads
+    near a tick (:func:`phase_by_placed_pairs`); ``model``: one identified on ``grid`` (under a
+    model the constant delay bent, the pairs misplace reads the grid alone puts right)."""
+    grids = tuple(
+        (run, phase_by_placed_pairs(replace(data, segments=tuple(s for s in data.segments if s.run == run)), model, g))
+        for run, g in grid.grids
+    )
+    return replace(grid, grids=grids)
+
+
+def phase_by_placed_pairs(data: Dataset, model, grid: DriveGrid) -> DriveGrid:
+    """``grid`` with the phase (of :data:`PHASES` over the tick, refined between its neighbours;
+    the drift none or ``grid``'s) whose pairs leave the least mean squared residual once the reads
+    near a tick are placed by them (:func:`~servobench.bench.identify.pair_placement.place_by_pairs`),
+    as the identification places them, where that is :data:`MIN_GAIN` times less than ``grid``'s
+    own (where the placement puts every read right from several phases, ``grid`` stays).
+
+    The grid alone puts each read at the tick its logged instant gives; where many brackets
+    straddle a tick, the phase that costs least so is off the drive's. A served Modbus TCP drive
+    at a 1 ms tick, read at 1 kHz by a host that missed 300 cycles: the grid alone read run 1's
+    phase 0.89 ms, the pairs' residual there 2.0e-5 against 7e-12 at 0.93-0.98 ms, and the model
+    identified on it fitted 98.86 % with Coulomb 0.76 % off, where 0.95 ms gives 99.999 %.
+    """
+    from servobench.bench.identify.joint import pair_residual_ms
+
+    def cost(trial: DriveGrid) -> float:
+        try:
+            moved, _ = on_grid(data, trial, model, pairs=True)
+            return pair_residual_ms(moved, trial.tick_s, model.time_constant_s)
+        except IdentificationError:
+            return math.inf
+
+    own = cost(grid)
+    best_cost, best = math.inf, grid
+    for drift in {0.0, grid.drift}:
+        for phase in np.arange(PHASES) * grid.tick_s / PHASES:
+            trial = replace(grid, phase_s=float(phase), drift=drift)
+            c = cost(trial)
+            if c < best_cost:
+                best_cost, best = c, trial
+    if not best_cost * MIN_GAIN < own:  # the grid alone's phase serves the pairs as well
+        return grid
+    step = grid.tick_s / PHASES
+    for phase in best.phase_s + np.linspace(-step, step, 2 * PAIR_REFINE_STEPS + 1):
+        trial = replace(best, phase_s=float(phase % grid.tick_s))
+        c = cost(trial)
+        if c < best_cost:
+            best_cost, best = c, trial
+    return best
+
+
+#: Steps each side of the best of :data:`PHASES` in :func:`_phase_by_placed_pairs`'s refinement.
+PAIR_REFINE_STEPS = 4
+
+
 def _grid_cost(data: Dataset, model, grid: DriveGrid) -> float:
     """Mean squared residual of ``model`` over every run moved onto ``grid``."""
     total, count = 0.0, 0
