@@ -92,8 +92,28 @@ def simulate_variable_dt(
     """Exact stick-slip velocity with a different interval ``dt_s[k]`` after each sample.
 
     The same piecewise-exponential solution as
-    :func:`~servobench.sim_backend.physics.coulomb.simulate_coulomb`, with ``exp(-dt_k/tau)`` per step.
+    :func:`~servobench.sim_backend.physics.coulomb.simulate_coulomb`, with ``exp(-dt_k/tau)`` per
+    step: :func:`simulate_variable_dt_reference`'s loop compiled
+    (:func:`~servobench.sim_backend.physics.kernels.variable_dt_velocity`), equal to it bit for bit
+    (``tests/test_compiled_plant.py``). The drive grid's searches run it thousands of times a log.
     """
+    from servobench.sim_backend.physics.kernels import variable_dt_velocity
+
+    u_a = np.ascontiguousarray(u, dtype=float)
+    dts = np.ascontiguousarray(dt_s, dtype=float)
+    if dts.size < max(u_a.size - 1, 0):
+        raise ValueError(f"{u_a.size} commands need {u_a.size - 1} intervals, got {dts.size}")
+    out = np.empty(u_a.size)
+    variable_dt_velocity(u_a, dts, float(params.M), float(params.B), float(params.coulomb_pos),
+                         float(params.coulomb_neg), float(params.breakaway_pos), float(params.breakaway_neg),
+                         float(v0), out)  # fmt: skip
+    return out
+
+
+def simulate_variable_dt_reference(
+    u: np.ndarray, dt_s: np.ndarray, params: PlantParams, v0: float = 0.0
+) -> np.ndarray:
+    """:func:`simulate_variable_dt` in Python: the reference its compiled loop is held to."""
     M, B = params.M, params.B
     fcp, fcn = params.coulomb_pos, params.coulomb_neg
     bkp, bkn = params.breakaway_pos, params.breakaway_neg

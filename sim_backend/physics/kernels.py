@@ -408,6 +408,41 @@ def _coulomb(line, i0, n, state, out_v, out_x, o0, fpar):
     state[0], state[1], state[2], state[3], state[4] = v, x, v, x, 0.0
 
 
+@njit(**_JIT)
+def variable_dt_velocity(u, dts, M, B, fcp, fcn, bkp, bkn, v0, out):
+    """:func:`servobench.bench.identify.simulation.simulate_variable_dt_reference` into ``out``:
+    ``u[k]`` over the interval ``dts[k]`` after sample ``k`` (``dts`` one shorter than ``u``)."""
+    tau = M / B
+    v = v0
+    n = u.size
+    for k in range(n):
+        uk = u[k]
+        dt = dts[k] if k < n - 1 else 0.0
+        out[k] = v
+        if v > 0.0:
+            f = fcp
+        elif v < 0.0:
+            f = -fcn
+        elif uk > bkp:
+            f = fcp
+        elif uk < -bkn:
+            f = -fcn
+        else:
+            continue
+        vinf = (uk - f) / B
+        vn = vinf + (v - vinf) * math.exp(-dt / tau)
+        forward = v > 0.0 or (v == 0.0 and uk > bkp)
+        if (vn > 0.0) == forward and vn != 0.0:
+            v = vn
+            continue
+        tc = tau * math.log((v - vinf) / -vinf)
+        if -bkn <= uk <= bkp:
+            v = 0.0
+            continue
+        f2 = fcp if uk > bkp else -fcn
+        v = (uk - f2) / B * (1.0 - math.exp(-(dt - tc) / tau))
+
+
 @njit(cache=True)
 def play_engaged(x, gap):
     """:func:`~.effects.backlash.engaged`: whether a load behind a play of ``gap`` is driven."""
