@@ -173,7 +173,7 @@ def test_a_command_that_arrives_at_a_tick_acts_where_the_simulation_puts_it():
     assert result.fit_percent > 99.5
 
 
-@pytest.mark.parametrize("seed", [8, 10, 14])
+@pytest.mark.parametrize("seed", [8, 10])  # (14 passed too: dropped for the suite's 10 minutes)
 def test_reads_off_the_middle_of_their_bracket_go_to_the_tick_the_transients_show(seed):
     # the drive reads each query 0.11 ms (+-0.125 ms) past one of its ticks, and the host's
     # bracket (+-0.2 ms) has its middle 0.11 ms before the read (a port whose latency is the
