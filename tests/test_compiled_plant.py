@@ -208,8 +208,9 @@ def test_the_compiled_play_operator_equals_the_reference():
 
 def test_the_compiled_variable_interval_integrator_equals_its_reference_bit_for_bit():
     """``simulate_variable_dt`` (the drive grid's searches call it thousands of times a log) against
-    the Python loop it was written from: random plants with and without breakaway levels, commands
-    that stick, break away and reverse, irregular intervals, one interval more than needed."""
+    its loop's source run by the interpreter: random plants with and without breakaway levels,
+    commands that stick, break away and reverse, irregular intervals, one interval more than
+    needed."""
     from servobench.bench.identify.simulation import (
         simulate_variable_dt,
         simulate_variable_dt_reference,
