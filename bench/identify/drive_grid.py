@@ -622,7 +622,7 @@ def phase_by_placed_pairs(data: Dataset, model, grid: DriveGrid) -> DriveGrid:
     return best
 
 
-#: Steps each side of the best of :data:`PHASES` in :func:`_phase_by_placed_pairs`'s refinement.
+#: Steps each side of the best of :data:`PHASES` in :func:`phase_by_placed_pairs`'s refinement.
 PAIR_REFINE_STEPS = 4
 
 

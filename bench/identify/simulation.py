@@ -99,15 +99,7 @@ def simulate_variable_dt(
     """
     from servobench.sim_backend.physics.kernels import variable_dt_velocity
 
-    u_a = np.ascontiguousarray(u, dtype=float)
-    dts = np.ascontiguousarray(dt_s, dtype=float)
-    if dts.size < max(u_a.size - 1, 0):
-        raise ValueError(f"{u_a.size} commands need {u_a.size - 1} intervals, got {dts.size}")
-    out = np.empty(u_a.size)
-    variable_dt_velocity(u_a, dts, float(params.M), float(params.B), float(params.coulomb_pos),
-                         float(params.coulomb_neg), float(params.breakaway_pos), float(params.breakaway_neg),
-                         float(v0), out)  # fmt: skip
-    return out
+    return _variable_dt(variable_dt_velocity, u, dt_s, params, v0)
 
 
 def simulate_variable_dt_reference(
@@ -118,11 +110,19 @@ def simulate_variable_dt_reference(
     bit for bit on 300 random plants and commands.)"""
     from servobench.sim_backend.physics.kernels import variable_dt_velocity
 
-    u_a = np.asarray(u, dtype=float)
+    return _variable_dt(variable_dt_velocity.py_func, u, dt_s, params, v0)
+
+
+def _variable_dt(loop, u: np.ndarray, dt_s: np.ndarray, params: PlantParams, v0: float) -> np.ndarray:
+    """``loop`` (:func:`~servobench.sim_backend.physics.kernels.variable_dt_velocity`, compiled or
+    not) on ``u`` and the intervals ``dt_s`` [s] after each sample, from ``v0``."""
+    u_a = np.ascontiguousarray(u, dtype=float)
+    dts = np.ascontiguousarray(dt_s, dtype=float)
+    if dts.size < max(u_a.size - 1, 0):
+        raise ValueError(f"{u_a.size} commands need {u_a.size - 1} intervals, got {dts.size}")
     out = np.empty(u_a.size)
-    variable_dt_velocity.py_func(u_a, np.asarray(dt_s, dtype=float), float(params.M), float(params.B),
-                                 float(params.coulomb_pos), float(params.coulomb_neg), float(params.breakaway_pos),
-                                 float(params.breakaway_neg), float(v0), out)  # fmt: skip
+    loop(u_a, dts, float(params.M), float(params.B), float(params.coulomb_pos), float(params.coulomb_neg),
+         float(params.breakaway_pos), float(params.breakaway_neg), float(v0), out)  # fmt: skip
     return out
 
 
