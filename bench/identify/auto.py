@@ -32,7 +32,6 @@ from servobench.bench.identify.drive_grid import (
     NICE_TICKS_S,
     TRIAL_GAIN,
     TRIALS,
-    RunGrids,
     by_simulation,
     find_drive_grids,
     find_run_grids,
@@ -188,9 +187,7 @@ def _phased_by_pairs(data: Dataset, best: tuple, placer, method: str, resonance:
     a host that missed 300 cycles: run 1's phase read 0.89 ms, the model fitted 98.86 % with
     Coulomb 0.76 % off; read again, 0.93 ms, 99.999 % and within 0.001 %.
     """
-    grid, moved, again, merged = best
-    if not isinstance(grid, RunGrids):
-        return best, placer
+    grid, moved, again, merged = best  # grid: find_run_grids's RunGrids, one per run
     model = replace(again.model, delay_s=grid.tick_s)
     better = phased_by_placed_pairs(data, model, grid)
     if better == grid:
