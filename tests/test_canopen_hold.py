@@ -59,9 +59,10 @@ def _record_steps(device) -> list[float]:
 
 
 def test_hold_keeps_x_ref_under_an_offset_and_reports_the_applied_torque() -> None:
-    # host, hub and served drive share one process here: a watchdog with room
-    # for a loaded test machine (this test is about the hold, not the watchdog)
-    with served(SIM) as (device, url), open_drive(url + "&watchdog=2") as drive:
+    # host, hub and served drive share one process here: a watchdog and a TPDO wait with
+    # room for a loaded test machine (this test is about the hold, not the timeouts; a
+    # fresh-clone suite once waited over 100 ms for a SYNC's TPDO here)
+    with served(SIM) as (device, url), open_drive(url + "&watchdog=2&pdo_timeout=1") as drive:
         assert drive.supports_drive_hold
         by_drive = _record_steps(device)
         drive.set_cycle(0.001)
