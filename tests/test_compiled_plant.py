@@ -10,8 +10,8 @@ plus states and calls the simulated drive makes: 78 plant/input cases in all.
 
 The one body and the play give the reference's numbers bit for bit; a spring's reversals
 (the motor stopping inside a segment) propagate its linear system over a fraction of the
-segment through complex eigenvalues, where the compiled loop sums in its own order: there
-the two agree within rounding (1e-13 seen over 10^4 samples), inside :data:`RTOL`.
+segment from its modes (complex eigenvalues), where the compiled loop sums in its own order:
+there the two agree within rounding (1e-13 seen over 10^4 samples), inside :data:`RTOL`.
 """
 
 from __future__ import annotations
@@ -130,6 +130,47 @@ def test_sample_by_sample_compiled_equals_the_reference(plant):
         v0, x0, state_ref = ref.simulate(u[k : k + 1], dt, state_ref)
         assert (v1[0], x1[0]) == pytest.approx((v0[0], x0[0]), rel=RTOL, abs=1e-300)
     close(np.array([state_new.v, state_new.x]), np.array([state_ref.v, state_ref.x]))
+
+
+@pytest.mark.parametrize("modes", [True, False], ids=["modes", "defective"])
+def test_a_springs_reversals_run_compiled_on_its_modes(modes):
+    """A spring's reversals (the motor stopping inside a segment) propagate its systems from their
+    modes inside the compiled loop, without calling the reference back; a model with a defective
+    system (no modes) calls the reference's own step back. Both equal the reference."""
+    import dataclasses
+
+    from servobench.sim_backend.physics import kernels
+
+    params, runs = case("resonance", "sidbe")
+    dt = 1.0 / 500.0
+    new, ref = both(params)
+    pk = new.packed(dt)
+    assert pk.modes.shape == (1, 6 * kernels.MODE_COLS)
+    if not modes:
+        ipar = pk.ipar.copy()
+        ipar[kernels.MODE] = -1
+        pk = dataclasses.replace(pk, ipar=ipar, modes=pk.modes[:0])
+    called, reverse = [0], new._spring_reverse
+
+    def counted(*args):
+        called[0] += 1
+        return reverse(*args)
+
+    new._spring_reverse = counted
+    reversals, step = [0], ref._spring_reverse
+
+    def counted_ref(*args):
+        reversals[0] += 1
+        return step(*args)
+
+    ref._spring_reverse = counted_ref
+    u = runs[1]
+    v1, x1, _ = run([pk], [[pk.line(u)]], [(0, 0, u.size, 0)], np.zeros((1, 5)))
+    v0, x0, _ = ref.simulate(u, dt, PlantState())
+    close(v1[0], v0)
+    close(x1[0], x0)
+    assert reversals[0] > 20  # the case reverses the motor inside segments
+    assert called[0] == (0 if modes else reversals[0])
 
 
 def test_a_term_that_is_not_data_runs_on_the_reference():

@@ -136,11 +136,14 @@ def long_run_covariance(g: np.ndarray, bounds: Sequence[int] | None, lags: int) 
     g = np.asarray(g, dtype=float)
     segments = _segments(g.shape[0], bounds)
     S = g.T @ g
-    for k in range(1, lags):
-        w = float(parzen(np.array([k / lags]))[0])
+    weights = parzen(np.arange(1, max(lags, 1)) / lags).tolist()  # one call, not one per lag
+    for k, w in enumerate(weights, start=1):
         if w == 0.0:
             break
-        G = sum((g[a + k : b].T @ g[a : b - k] for a, b in segments if b - a > k), np.zeros_like(S))
+        G = np.zeros_like(S)
+        for a, b in segments:
+            if b - a > k:
+                G += g[a + k : b].T @ g[a : b - k]
         S += w * (G + G.T)
     return S
 

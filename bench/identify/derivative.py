@@ -58,6 +58,33 @@ def butterworth(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
     return b, a
 
 
+@functools.lru_cache(maxsize=64)
+def _steady_state(order: int, wn: float) -> np.ndarray:
+    """``scipy.signal.lfilter_zi`` of :func:`butterworth` ``(order, wn)``: the filter's state in
+    its step response's steady state, solved once (``filtfilt`` solves it on every call)."""
+    from scipy import signal
+
+    zi = signal.lfilter_zi(*butterworth(order, wn))
+    zi.flags.writeable = False
+    return zi
+
+
+def _filtfilt(order: int, wn: float, y: np.ndarray, axis: int) -> np.ndarray:
+    """``scipy.signal.filtfilt(b, a, y, axis=axis)`` (its default odd padding of ``3 * max(len(a),
+    len(b))`` samples at each end and steady-state initial conditions), operation for
+    operation, with the steady state solved once per filter (:func:`_steady_state`)."""
+    from scipy import signal
+
+    b, a = butterworth(order, wn)
+    n = 3 * max(len(a), len(b))
+    x = np.moveaxis(y, axis, 0)
+    ext = np.concatenate((2 * x[:1] - x[n:0:-1], x, 2 * x[-1:] - x[-2 : -(n + 2) : -1]), axis=0)
+    zi = _steady_state(order, wn).reshape((-1,) + (1,) * (x.ndim - 1))
+    fwd, _ = signal.lfilter(b, a, ext, axis=0, zi=zi * ext[:1])
+    back, _ = signal.lfilter(b, a, fwd[::-1], axis=0, zi=zi * fwd[-1:])
+    return np.moveaxis(back[::-1][n:-n], 0, axis)
+
+
 def lowpass(
     y: np.ndarray,
     fs_hz: float,
@@ -69,20 +96,19 @@ def lowpass(
 
     ``cutoff_hz`` [Hz] defaults to :func:`default_cutoff_hz`, that of the position filter.
     """
-    from scipy import signal
-
     if cutoff_hz is None:
         cutoff_hz = default_cutoff_hz(fs_hz)
     if not (0 < cutoff_hz < fs_hz / 2):
         raise IdentificationError(
             f"velocity filter cut-off {cutoff_hz} Hz must lie between 0 and Nyquist ({fs_hz / 2} Hz)"
         )
-    b, a = butterworth(order, cutoff_hz / (fs_hz / 2))
+    wn = cutoff_hz / (fs_hz / 2)
+    b, a = butterworth(order, wn)
     y = np.asarray(y, dtype=float)
     padlen = 3 * max(len(a), len(b))
     if y.shape[axis] <= padlen:
         raise IdentificationError(f"too few samples ({y.shape[axis]}) to filter the position")
-    return signal.filtfilt(b, a, y, axis=axis)
+    return _filtfilt(order, wn, y, axis)
 
 
 def zoh_centered(u: np.ndarray) -> np.ndarray:

@@ -3,15 +3,16 @@
 :func:`pack` turns a :class:`~servobench.sim_backend.physics.rich_plant.RichModel` into
 :class:`Packed` numbers (the layout of :mod:`.kernels`), :func:`pack_coulomb` the base plant;
 :func:`run` integrates a batch of them over windows of runs. A model whose terms are not all
-data (a bare callable) does not pack: it runs on the reference loops. A spring's reversals
-(rare) run on its model's own reference step, called back from the compiled loop.
+data (a bare callable) does not pack: it runs on the reference loops. A spring carries the
+modes of its systems for its reversals (a defective system's reversals run on its model's own
+reference step, called back from the compiled loop).
 """
 
 from __future__ import annotations
 
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,8 +32,12 @@ class Packed:
     forces: np.ndarray
     whole: int = 0
     inputs: tuple[Callable[[np.ndarray], np.ndarray], ...] = ()
-    #: The model of a spring, whose reversals the compiled loop hands back to it.
+    #: The model of a spring, whose reversals the compiled loop hands back to it where ``modes``
+    #: is empty.
     owner: object = None
+    #: A spring's modes (:data:`.kernels.MODE_COLS` layout), shape (1, 6 * MODE_COLS); (0, ...)
+    #: for other models and for a spring with a defective system.
+    modes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6 * k.MODE_COLS), complex))
 
     def transform(self, line: np.ndarray) -> np.ndarray:
         """The command transforms applied to a command line (each is elementwise)."""
@@ -55,6 +60,7 @@ def _ipar(kind: int, exc: bool, at: bool, segs: int, table: int, forces: int) ->
     out = np.zeros(k.NI, dtype=np.int64)
     out[k.KIND], out[k.HAS_EXC], out[k.HAS_AT] = kind, int(exc), int(at)
     out[k.SEG1], out[k.TAB1], out[k.FOR1] = segs, table, forces
+    out[k.MODE] = -1  # no modes (set where a spring has them)
     return out
 
 
@@ -101,12 +107,31 @@ def pack(model, dt_s: float) -> Packed | None:
     kind = k.RIGID if c is None else k.GAP if c.kind == "gap" else k.SPRING
     force_rows = np.array([(f.amp, f.k, f.phase) for f in forces], dtype=float).reshape(-1, 3)
     ipar = _ipar(kind, exc is not None, at is not None, len(segs), table.size, len(force_rows))
-    owner = None
+    owner, modes = None, np.zeros((0, 6 * k.MODE_COLS), complex)
     if kind == k.SPRING:
         ipar[k.KEY] = next(_KEYS)
         k.REVERSALS[int(ipar[k.KEY])] = owner = model
+        modes = spring_modes(model)
+        ipar[k.MODE] = 0 if modes.size else -1
     inputs = tuple(fn for _, fn in sorted(terms.inputs, key=lambda item: item[0]))
-    return Packed(fpar, ipar, segs, table, force_rows, model.whole_delay(dt_s), inputs, owner)
+    return Packed(
+        fpar, ipar, segs, table, force_rows, model.whole_delay(dt_s), inputs, owner, modes
+    )
+
+
+def spring_modes(model) -> np.ndarray:
+    """The modes of a spring model's six systems (:data:`.kernels.MODE_COLS` layout) from the
+    :class:`~.bodies.Propagator` its reference integrator uses; empty when one is defective."""
+    out = np.zeros((1, 6 * k.MODE_COLS), complex)
+    systems = [(1, 1, False), (1, -1, False), (-1, 1, False), (-1, -1, False), (1, 1, True), (1, -1, True)]
+    for i, (sm, sl, held) in enumerate(systems):
+        assert k.spring_system(sm, sl, held) == i
+        prop = model._spring_system(sm, sl, held)
+        if not prop.ok:
+            return out[:0]
+        row = np.concatenate([prop.lam, prop.V.ravel(), prop.Vinv.ravel(), prop.Vinv_b])
+        out[0, k.MODE_COLS * i : k.MODE_COLS * i + row.size] = row
+    return out
 
 
 def run(
@@ -135,13 +160,16 @@ def run(
     """
     P, runs = len(packs), len(lines[0]) if lines else 0
     ipar = np.empty((P, k.NI), dtype=np.int64)
-    seg_at = table_at = force_at = line_next = 0
+    seg_at = table_at = force_at = line_next = mode_at = 0
     line_at = np.empty((P, runs), dtype=np.int64)
     for p, (pk, per_run) in enumerate(zip(packs, lines, strict=True)):
         ipar[p] = pk.ipar
         ipar[p, [k.SEG0, k.SEG1]] += seg_at
         ipar[p, [k.TAB0, k.TAB1]] += table_at
         ipar[p, [k.FOR0, k.FOR1]] += force_at
+        if pk.modes.size:
+            ipar[p, k.MODE] = mode_at
+            mode_at += pk.modes.shape[0]
         seg_at, table_at, force_at = ipar[p, k.SEG1], ipar[p, k.TAB1], ipar[p, k.FOR1]
         for r, ln in enumerate(per_run):
             line_at[p, r] = line_next
@@ -156,6 +184,9 @@ def run(
         np.ascontiguousarray(np.concatenate([pk.segs for pk in packs]).reshape(-1, k.SEG_COLS)),
         np.ascontiguousarray(np.concatenate([pk.table for pk in packs]), dtype=float),
         np.ascontiguousarray(np.concatenate([pk.forces for pk in packs]).reshape(-1, 3)),
+        np.ascontiguousarray(
+            np.concatenate([pk.modes for pk in packs]).reshape(-1, 6 * k.MODE_COLS), dtype=complex
+        ),
         np.concatenate([ln for per_run in lines for ln in per_run]) if line_next else np.zeros(1),
         line_at,
         windows,

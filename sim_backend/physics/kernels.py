@@ -5,8 +5,9 @@ the effects' terms read as data.
 :func:`servobench.sim_backend.physics.coulomb.simulate_coulomb` (the base plant) are the
 and the spring (resonance) are the reference: each function here is one of their loops
 written again, operation for operation, over arrays, so the compiled outputs equal theirs
-(``tests/test_compiled_plant.py``); a spring's reversal inside a segment, rare, calls the
-reference's own step back (:func:`_reverse`). The
+(``tests/test_compiled_plant.py``); a spring's reversal inside a segment propagates its
+system over the fraction of the segment from the modes its reference holds (a defective
+system, which has none, calls the reference's own step back: :func:`_reverse`). The
 effects' callables become numbers (:class:`~.effects.spec.GaussianExcess`,
 :class:`~.effects.spec.TableFriction`, :class:`~.effects.spec.SineForce`); a model is
 
@@ -38,8 +39,8 @@ from numba import njit, objmode
 FCP, FCN, BKP, BKN, EXC_POS, EXC_NEG, EXC_INV, AT_X0, AT_SCALE, HALF, RATIO, MASS, B_POS, B_NEG, DT, STIFF, DAMP = range(17)  # fmt: skip
 NF = 17
 #: ``ipar`` indices.
-KIND, HAS_EXC, HAS_AT, SEG0, SEG1, TAB0, TAB1, FOR0, FOR1, KEY = range(10)
-NI = 10
+KIND, HAS_EXC, HAS_AT, SEG0, SEG1, TAB0, TAB1, FOR0, FOR1, KEY, MODE = range(11)
+NI = 11
 #: Integrators (``ipar[KIND]``): one body with every term, the play, the base plant, the spring.
 RIGID, GAP, COULOMB, SPRING = 0, 1, 2, 3
 #: ``segs`` columns: 0 uses the previous command; the consts of the whole body, the motor,
@@ -49,8 +50,15 @@ RIGID, GAP, COULOMB, SPRING = 0, 1, 2, 3
 #: alone behind a held motor for the two load directions (6 numbers each).
 JOINT, MOTOR, LOAD, PAIRS, HELD = 1, 10, 19, 28, 108
 SEG_COLS = 120
-#: Spring models by ``ipar[KEY]``: their reversals run on the reference (:func:`_reverse`);
-#: each :class:`~.compiled.Packed` of a spring holds its model, which keeps it here.
+#: ``modes`` columns: a spring's six systems (:func:`spring_system`'s order), each as the
+#: eigen-decomposition its reference :class:`~.bodies.Propagator` holds -- ``lam`` (n), ``V``
+#: (n x n, row by row), ``V^-1`` (n x n), ``V^-1 b`` (n), n = 4 (2 for the held motor) -- in
+#: :data:`MODE_COLS` complex numbers from ``MODE_COLS * system``. ``ipar[MODE]`` is the model's
+#: row, -1 where a system is defective (its reversals then run on the reference).
+MODE_COLS = 40
+#: Spring models by ``ipar[KEY]``: the reversals of those without modes run on the reference
+#: (:func:`_reverse`); each :class:`~.compiled.Packed` of a spring holds its model, which keeps
+#: it here.
 REVERSALS: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 
 #: No reference counting (``_nrt``): the loops allocate nothing, and counting the arrays
@@ -289,10 +297,68 @@ def spring_system(sm, sl, held):
     return (0 if sm > 0 else 2) + (0 if sl > 0 else 1)
 
 
+@njit(**_JIT)
+def _propagated(mode, system, t, i, z0, z1, z2, z3, w):
+    """Row ``i`` of :meth:`~.bodies.Propagator.over` ``(E, g)`` of a spring system over ``t``
+    applied to the state ``z`` and the input ``w``: ``sum_j E_ij z_j + g_i w`` in the
+    reference's order (a held motor's system has two states, ``z0, z1``)."""
+    n = 2 if system >= 4 else 4
+    at = MODE_COLS * system
+    vi, ib = at + n, at + n + 2 * n * n
+    total = 0.0
+    for j in range(n):
+        e_ij = 0j
+        for q in range(n):
+            lam = mode[at + q]
+            e_ij += (mode[vi + i * n + q] * np.exp(lam * t)) * mode[vi + n * n + q * n + j]
+        z = z0 if j == 0 else z1 if j == 1 else z2 if j == 2 else z3
+        total += e_ij.real * z
+    g_i = 0j
+    for q in range(n):
+        lam = mode[at + q]
+        lt = lam * t
+        phi = t * (1 + lt / 2) if abs(lt) < 1e-8 else (np.exp(lt) - 1) / lam
+        g_i += mode[vi + i * n + q] * (phi * mode[ib + q])
+    return total + g_i.real * w
+
+
+@njit(**_JIT)
+def _reverse_compiled(mode, vm, xm, vl, xl, th, h, sm, f, g, fpar, ipar, table):
+    """:meth:`~.coupling.CouplingMixin._spring_reverse` on the modes of the model's systems."""
+    kk, cc = fpar[STIFF], fpar[DAMP]
+    sl = 1 if vl >= 0.0 else -1
+    t = th * h
+    c = spring_system(sm, sl, False)
+    # the motor's own velocity at the crossing is 0: rows 1-3 only
+    n1 = _propagated(mode, c, t, 1, vm, xm, vl, xl, g)
+    n2 = _propagated(mode, c, t, 2, vm, xm, vl, xl, g)
+    n3 = _propagated(mode, c, t, 3, vm, xm, vl, xl, g)
+    rest = (1.0 - th) * h
+    net = f + kk * (n3 - n1) + cc * n2
+    F, held = _friction_force(0.0, net, n1, fpar, ipar, table)
+    if held:
+        c = spring_system(1, sl, True)
+        w = kk * n1
+        return (
+            0.0,
+            n1,
+            _propagated(mode, c, rest, 0, n2, n3, 0.0, 0.0, w),
+            _propagated(mode, c, rest, 1, n2, n3, 0.0, 0.0, w),
+        )
+    c = spring_system(1 if net > 0.0 else -1, sl, False)
+    return (
+        _propagated(mode, c, rest, 0, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, rest, 1, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, rest, 2, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, rest, 3, 0.0, n1, n2, n3, f - F),
+    )
+
+
 def _reverse(key, vm, xm, vl, xl, th, h, sm, f, g):
     """A spring's reversal (the motor velocity crosses zero at ``th * h``), by the reference
     model's own :meth:`~.coupling.CouplingMixin._spring_reverse`: its exact propagation over
-    a fraction of a segment, with the reference's own numbers. It runs once per reversal."""
+    a fraction of a segment, with the reference's own numbers. Only models with a defective
+    system (no modes) take it."""
     return REVERSALS[key]._spring_reverse((vm, xm, vl, xl), th, h, sm, f, g)
 
 
@@ -304,7 +370,7 @@ def _reverse_py(key, vm, xm, vl, xl, th, h, sm, f, g):
 
 
 @njit(**_JIT)
-def _spring(line, i0, n, state, out_v, out_x, o0, fpar, ipar, segs, table, forces):
+def _spring(line, i0, n, state, out_v, out_x, o0, fpar, ipar, segs, table, forces, modes):
     """:meth:`~.coupling.CouplingMixin._run_spring`: motor -- spring/damper -- load; the
     sensor sits on the load."""
     vm, xm, vl, xl = state[0], state[1], state[2], state[3]
@@ -363,7 +429,12 @@ def _spring(line, i0, n, state, out_v, out_x, o0, fpar, ipar, segs, table, force
             )
             if vm != 0.0 and (n0 > 0.0) != (vm > 0.0):
                 th = vm / (vm - n0)
-                vm, xm, vl, xl = _reverse_py(ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g)
+                if ipar[MODE] >= 0:
+                    vm, xm, vl, xl = _reverse_compiled(
+                        modes[ipar[MODE]], vm, xm, vl, xl, th, segs[s, 1], sm, f, g, fpar, ipar, table
+                    )
+                else:
+                    vm, xm, vl, xl = _reverse_py(ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g)
             else:
                 vm, xm, vl, xl = n0, n1, n2, n3
     state[0], state[1], state[2], state[3], state[4] = vm, xm, vl, xl, 0.0
@@ -461,7 +532,7 @@ def play_engaged(x, gap):
 
 
 @njit(**_JIT)
-def run_batch(fpar, ipar, segs, table, forces, line, line_at, windows, start, out_v, out_x, final):
+def run_batch(fpar, ipar, segs, table, forces, modes, line, line_at, windows, start, out_v, out_x, final):
     """Every model over every window, in one call.
 
     Parameters
@@ -470,6 +541,8 @@ def run_batch(fpar, ipar, segs, table, forces, line, line_at, windows, start, ou
         The models (rows of ``segs``, ``table`` and ``forces`` by the offsets in ``ipar``).
     segs, table, forces : ndarray
         The rows of all models, concatenated.
+    modes : ndarray of complex, shape (S, 6 * MODE_COLS)
+        The springs' modes (a row per spring model, ``ipar[MODE]``).
     line : ndarray, shape (L,)
         Every model's command lines [command units], concatenated: the transformed command
         held in each interval, one interval before a window's first (see :func:`_rigid`).
@@ -501,4 +574,4 @@ def run_batch(fpar, ipar, segs, table, forces, line, line_at, windows, start, ou
             elif kind == GAP:
                 _gap(line, i0, n, state, ov, ox, o0, fp, ip, segs, table, forces)
             else:
-                _spring(line, i0, n, state, ov, ox, o0, fp, ip, segs, table, forces)
+                _spring(line, i0, n, state, ov, ox, o0, fp, ip, segs, table, forces, modes)
