@@ -7,9 +7,38 @@ forces and hidden state.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from servobench.sim_backend.physics.bodies import Propagator, consts, friction_force, slider
+
+
+@functools.lru_cache(maxsize=2048)
+def spring_propagator(
+    M: float, B_motor: float, B_load: float, r: float, k: float, d: float, held: bool
+) -> Propagator:
+    """The :class:`Propagator` of spring-coupled bodies: mass ``M`` [command units s^2/unit]
+    shared ``1 - r`` : ``r`` between motor and load, the viscous coefficient of each body's
+    direction (``B_motor``, ``B_load``) shared alike, a spring ``k`` and damper ``d`` between them
+    (``held``: the motor stuck, the load alone). Models that differ only in friction or forces
+    (most of a Jacobian's columns) share it."""
+    Mm, Ml = (1 - r) * M, r * M
+    Bm, Bl = (1 - r) * B_motor, r * B_load
+    if held:
+        A = np.array([[-(Bl + d) / Ml, -k / Ml], [1.0, 0.0]])
+        b = np.array([1.0 / Ml, 0.0])
+    else:
+        A = np.array(
+            [
+                [-(Bm + d) / Mm, -k / Mm, d / Mm, k / Mm],
+                [1.0, 0.0, 0.0, 0.0],
+                [d / Ml, k / Ml, -(Bl + d) / Ml, -k / Ml],
+                [0.0, 0.0, 1.0, 0.0],
+            ]
+        )
+        b = np.array([1.0 / Mm, 0.0, 0.0, 0.0])
+    return Propagator(A, b)
 
 
 class CouplingMixin:
@@ -26,25 +55,11 @@ class CouplingMixin:
         if hit is not None:
             return hit
         c, p = self.terms.coupling, self.params
-        r = c.load_ratio
-        Mm, Ml = (1 - r) * p.M, r * p.M
-        Bm = (1 - r) * (self.B_pos if sm >= 0 else self.B_neg)
-        Bl = r * (self.B_pos if sl >= 0 else self.B_neg)
-        k, d = c.stiffness, c.damping
-        if held:
-            A = np.array([[-(Bl + d) / Ml, -k / Ml], [1.0, 0.0]])
-            b = np.array([1.0 / Ml, 0.0])
-        else:
-            A = np.array(
-                [
-                    [-(Bm + d) / Mm, -k / Mm, d / Mm, k / Mm],
-                    [1.0, 0.0, 0.0, 0.0],
-                    [d / Ml, k / Ml, -(Bl + d) / Ml, -k / Ml],
-                    [0.0, 0.0, 1.0, 0.0],
-                ]
-            )
-            b = np.array([1.0 / Mm, 0.0, 0.0, 0.0])
-        out = self._systems[key] = Propagator(A, b)
+        Bm = self.B_pos if sm >= 0 else self.B_neg
+        Bl = self.B_pos if sl >= 0 else self.B_neg
+        out = self._systems[key] = spring_propagator(
+            p.M, Bm, Bl, c.load_ratio, c.stiffness, c.damping, held
+        )
         return out
 
     def _spring_step(self, h: float, sm: int, sl: int, held: bool, cache: bool = True) -> tuple:

@@ -55,6 +55,13 @@ _SPRING_PAD = (0.0,) * (SEG_COLS - PAIRS)
 COMPILED_FROM = 32
 
 
+#: Segment rows by everything they depend on (step, mass, viscous coefficients, segment pattern,
+#: coupling): models that differ only in terms the rows do not hold (friction levels, forces,
+#: command transforms; most of a Jacobian's columns) share them. The oldest go first.
+_ROWS: dict[tuple, np.ndarray] = {}
+ROWS_KEPT = 512
+
+
 def _coefficients(k: tuple[float, ...]) -> tuple[float, ...]:
     """``(a_pos, a_neg, g_pos, g_neg, B_pos, B_neg)`` of :func:`consts` ``k``: what the hot loops'
     inline steps read, the very numbers the segment's :func:`slider` was built from."""
@@ -158,7 +165,7 @@ class RichModel(CouplingMixin):
             raise UsageError("sample interval must be > 0 s")
         hit = self._prepared.get(dt_s)
         if hit is not None:
-            self._whole, self._segs, self._inline, self._rows = hit
+            self._whole, self._pattern, self._rows, self._segs, self._inline = hit
             self._dt = dt_s
             return
         if len(self._prepared) >= PREPARED_STEPS:  # irregular steps (clock=real): keep it bounded
@@ -169,31 +176,61 @@ class RichModel(CouplingMixin):
         delay = self.terms.delay_s / dt_s
         self._whole = int(math.floor(delay + 1e-9))
         frac = delay - self._whole
-        pattern = _pattern(self.substeps(dt_s), frac if frac > 1e-9 else 0.0)
+        self._pattern = tuple(_pattern(self.substeps(dt_s), frac if frac > 1e-9 else 0.0))
+        key = (dt_s, p.M, self.B_pos, self.B_neg, self._pattern, c)
+        rows = _ROWS.get(key)
+        if rows is None:
+            rows = self._compute_rows(dt_s)
+            if len(_ROWS) >= ROWS_KEPT:
+                _ROWS.pop(next(iter(_ROWS)))
+            _ROWS[key] = rows
+        self._rows = rows
+        self._segs = self._inline = None  # the reference loops' steppers: built when they run
+        self._dt = dt_s
+        self._prepared[dt_s] = (self._whole, self._pattern, rows, None, None)
+
+    def _compute_rows(self, dt_s: float) -> np.ndarray:
+        """Per segment of :attr:`_pattern`, the numbers the compiled loop reads (see :meth:`rows`)."""
+        p, c = self.params, self.terms.coupling
+        r = c.load_ratio if c is not None else 0.0
+        rows = []
+        for share, prev in self._pattern:
+            h = share * dt_s
+            k_rigid = consts(h, p.M, self.B_pos, self.B_neg)
+            if c is None:
+                rows.append((float(prev), *k_rigid, *k_rigid, *k_rigid, *_SPRING_PAD))
+                continue
+            k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
+            load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
+            rows.append((float(prev), *k_rigid, *k_motor, *load, *self._spring_row(h)))
+        out = np.array(rows, dtype=float).reshape(len(rows), -1)
+        out.flags.writeable = False  # shared between models (:data:`_ROWS`)
+        return out
+
+    def _build_steppers(self) -> None:
+        """The reference loops' segments at the prepared step: per segment ``(use_prev, h,
+        whole-body stepper, motor stepper, load consts)`` and the inline coefficients of the
+        whole body and of the motor alone (the steppers' own numbers)."""
+        p, c, dt_s = self.params, self.terms.coupling, self._dt
         r = c.load_ratio if c is not None else 0.0
         segs = []
-        inline = []  # per segment: coefficients of the whole body and of the motor alone
-        rows = []  # per segment, what the compiled integrator reads (kernels.SEG_COLS numbers)
+        inline = []
         fr = self.friction
-        for share, prev in pattern:
+        for share, prev in self._pattern:
             h = share * dt_s
             k_rigid = consts(h, p.M, self.B_pos, self.B_neg)
             rigid = slider(k_rigid, fr)
             if c is None:
                 segs.append((prev, h, rigid, rigid, ()))
                 inline.append((_coefficients(k_rigid), _coefficients(k_rigid)))
-                rows.append((float(prev), *k_rigid, *k_rigid, *k_rigid, *_SPRING_PAD))
                 continue
             k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
             motor = slider(k_motor, fr)
             load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
             segs.append((prev, h, rigid, motor, load))
             inline.append((_coefficients(k_rigid), _coefficients(k_motor)))
-            rows.append((float(prev), *k_rigid, *k_motor, *load, *self._spring_row(h)))
         self._segs, self._inline = segs, inline
-        self._rows = np.array(rows, dtype=float).reshape(len(rows), -1)
-        self._dt = dt_s
-        self._prepared[dt_s] = (self._whole, segs, inline, self._rows)
+        self._prepared[dt_s] = (self._whole, self._pattern, self._rows, segs, inline)
 
     def _spring_row(self, h: float) -> tuple[float, ...]:
         """A spring's transitions over a segment ``h`` [s] as the compiled loop reads them (the
@@ -288,6 +325,8 @@ class RichModel(CouplingMixin):
             self._last = out
             return out_v[0], out_x[0], PlantState(out.v, out.x)
         cur, prev = self._commands(u)
+        if self._segs is None:
+            self._build_steppers()
         if c is None:
             vs, xs = self._run_rigid(cur.tolist(), prev.tolist())
         elif c.kind == "spring":
