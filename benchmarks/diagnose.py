@@ -78,6 +78,11 @@ PAIRS = (
     ("position_friction", "time_delay"),
 )
 WITHOUT_POSITION = tuple(n for n in library.names() if n != "position_friction")
+#: This benchmark before the compiled simulator (commit ee9b9bf) with ``--cases 1 --seed 1
+#: --jobs 2`` (77 cases, every group) on the 2-core machine of that change [s, wall]: the
+#: figure issue 30's 10x is held against.
+BEFORE_WALL_S = 115.0
+BEFORE_OPTIONS = {"cases": 1, "seed": 1, "jobs": 2, "groups": GROUPS}
 
 
 @dataclass(frozen=True)
@@ -277,6 +282,12 @@ def main(argv: list[str] | None = None) -> int:
         results = list(pool.map(run_case, jobs, [folder] * len(jobs)))
     wall = time.perf_counter() - t0
     print(f"{len(results)} cases, seed {args.seed}, groups {', '.join(groups)}, {wall:.0f} s wall")
+    asked = {"cases": args.cases, "seed": args.seed, "jobs": args.jobs, "groups": tuple(groups)}
+    if asked == BEFORE_OPTIONS:
+        print(
+            f"before the compiled simulator (ee9b9bf, the same options): {BEFORE_WALL_S:.0f} s wall "
+            f"on its 2-core machine; {BEFORE_WALL_S / wall:.1f}x faster here"
+        )
     print()
     confusion(results)
     summary(results)
