@@ -103,3 +103,30 @@ def test_a_read_the_host_stalled_on_takes_the_tick_its_pairs_fit():
     assert k0[i] - k_true[i] >= 5
     assert k[i] == k_true[i]
     assert _cost(k, k_true, v_tick) < 1e-6 * _cost(k0, k_true, v_tick)
+
+
+def test_the_compiled_path_search_equals_its_numpy_reference():
+    """The least-cost placement (compiled: a log's placement runs it tens of times over thousands
+    of reads) against the same dynamic programme in numpy, one read at a time: random candidate
+    ticks, reads allowed or not, residuals with ties and a NaN; the same ticks every time."""
+    from servobench.bench.identify.pair_placement import _viterbi, _viterbi_reference
+
+    rng = np.random.default_rng(0)
+    moved = 0
+    for i in range(300):
+        n, size = int(rng.integers(1, 300)), int(rng.integers(1, 6))
+        shifts = np.sort(rng.choice(np.arange(-3, 4), size, replace=False)).astype(float)
+        cand = np.cumsum(rng.integers(0, 3, n)).astype(float)[:, None] + shifts[None, :]
+        allowed = rng.random((n, size)) < 0.8
+        allowed[np.arange(n), rng.integers(0, size, n)] = True
+        e = rng.normal(size=(n - 1, size, size))
+        if i % 4 == 0:
+            e = np.round(e)  # equal costs: the first of equal minima, as np.argmin
+        if i % 7 == 0 and e.size:
+            e.flat[rng.integers(0, e.size)] = np.nan
+        bar = float(rng.uniform(0.0, 3.0))
+        got = _viterbi(cand, allowed, e, shifts, bar)
+        want = _viterbi_reference(cand, allowed, e, shifts, bar)
+        assert np.array_equal(got, want), i
+        moved += bool(np.any(want != cand[np.arange(n), np.argmin(np.abs(shifts))]))
+    assert moved > 100  # the cases move reads off their logged tick

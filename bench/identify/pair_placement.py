@@ -27,6 +27,7 @@ Pure: arrays in, tick indices out; no transport.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 #: A read's shift from its logged tick differing from the read before's costs this many residual
 #: scales, squared: the shift changes only where the pairs then fit better by that much (a
@@ -138,6 +139,54 @@ def _viterbi(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.nd
     moved = TIE_SHARE * bar * (shifts != 0.0)
     switch = bar * (shifts[:, None] != shifts[None, :])  # (S, S): the offset changes between reads
     pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)  # (n - 1, S, S): never back
+    state = _viterbi_states(
+        np.ascontiguousarray(pair, dtype=float),
+        np.ascontiguousarray(switch, dtype=float),
+        np.ascontiguousarray(allowed, dtype=np.bool_),
+        np.ascontiguousarray(moved, dtype=float),
+    )
+    return cand[np.arange(n), state]
+
+
+@njit(cache=True)
+def _viterbi_states(pair, switch, allowed, moved):
+    """The least-cost path's state per read: ``cost_j(b) = min_a cost_{j-1}(a) + pair[j-1, a, b] +
+    switch[a, b]``, plus ``moved[b]`` where ``allowed[j, b]`` (else infinite); the first of equal
+    minima, NaN first (``np.argmin``'s choice)."""
+    n1, size = pair.shape[0], pair.shape[1]
+    cost = np.empty(size)
+    for b in range(size):
+        cost[b] = moved[b] if allowed[0, b] else np.inf
+    back = np.zeros((n1, size), dtype=np.int64)
+    new = np.empty(size)
+    for j in range(1, n1 + 1):
+        for b in range(size):
+            best, arg = cost[0] + pair[j - 1, 0, b] + switch[0, b], 0
+            for a in range(1, size):
+                total = cost[a] + pair[j - 1, a, b] + switch[a, b]
+                if total < best or (total != total and best == best):
+                    best, arg = total, a
+            back[j - 1, b] = arg
+            new[b] = best + (moved[b] if allowed[j, b] else np.inf)
+        for b in range(size):
+            cost[b] = new[b]
+    state = np.empty(n1 + 1, dtype=np.int64)
+    best, arg = cost[0], 0
+    for b in range(1, size):
+        if cost[b] < best or (cost[b] != cost[b] and best == best):
+            best, arg = cost[b], b
+    state[n1] = arg
+    for j in range(n1, 0, -1):
+        state[j - 1] = back[j - 1, state[j]]
+    return state
+
+
+def _viterbi_reference(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float) -> np.ndarray:
+    """:func:`_viterbi` in numpy, one read at a time (what the compiled path is tested against)."""
+    n, size = cand.shape
+    moved = TIE_SHARE * bar * (shifts != 0.0)
+    switch = bar * (shifts[:, None] != shifts[None, :])
+    pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)
     cost = np.where(allowed[0], moved, np.inf)
     back = np.zeros((n - 1, size), dtype=int)
     for j in range(1, n):
