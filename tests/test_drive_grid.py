@@ -49,20 +49,7 @@ def _host_log(phase_s: float, seed: int, jitter_s: float = 0.2e-3, n: int = 4000
 @pytest.mark.parametrize("phase_s", [0.25e-3, 0.42e-3, 0.8e-3])
 def test_the_grid_is_found_and_the_samples_go_back_onto_their_ticks(phase_s):
     data, sampled = _host_log(phase_s, seed=int(phase_s * 1e5))
-    first = identify_data(data, "joint")
-    grid = find_drive_grid(data, first.model)
-    assert grid is not None and grid.tick_s == TICK
-    # the grid found puts every read on the tick it was sampled at (the phase itself is known only
-    # to within the gap the reads leave between ticks)
-    for seg, ticks in zip(data.segments, sampled, strict=True):
-        assert abs(grid.for_run(seg.run).drift) < 1e-6
-        offset = grid.for_run(seg.run).index(seg.t) - ticks  # one whole number of ticks for every read
-        assert np.mean(offset == np.median(offset)) > 0.99
-    moved, _ = on_grid(data, grid)
-    result = identify_data(moved, "joint")
-    for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
-                      (result.model.coulomb_neg, 0.4)):  # fmt: skip
-        assert got == pytest.approx(want, rel=1e-3)
+    first, result = _located_and_exact(data, sampled, drift=0.0)
     assert result.model.delay_s == pytest.approx(TICK, abs=0.02e-3)
     assert result.fit_percent > 99.9
     # the constant delay alone is clearly worse on the same log
@@ -75,21 +62,29 @@ def test_a_drive_clock_that_drifts_keeps_every_read_on_its_tick(phase_s):
     reads cross its ticks as the phase slides: the drift is located within a tenth. At 0.8 ms no read
     crosses one: every drift places them alike, and the grid keeps none. Either way every read is on
     its tick and the model exact. (Drifts of 100 ppm and more are located far less well: open.)"""
-    drift = 50e-6
-    data, sampled = _host_log(phase_s, seed=int(phase_s * 1e5) + 1, drift=drift)
+    data, sampled = _host_log(phase_s, seed=int(phase_s * 1e5) + 1, drift=50e-6)
+    _located_and_exact(data, sampled, drift=50e-6 if phase_s < 0.5e-3 else 0.0)
+
+
+def _located_and_exact(data: Dataset, sampled: list, drift: float):
+    """The grid found under the first (constant-delay) model: each run's drift ``drift`` (within a
+    tenth; 0 within 1 ppm), every read on the tick it was sampled at (the phase itself is known only
+    to within the gap the reads leave between ticks), and the model identified on it exact.
+    Returns the first and the final identification."""
     first = identify_data(data, "joint")
     grid = find_drive_grid(data, first.model)
-    assert grid is not None
+    assert grid is not None and grid.tick_s == TICK
     for seg, ticks in zip(data.segments, sampled, strict=True):
         located = grid.for_run(seg.run).drift
-        assert located == (pytest.approx(drift, rel=0.1) if phase_s < 0.5e-3 else 0.0)
-        offset = grid.for_run(seg.run).index(seg.t) - ticks
+        assert located == pytest.approx(drift, rel=0.1, abs=1e-6)
+        offset = grid.for_run(seg.run).index(seg.t) - ticks  # one whole number of ticks for every read
         assert np.mean(offset == np.median(offset)) > 0.99
     moved, _ = on_grid(data, grid)
     result = identify_data(moved, "joint")
     for got, want in ((result.model.M, 0.01), (result.model.B, 1.0), (result.model.coulomb_pos, 0.5),
                       (result.model.coulomb_neg, 0.4)):  # fmt: skip
         assert got == pytest.approx(want, rel=1e-3)
+    return first, result
 
 
 def test_a_drive_that_samples_at_the_request_has_no_grid():
