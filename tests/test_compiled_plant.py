@@ -140,16 +140,19 @@ def test_a_springs_reversals_run_compiled_on_its_modes(modes):
     import dataclasses
 
     from servobench.sim_backend.physics import kernels
+    from servobench.sim_backend.physics.compiled import SPRING_SYSTEMS
 
+    assert [kernels.spring_system(*s) for s in SPRING_SYSTEMS] == list(range(6))
     params, runs = case("resonance", "sidbe")
     dt = 1.0 / 500.0
     new, ref = both(params)
     pk = new.packed(dt)
     assert pk.modes.shape == (1, 6 * kernels.MODE_COLS)
-    if not modes:
+    if not modes:  # as a model with a defective system packs
         ipar = pk.ipar.copy()
-        ipar[kernels.MODE] = -1
-        pk = dataclasses.replace(pk, ipar=ipar, modes=pk.modes[:0])
+        ipar[kernels.MODE], ipar[kernels.KEY] = -1, 10**9
+        kernels.REVERSALS[10**9] = new
+        pk = dataclasses.replace(pk, ipar=ipar, modes=pk.modes[:0], owner=new)
     called, reverse = [0], new._spring_reverse
 
     def counted(*args):

@@ -136,9 +136,7 @@ def _viterbi(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.nd
     the squared pair residuals ``e`` (n - 1, S, S), ``bar`` per change of shift between reads and
     :data:`TIE_SHARE` of it per read off its logged tick (``shifts`` 0)."""
     n, size = cand.shape
-    moved = TIE_SHARE * bar * (shifts != 0.0)
-    switch = bar * (shifts[:, None] != shifts[None, :])  # (S, S): the offset changes between reads
-    pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)  # (n - 1, S, S): never back
+    moved, switch, pair = _viterbi_costs(cand, e, shifts, bar)
     state = _viterbi_states(
         np.ascontiguousarray(pair, dtype=float),
         np.ascontiguousarray(switch, dtype=float),
@@ -146,6 +144,17 @@ def _viterbi(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.nd
         np.ascontiguousarray(moved, dtype=float),
     )
     return cand[np.arange(n), state]
+
+
+def _viterbi_costs(
+    cand: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_viterbi`'s costs: per candidate off its logged tick (S,), per change of shift
+    between reads (S, S), and per pair of reads (n - 1, S, S: never back in time)."""
+    moved = TIE_SHARE * bar * (shifts != 0.0)
+    switch = bar * (shifts[:, None] != shifts[None, :])
+    pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)
+    return moved, switch, pair
 
 
 @njit(cache=True)
@@ -184,9 +193,7 @@ def _viterbi_states(pair, switch, allowed, moved):
 def _viterbi_reference(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float) -> np.ndarray:
     """:func:`_viterbi` in numpy, one read at a time (what the compiled path is tested against)."""
     n, size = cand.shape
-    moved = TIE_SHARE * bar * (shifts != 0.0)
-    switch = bar * (shifts[:, None] != shifts[None, :])
-    pair = np.where(cand[:-1, :, None] <= cand[1:, None, :], e * e, np.inf)
+    moved, switch, pair = _viterbi_costs(cand, e, shifts, bar)
     cost = np.where(allowed[0], moved, np.inf)
     back = np.zeros((n - 1, size), dtype=int)
     for j in range(1, n):

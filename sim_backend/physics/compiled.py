@@ -32,8 +32,8 @@ class Packed:
     forces: np.ndarray
     whole: int = 0
     inputs: tuple[Callable[[np.ndarray], np.ndarray], ...] = ()
-    #: The model of a spring, whose reversals the compiled loop hands back to it where ``modes``
-    #: is empty.
+    #: The model of a spring without modes (a defective system), whose reversals the compiled
+    #: loop hands back to it.
     owner: object = None
     #: A spring's modes (:data:`.kernels.MODE_COLS` layout), shape (1, 6 * MODE_COLS); (0, ...)
     #: for other models and for a spring with a defective system.
@@ -109,23 +109,28 @@ def pack(model, dt_s: float) -> Packed | None:
     ipar = _ipar(kind, exc is not None, at is not None, len(segs), table.size, len(force_rows))
     owner, modes = None, np.zeros((0, 6 * k.MODE_COLS), complex)
     if kind == k.SPRING:
-        ipar[k.KEY] = next(_KEYS)
-        k.REVERSALS[int(ipar[k.KEY])] = owner = model
         modes = spring_modes(model)
-        ipar[k.MODE] = 0 if modes.size else -1
+        if modes.size:
+            ipar[k.MODE] = 0  # the model's own row; :func:`run` sets the batch's
+        else:  # a defective system: its reversals are handed back to the model
+            ipar[k.KEY] = next(_KEYS)
+            k.REVERSALS[int(ipar[k.KEY])] = owner = model
     inputs = tuple(fn for _, fn in sorted(terms.inputs, key=lambda item: item[0]))
     return Packed(
         fpar, ipar, segs, table, force_rows, model.whole_delay(dt_s), inputs, owner, modes
     )
 
 
+#: A spring's systems ``(motor direction, load direction, motor held)`` in
+#: :func:`.kernels.spring_system`'s order.
+SPRING_SYSTEMS = ((1, 1, False), (1, -1, False), (-1, 1, False), (-1, -1, False), (1, 1, True), (1, -1, True))
+
+
 def spring_modes(model) -> np.ndarray:
     """The modes of a spring model's six systems (:data:`.kernels.MODE_COLS` layout) from the
     :class:`~.bodies.Propagator` its reference integrator uses; empty when one is defective."""
     out = np.zeros((1, 6 * k.MODE_COLS), complex)
-    systems = [(1, 1, False), (1, -1, False), (-1, 1, False), (-1, -1, False), (1, 1, True), (1, -1, True)]
-    for i, (sm, sl, held) in enumerate(systems):
-        assert k.spring_system(sm, sl, held) == i
+    for i, (sm, sl, held) in enumerate(SPRING_SYSTEMS):
         prop = model._spring_system(sm, sl, held)
         if not prop.ok:
             return out[:0]
