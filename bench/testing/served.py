@@ -27,6 +27,8 @@ from servobench.errors import DriveConnectionError, DriveTimeoutError
 START_TIMEOUT_S = 30.0
 #: Longest wait for a clean exit after SIGINT [s].
 STOP_TIMEOUT_S = 10.0
+#: How long a hung child has to write its stacks after SIGABRT before it is killed [s].
+ABORT_WAIT_S = 5.0
 #: Host URL keys that wait up to 2 s for a served drive's answer (and a drive-side watchdog of
 #: 5 s, longer than that wait), per transport: for a host whose test judges what the drive
 #: answers, not how fast. A served drive, or a host, starved of CPU on a busy machine is late,
@@ -107,7 +109,9 @@ class ServedSim:
             sys.executable, "-m", "servobench", "serve-sim",
             "--transport", self.transport, "--sim", self.sim_url, *self.extra_args,
         ]  # fmt: skip
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # faulthandler: a child that hangs on its way out is aborted, and its threads' stacks
+        # go to its stderr, which the failure shows (see :meth:`stop`)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
         )
@@ -145,7 +149,8 @@ class ServedSim:
         return self.stderr
 
     def stop(self, timeout_s: float = STOP_TIMEOUT_S) -> int | None:
-        """SIGINT, wait for a clean exit, kill if it hangs; return the exit status."""
+        """SIGINT, wait for a clean exit; if it hangs, SIGABRT (its threads' stacks to its
+        stderr: ``PYTHONFAULTHANDLER``), then kill; return the exit status."""
         if self.proc is None:
             return self.returncode
         if self.proc.poll() is None:
@@ -153,8 +158,12 @@ class ServedSim:
             try:
                 self.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+                self.proc.send_signal(signal.SIGABRT)
+                try:
+                    self.proc.wait(ABORT_WAIT_S)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
         self.returncode = self.proc.returncode
         self._drain_stderr()
         for stream in (self.proc.stdout, self.proc.stderr):

@@ -126,6 +126,20 @@ def split_served_keys(transport: str, sim_url: str) -> tuple[str, str]:
     ), urlencode(served)
 
 
+def stop_on_signal(stop: threading.Event) -> Callable[[int, object], None]:
+    """A SIGINT/SIGTERM handler that sets ``stop`` from a thread of its own.
+
+    Python runs a handler in the main thread between two bytecodes, which may be inside
+    ``stop.wait`` holding ``stop``'s lock (the serving loop waits on it every poll): setting
+    it there would wait on that lock forever, and the drive would hang on its way out. The
+    thread takes the lock once the main thread lets it go."""
+
+    def handler(signum: int, frame: object) -> None:
+        threading.Thread(target=stop.set, name="stop-on-signal", daemon=True).start()
+
+    return handler
+
+
 def run_server(
     transport: str,
     sim_url: str,
@@ -158,7 +172,7 @@ def run_server(
     previous = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+            previous[sig] = signal.signal(sig, stop_on_signal(stop))
     watchdog = WatchdogThread(device)
     watchdog.start()
     if reporter is not None:
