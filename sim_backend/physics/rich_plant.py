@@ -189,20 +189,32 @@ class RichModel(CouplingMixin):
         self._dt = dt_s
         self._prepared[dt_s] = (self._whole, self._pattern, rows, None, None)
 
-    def _compute_rows(self, dt_s: float) -> np.ndarray:
-        """Per segment of :attr:`_pattern`, the numbers the compiled loop reads (see :meth:`rows`)."""
+    def _segment_consts(self, dt_s: float) -> list[tuple]:
+        """Per segment of :attr:`_pattern`: ``(use_prev, h, whole body, motor alone, load
+        alone)``, each body's :func:`consts` (without a coupling the motor is the whole body and
+        there is no load)."""
         p, c = self.params, self.terms.coupling
         r = c.load_ratio if c is not None else 0.0
-        rows = []
+        out = []
         for share, prev in self._pattern:
             h = share * dt_s
             k_rigid = consts(h, p.M, self.B_pos, self.B_neg)
             if c is None:
-                rows.append((float(prev), *k_rigid, *k_rigid, *k_rigid, *_SPRING_PAD))
+                out.append((prev, h, k_rigid, k_rigid, None))
                 continue
             k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
             load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
-            rows.append((float(prev), *k_rigid, *k_motor, *load, *self._spring_row(h)))
+            out.append((prev, h, k_rigid, k_motor, load))
+        return out
+
+    def _compute_rows(self, dt_s: float) -> np.ndarray:
+        """Per segment of :attr:`_pattern`, the numbers the compiled loop reads (see :meth:`rows`)."""
+        rows = []
+        for prev, h, k_rigid, k_motor, load in self._segment_consts(dt_s):
+            if load is None:
+                rows.append((float(prev), *k_rigid, *k_rigid, *k_rigid, *_SPRING_PAD))
+            else:
+                rows.append((float(prev), *k_rigid, *k_motor, *load, *self._spring_row(h)))
         out = np.array(rows, dtype=float).reshape(len(rows), -1)
         out.flags.writeable = False  # shared between models (:data:`_ROWS`)
         return out
@@ -211,26 +223,19 @@ class RichModel(CouplingMixin):
         """The reference loops' segments at the prepared step: per segment ``(use_prev, h,
         whole-body stepper, motor stepper, load consts)`` and the inline coefficients of the
         whole body and of the motor alone (the steppers' own numbers)."""
-        p, c, dt_s = self.params, self.terms.coupling, self._dt
-        r = c.load_ratio if c is not None else 0.0
         segs = []
         inline = []
         fr = self.friction
-        for share, prev in self._pattern:
-            h = share * dt_s
-            k_rigid = consts(h, p.M, self.B_pos, self.B_neg)
+        for prev, h, k_rigid, k_motor, load in self._segment_consts(self._dt):
             rigid = slider(k_rigid, fr)
-            if c is None:
+            if load is None:
                 segs.append((prev, h, rigid, rigid, ()))
                 inline.append((_coefficients(k_rigid), _coefficients(k_rigid)))
                 continue
-            k_motor = consts(h, (1 - r) * p.M, (1 - r) * self.B_pos, (1 - r) * self.B_neg)
-            motor = slider(k_motor, fr)
-            load = consts(h, r * p.M, r * self.B_pos, r * self.B_neg)
-            segs.append((prev, h, rigid, motor, load))
+            segs.append((prev, h, rigid, slider(k_motor, fr), load))
             inline.append((_coefficients(k_rigid), _coefficients(k_motor)))
         self._segs, self._inline = segs, inline
-        self._prepared[dt_s] = (self._whole, self._pattern, self._rows, segs, inline)
+        self._prepared[self._dt] = (self._whole, self._pattern, self._rows, segs, inline)
 
     def _spring_row(self, h: float) -> tuple[float, ...]:
         """A spring's transitions over a segment ``h`` [s] as the compiled loop reads them (the
