@@ -84,7 +84,14 @@ def link_cycles(iface: str, url: str) -> dict:
                        "units": dict(info.units), "al": info.extra["al_state"]}  # fmt: skip
         out["meta"] = drive.log_metadata()
         out["clock"] = drive.drive_clock
+        # a host silent beyond the watchdog before enabling (a stall, a slow import): the SM
+        # watchdog takes the slave to SAFE-OP, and the enable brings it back to OP
+        drive.bus.keep_alive = False
+        time.sleep(0.45)
+        out["al_silent"] = list(drive.bus.read_state())
+        drive.bus.keep_alive = True
         drive.enable()
+        out["remarks"] = list(drive.remarks)
         u = np.where((np.arange(1000) // 250) % 2 == 0, 0.8, -0.8)
         rows = [drive.exchange(uk) for uk in u]
         out["v"] = [r[0].velocity for r in rows]
@@ -285,6 +292,8 @@ def test_drive_cycles_hold_and_close_against_the_served_slave() -> None:
     assert out["info"]["units"] == {"u": "N m", "v": "rad/s", "x": "rad"}
     assert out["info"]["product"].startswith("servobench CiA 402 drive")
     assert out["info"]["state"] == "SWITCH ON DISABLED" and out["info"]["al"] == "0x08"
+    assert out["al_silent"] == [0x14, 0x1B]  # SAFE-OP + error, "sync manager watchdog"
+    assert any("back in OP" in r for r in out["remarks"])
     meta = out["meta"]
     assert meta["drive_clock"].startswith("0x10F8") and out["clock"]
     assert meta["distributed_clocks"] == "SYNC0 every 1000 µs"

@@ -92,7 +92,7 @@ from servobench.drivers.cia402 import (
 )
 from servobench.drivers.cia402_units import FactorObjects, Scaling, derive_scaling
 from servobench.drivers.ethercat.layout import REQUIRED_RX, TIMESTAMPS
-from servobench.drivers.ethercat.master import EthercatMaster
+from servobench.drivers.ethercat.master import OP, EthercatMaster
 from servobench.drivers.ethercat.options import QUERY_KEYS, EthercatOptions
 from servobench.errors import (
     DriveConfigError,
@@ -329,9 +329,13 @@ class EthercatDrive(Drive):
                 if time.monotonic() > deadline:
                     if from_fault:
                         raise self._fault_error("persists after fault reset")
+                    al_state, code = self.bus.read_state()
+                    where = "" if al_state == OP else (
+                        f" (AL state 0x{al_state:02X}, AL status code 0x{code:04X}: "
+                        "the slave takes no outputs outside OP)")  # fmt: skip
                     raise StateTransitionError(
                         f"{self.bus.name} stayed in {state.value}, expected "
-                        f"{step.next_state.value} within {WALK_TIMEOUT_S} s"
+                        f"{step.next_state.value} within {WALK_TIMEOUT_S} s{where}"
                     )
 
     def _fault_error(self, context: str) -> DriveFaultError:
@@ -340,6 +344,10 @@ class EthercatDrive(Drive):
         return DriveFaultError(f"{self.bus.name} in FAULT 0x{code:04X} {context}", code)
 
     def _enable(self) -> None:
+        if self.bus.back_to_op() is not None:
+            self._remark(f"the SM watchdog had taken {self.bus.name} to SAFE-OP while the axis "
+                         "was not enabled (the host was silent longer than the watchdog); "
+                         "back in OP")  # fmt: skip
         values = self._frame()
         if decode_statusword(values[0x6041]) in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             raise self._fault_error("cannot enable; reset the fault first")

@@ -68,6 +68,8 @@ from servobench.errors import (
 
 INIT, PRE_OP, SAFE_OP, OP = 0x01, 0x02, 0x04, 0x08
 AL_ACK = 0x10
+#: AL status code of an expired SM watchdog (ETG.1000.6, table 11).
+AL_SM_WATCHDOG = 0x001B
 #: Aborts that mean "no such object / subindex".
 ABSENT = (0x06020000, 0x06090011)
 #: Longest wait for an AL state [s] (a drive may take a while into SAFE-OP).
@@ -420,6 +422,30 @@ class EthercatMaster:
                     f"within {STATE_TIMEOUT_S} s"
                 )
             time.sleep(0.001)
+
+    def back_to_op(self) -> int | None:
+        """OP again where the SM watchdog dropped the slave to SAFE-OP while the axis was not
+        enabled (the host went silent longer than the watchdog: a stalled process, a slow
+        import); ``None`` when the slave is in OP, else the AL status code recovered from.
+
+        An axis that is not enabled produces no torque, so its watchdog trip stopped nothing:
+        the error is acknowledged and OP requested, as a master does after such a trip.
+        Any other state is an error naming it.
+        """
+        state, code = self.read_state()
+        if state == OP:
+            return None
+        if state & 0x0F == SAFE_OP and code == AL_SM_WATCHDOG:
+            self.request(SAFE_OP | AL_ACK)
+            self.wait_state(SAFE_OP)
+            self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
+            self.request(OP)
+            self.wait_state(OP, cycling=True)
+            return code
+        raise StateTransitionError(
+            f"{self.name} is in AL state 0x{state:02X} (AL status code 0x{code:04X}), not OP: "
+            "close and open the drive again"
+        )
 
     def go_op(self, cycle_s: float) -> None:
         """PRE-OP -> SAFE-OP -> OP, with SYNC0 at ``cycle_s`` where the slave has DC."""
