@@ -409,7 +409,9 @@ def fleet(
 
     with connect(workers, scheduler) as client:
         if note is not None:
-            note(f"{len(sources)} logs on {worker_count(client)} Dask workers (scheduler {client.scheduler.address})")
+            address = client.scheduler.address
+            where = "in this process" if address.startswith("inproc://") else f"scheduler {address}"
+            note(f"{len(sources)} logs on {worker_count(client)} Dask workers ({where})")
         if progress is not None:
             progress(0, len(sources))
         try:

@@ -166,7 +166,7 @@ def _examples(path: Path) -> list[tuple[str, int, str]]:
     for b in blocks(path):
         if b.info in RUN:
             if path == README and b.info == "python" and b.body == _api_block():
-                continue  # tests/test_readme_api.py and test_the_api_example_runs run it
+                continue  # tests/test_readme_api.py runs it (and checks what it gives)
             out.append((b.info, b.line, b.body))
     return out
 
@@ -200,12 +200,6 @@ RUNNABLE = [p for p in [*PAGES, README] if _examples(p)]
 @pytest.mark.parametrize("path", RUNNABLE, ids=[_rel(p) for p in RUNNABLE])
 def test_the_examples_of_a_page_run(path, tmp_path):
     _run_examples(_rel(path), _examples(path), tmp_path / "work")
-
-
-@pytest.mark.slow
-def test_the_api_example_runs(tmp_path):
-    _run_examples("docs/examples/api.py", [("python", 1, (DOCS / "examples" / "api.py").read_text())],
-                  tmp_path / "work")  # fmt: skip
 
 
 def test_every_code_block_is_run_checked_or_shown():

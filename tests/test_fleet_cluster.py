@@ -162,9 +162,12 @@ def _check_json(report: dict) -> None:
     assert axes["worn"]["units"]["coulomb_pos"] == "N m"
 
 
-def test_local_cluster_of_two_processes_gives_the_sequential_rows(fleet, sequential, tmp_path):
+@pytest.mark.parametrize(("workers", "where"), [("2", "scheduler tcp://127.0.0.1:"), ("1", "in this process")])
+def test_local_cluster_gives_the_sequential_rows(fleet, sequential, tmp_path, workers, where):
+    """Two worker processes, or one worker inside the fleet's own process (no process started)."""
     out = tmp_path / "out"
-    done = _fleet(str(fleet), "--out", str(out), "--workers", "2", "--json")
+    done = _fleet(str(fleet), "--out", str(out), "--workers", workers, "--json")
+    assert f"11 logs on {workers} Dask workers ({where}" in done.stderr
     _check_tables(done, out, sequential)
     _check_json(json.loads(done.stdout))
 

@@ -2,7 +2,8 @@
 
 One code path for both: :func:`connect` yields a ``distributed.Client``,
 either on a ``LocalCluster`` of ``workers`` single-threaded worker
-processes started here, or on the scheduler at ``scheduler``
+processes started here (one worker: a thread of this process, on Dask's
+``inproc`` transport), or on the scheduler at ``scheduler``
 (``tcp://host:8786``) with the workers already connected to it. Then
 :func:`run_on` splits the logs into batches (a few per worker, so the
 per-task overhead of the scheduler is paid per batch, not per log, and the
@@ -84,7 +85,8 @@ def connect(workers: int | None = None, scheduler: str | None = None) -> Iterato
     Parameters
     ----------
     workers : int, optional
-        Worker processes of the local cluster (default: the machine's cores).
+        Worker processes of the local cluster (default: the machine's cores); 1 runs the one
+        worker in this process.
     scheduler : str, optional
         Address of a running scheduler (``tcp://host:8786``); ``workers`` must then be None.
     """
@@ -98,7 +100,9 @@ def connect(workers: int | None = None, scheduler: str | None = None) -> Iterato
             client = _remote(distributed, scheduler)
             stack.callback(client.close)
         else:
-            with _workers_ignore_ctrl_c(distributed), _ctrl_c_after_start():
+            in_process = workers == 1
+            ignore = contextlib.nullcontext() if in_process else _workers_ignore_ctrl_c(distributed)
+            with ignore, _ctrl_c_after_start():
                 cluster = _local_cluster(distributed, workers)
                 stack.callback(cluster.close)
                 client = distributed.Client(cluster, set_as_default=False)
@@ -183,8 +187,10 @@ def _local_cluster(distributed: Any, workers: int | None) -> Any:
         return distributed.LocalCluster(
             n_workers=n,
             threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
+            # One worker runs in this process (a thread of its own): a process would only cost
+            # its start and imports, several seconds beside a fleet of a few logs.
+            processes=n > 1,
+            host="127.0.0.1" if n > 1 else None,  # in one process: Dask's inproc transport
             dashboard_address=":0",
             # A worker's failures reach the client as the task's exception, which fleet reports
             # per log; what the workers would print besides is shutdown noise (a heartbeat to a
