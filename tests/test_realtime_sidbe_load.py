@@ -59,7 +59,9 @@ def test_default_sidbe_in_real_time_under_load(transport, stamped, tmp_path):
     # the drive has its own processor, as a real one: real-time priority in its process
     args = ["--clock", "real", "--rt-priority", "70"]
     args += [] if stamped or transport == "serial" else ["--no-timestamp"]
-    with two_busy_processes(), ServedSim(transport, SIM, args) as served:
+    # the drive is up before the load starts (as a bench's drive is before its run): the load
+    # covers the host's whole run, start-up, streaming and identification
+    with ServedSim(transport, SIM, args) as served, two_busy_processes():
         proc = subprocess.run(
             [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url + PATIENT_KEYS[transport], "--json",
              "--out", str(tmp_path / "run"), *SHORT],
