@@ -214,6 +214,11 @@ class SimulatedDevice:
         self._t_s = 0.0
         self._wall_due = clock()  # wall time up to which the plant has been integrated
         self._pinned: float | None = None  # the instant of the request being handled (instant())
+        #: The instant [s, wall clock] of the next event a server handles late at its own
+        #: instant (an EtherCAT SYNC0), else None: whatever runs outside a request (the state
+        #: report, a watchdog) integrates the plant no further than it, so the event finds
+        #: the plant as it stood then, as a drive's hardware event does.
+        self.hold_before_s: float | None = None
         self._wall_base = self._wall_due  # wall time at which the drive clock read _t_base_s
         #: The plant in wall-clock time (``clock="real"`` only).
         self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
@@ -521,6 +526,8 @@ class SimulatedDevice:
         """
         if self.timed is not None:
             now = self._now() if until is None else until
+            if until is None and self._pinned is None and self.hold_before_s is not None:
+                now = min(now, self.hold_before_s)  # an event still to run lies before now
             if now > self._wall_due:
                 if self.tick is not None:
                     self._pass_tick(now)

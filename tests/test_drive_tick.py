@@ -307,6 +307,19 @@ def test_an_ethercat_sync0_samples_the_last_tick_and_its_outputs_act_from_the_ne
     plant.hold(0.8, sampled - acts)
     assert vel == pytest.approx(plant.state.v * 1e6, abs=1)  # µrad/s
     assert pos == pytest.approx(plant.state.x * 1e6, abs=1)  # µrad
+    # an observer that reads the plant after event 6's instant, before the loop gets to the
+    # event (the state report's thread), does not move it past the event (device.hold_before_s):
+    # the event still samples its last tick, not one of the 0.35 ms after it
+    now[0] = t0 + start + 6 * cycle + 300_000
+    device.true_state()
+    now[0] += 50_000
+    slave.sync0_due(now[0])
+    sampled = grid.instant(grid.index_at((t0 + start + 6 * cycle) * 1e-9))
+    _sw, pos, vel, _torque, stamp = struct.unpack("<HiihQ", esc.read(0x1180, 20))
+    assert abs(stamp - (sampled * 1e9 - t0)) <= 2
+    plant = Plant(PlantParams(M=0.1, B=1.0))
+    plant.hold(0.8, sampled - acts)
+    assert vel == pytest.approx(plant.state.v * 1e6, abs=1)
 
 
 # ------------------------------------------------------------------ tick 0: unchanged

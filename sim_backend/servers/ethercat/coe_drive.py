@@ -31,7 +31,9 @@ EtherCAT changes:
   the frame, as a DC-synchronous drive does: the outputs last received take
   force and the inputs are sampled at the event's instant (the serve loop
   handles each event at that instant of the plant, however late it gets to
-  it, and before any frame that arrived after it), and the frames only
+  it, and before any frame that arrived after it; until then nothing else,
+  the state report's thread included, integrates the plant past its
+  instant: ``SimulatedDevice.hold_before_s``), and the frames only
   deliver outputs and read the inputs of the last event. The host's timing
   then never reaches the sample instants, which fall on the SYNC0 grid.
   Events the loop got to late together are merged into the last of them
@@ -441,22 +443,23 @@ class CoeSlave(Application):
         """Run the SYNC0 events due up to ``clock_ns`` (the ESC's clock), each at its own instant."""
         sync0 = self.esc.sync0()
         if sync0 is None or not self.dc_synchronous:
-            self._next_sync0 = None
+            self._next_sync0 = self.device.hold_before_s = None
             return
         start, cycle = sync0
         if self._next_sync0 is None:
             self._next_sync0 = start
         now = self.esc.system_time_at(clock_ns)
-        if now < self._next_sync0:
-            return
-        event = self._next_sync0 + (now - self._next_sync0) // cycle * cycle  # the latest due
-        self._next_sync0 = event + cycle
-        at_ns = self.esc.clock_of_system(event)
-        with self.device.instant(at_ns * 1e-9), self.esc.frame_at(at_ns):
-            if self.esc.al_state is A.OP and self._outputs is not None:
-                self._cycle(self._outputs)
-            else:
-                self.refresh_inputs()
+        if now >= self._next_sync0:
+            event = self._next_sync0 + (now - self._next_sync0) // cycle * cycle  # the latest due
+            self._next_sync0 = event + cycle
+            at_ns = self.esc.clock_of_system(event)
+            with self.device.instant(at_ns * 1e-9), self.esc.frame_at(at_ns):
+                if self.esc.al_state is A.OP and self._outputs is not None:
+                    self._cycle(self._outputs)
+                else:
+                    self.refresh_inputs()
+        # the next event samples the plant as it stands at its instant: nothing integrates past it
+        self.device.hold_before_s = self.esc.clock_of_system(self._next_sync0) * 1e-9
 
     def refresh_inputs(self) -> None:
         """Keep the inputs current while no outputs arrive (SAFE-OP)."""
