@@ -100,10 +100,13 @@ def connect(workers: int | None = None, scheduler: str | None = None) -> Iterato
             client = _remote(distributed, scheduler)
             stack.callback(client.close)
         else:
-            in_process = workers == 1
-            ignore = contextlib.nullcontext() if in_process else _workers_ignore_ctrl_c(distributed)
+            import os
+
+            n = workers or os.cpu_count() or 1
+            # one worker runs in this process: no worker process to keep from Ctrl-C
+            ignore = contextlib.nullcontext() if n == 1 else _workers_ignore_ctrl_c(distributed)
             with ignore, _ctrl_c_after_start():
-                cluster = _local_cluster(distributed, workers)
+                cluster = _local_cluster(distributed, n)
                 stack.callback(cluster.close)
                 client = distributed.Client(cluster, set_as_default=False)
                 stack.callback(client.close)
@@ -179,10 +182,7 @@ def _ctrl_c_after_start() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def _local_cluster(distributed: Any, workers: int | None) -> Any:
-    import os
-
-    n = workers or os.cpu_count() or 1
+def _local_cluster(distributed: Any, n: int) -> Any:
     try:
         return distributed.LocalCluster(
             n_workers=n,
