@@ -436,16 +436,21 @@ class EthercatMaster:
         if state == OP:
             return None
         if state & 0x0F == SAFE_OP and code == AL_SM_WATCHDOG:
-            self.request(SAFE_OP | AL_ACK)
-            self.wait_state(SAFE_OP)
-            self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
-            self.request(OP)
-            self.wait_state(OP, cycling=True)
+            self._op_through_safe_op(SAFE_OP | AL_ACK)
             return code
         raise StateTransitionError(
             f"{self.name} is in AL state 0x{state:02X} (AL status code 0x{code:04X}), not OP: "
             "close and open the drive again"
         )
+
+    def _op_through_safe_op(self, request: int) -> None:
+        """AL control ``request`` (SAFE-OP, or SAFE-OP with the error acknowledge), SAFE-OP
+        awaited, valid outputs sent, then OP requested and awaited while cycling."""
+        self.request(request)
+        self.wait_state(SAFE_OP)
+        self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
+        self.request(OP)
+        self.wait_state(OP, cycling=True)
 
     def go_op(self, cycle_s: float) -> None:
         """PRE-OP -> SAFE-OP -> OP, with SYNC0 at ``cycle_s`` where the slave has DC."""
@@ -461,11 +466,7 @@ class EthercatMaster:
                     # SOEM chose the start time (0x0990): the SYNC0 grid of the slave's DC clock
                     self.sync0 = (struct.unpack("<Q", self.slave._fprd(0x0990, 8))[0],
                                   struct.unpack("<I", self.slave._fprd(0x09A0, 4))[0])  # fmt: skip
-        self.request(SAFE_OP)
-        self.wait_state(SAFE_OP)
-        self.cycle(self.outputs, count_errors=False)  # valid outputs before OP
-        self.request(OP)
-        self.wait_state(OP, cycling=True)
+        self._op_through_safe_op(SAFE_OP)
         if self.dc_synchronous:  # SOEM starts SYNC0 a while ahead: no inputs until it runs
             deadline = time.monotonic() + STATE_TIMEOUT_S
             while self.cycle(self.outputs, count_errors=False)[1] < sum(self.sync0):
