@@ -298,15 +298,34 @@ def fit_pairs_irregular(
     M0, B0, fp0, fn0 = start
     lo, hi = np.log([M0, B0]) - DIVERGED_LOG, np.log([M0, B0]) + DIVERGED_LOG
 
-    def residual(p: np.ndarray) -> np.ndarray:
+    def terms(p: np.ndarray):
         # held inside e^+-DIVERGED_LOG of the start: beyond, exp overflows (a diverged step)
         M, B = math.exp(min(max(p[0], lo[0]), hi[0])), math.exp(min(max(p[1], lo[1]), hi[1]))
-        a = np.exp(-B * pairs.dt / M)
+        x = B * pairs.dt / M
+        a = np.exp(-x)
         b = (1.0 - a) / B
-        return root_w * (pairs.v1 - a * pairs.v0 - b * (pairs.u - p[2] * pos + p[3] * neg))
+        U = pairs.u - p[2] * pos + p[3] * neg
+        return B, x, a, b, U
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        _, _, a, b, U = terms(p)
+        return root_w * (pairs.v1 - a * pairs.v0 - b * U)
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        # d/d(ln M, ln B, coulomb_pos, coulomb_neg) of the residual: da/dlnM = a x = -da/dlnB,
+        # db/dlnM = -a x / B, db/dlnB = a x / B - b (zero where the log is held at its bound)
+        B, x, a, b, U = terms(p)
+        ax = a * x * (pairs.v0 - U / B)
+        free = [lo[i] < p[i] < hi[i] for i in (0, 1)]
+        J = np.empty((pairs.v1.size, 4))
+        J[:, 0] = -ax if free[0] else 0.0
+        J[:, 1] = ax + b * U if free[1] else 0.0
+        J[:, 2] = b * pos
+        J[:, 3] = -b * neg
+        return J * (root_w if np.ndim(root_w) == 0 else root_w[:, None])
 
     sol = least_squares(
-        residual, [math.log(M0), math.log(B0), fp0, fn0], method="lm", xtol=1e-14, ftol=1e-14
+        residual, [math.log(M0), math.log(B0), fp0, fn0], jac=jacobian, method="lm", xtol=1e-14, ftol=1e-14
     )
     if not (np.all(np.isfinite(sol.x)) and np.all(sol.x[:2] > lo) and np.all(sol.x[:2] < hi)):
         raise IdentificationError(
