@@ -278,6 +278,53 @@ def noise_std_from_residual(residual: np.ndarray, a: float) -> float:
 DIVERGED_LOG = 30.0
 
 
+@dataclass(frozen=True)
+class IrregularPairs:
+    """The pair residual on irregular intervals and its Jacobian, in the unknowns
+    ``p = (ln M, ln B, coulomb_pos, coulomb_neg)``: ``root_w (v1 - a v0 - b (u - coulomb_pos pos
+    + coulomb_neg neg))`` with ``a = exp(-B dt / M)``, ``b = (1 - a) / B``. ``ln M`` and ``ln B``
+    are held within :data:`DIVERGED_LOG` of ``start_log`` (beyond, ``exp`` overflows: a diverged
+    step), where the Jacobian's column is zero."""
+
+    pairs: Pairs
+    root_w: np.ndarray | float
+    start_log: tuple[float, float]
+
+    @property
+    def lo(self) -> np.ndarray:
+        return np.asarray(self.start_log) - DIVERGED_LOG
+
+    @property
+    def hi(self) -> np.ndarray:
+        return np.asarray(self.start_log) + DIVERGED_LOG
+
+    def _terms(self, p: np.ndarray):
+        lo, hi = self.lo, self.hi
+        M, B = math.exp(min(max(p[0], lo[0]), hi[0])), math.exp(min(max(p[1], lo[1]), hi[1]))
+        x = B * self.pairs.dt / M
+        a = np.exp(-x)
+        b = (1.0 - a) / B
+        U = self.pairs.u - p[2] * self.pairs.pos + p[3] * self.pairs.neg
+        return B, x, a, b, U
+
+    def residual(self, p: np.ndarray) -> np.ndarray:
+        _, _, a, b, U = self._terms(p)
+        return self.root_w * (self.pairs.v1 - a * self.pairs.v0 - b * U)
+
+    def jacobian(self, p: np.ndarray) -> np.ndarray:
+        """d residual / d p, shape ``(pairs, 4)``: ``da/dln M = a x = -da/dln B`` (``x = B dt /
+        M``), ``db/dln M = -a x / B``, ``db/dln B = a x / B - b``."""
+        B, x, a, b, U = self._terms(p)
+        ax = a * x * (self.pairs.v0 - U / B)
+        lo, hi = self.lo, self.hi
+        J = np.empty((self.pairs.v1.size, 4))
+        J[:, 0] = -ax if lo[0] < p[0] < hi[0] else 0.0
+        J[:, 1] = ax + b * U if lo[1] < p[1] < hi[1] else 0.0
+        J[:, 2] = b * self.pairs.pos
+        J[:, 3] = -b * self.pairs.neg
+        return J * (self.root_w if np.ndim(self.root_w) == 0 else np.asarray(self.root_w)[:, None])
+
+
 def fit_pairs_irregular(
     pairs: Pairs, start: tuple[float, float, float, float], weights: np.ndarray | None = None
 ) -> ZohFit:
@@ -293,40 +340,11 @@ def fit_pairs_irregular(
         raise IdentificationError(
             f"only {len(pairs)} sample pairs with clear motion (raise the amplitude)"
         )
-    pos, neg = pairs.pos.astype(float), pairs.neg.astype(float)
-    root_w = 1.0 if weights is None else np.sqrt(weights)
     M0, B0, fp0, fn0 = start
-    lo, hi = np.log([M0, B0]) - DIVERGED_LOG, np.log([M0, B0]) + DIVERGED_LOG
-
-    def terms(p: np.ndarray):
-        # held inside e^+-DIVERGED_LOG of the start: beyond, exp overflows (a diverged step)
-        M, B = math.exp(min(max(p[0], lo[0]), hi[0])), math.exp(min(max(p[1], lo[1]), hi[1]))
-        x = B * pairs.dt / M
-        a = np.exp(-x)
-        b = (1.0 - a) / B
-        U = pairs.u - p[2] * pos + p[3] * neg
-        return B, x, a, b, U
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        _, _, a, b, U = terms(p)
-        return root_w * (pairs.v1 - a * pairs.v0 - b * U)
-
-    def jacobian(p: np.ndarray) -> np.ndarray:
-        # d/d(ln M, ln B, coulomb_pos, coulomb_neg) of the residual: da/dlnM = a x = -da/dlnB,
-        # db/dlnM = -a x / B, db/dlnB = a x / B - b (zero where the log is held at its bound)
-        B, x, a, b, U = terms(p)
-        ax = a * x * (pairs.v0 - U / B)
-        free = [lo[i] < p[i] < hi[i] for i in (0, 1)]
-        J = np.empty((pairs.v1.size, 4))
-        J[:, 0] = -ax if free[0] else 0.0
-        J[:, 1] = ax + b * U if free[1] else 0.0
-        J[:, 2] = b * pos
-        J[:, 3] = -b * neg
-        return J * (root_w if np.ndim(root_w) == 0 else root_w[:, None])
-
-    sol = least_squares(
-        residual, [math.log(M0), math.log(B0), fp0, fn0], jac=jacobian, method="lm", xtol=1e-14, ftol=1e-14
-    )
+    problem = IrregularPairs(pairs, 1.0 if weights is None else np.sqrt(weights), (math.log(M0), math.log(B0)))
+    lo, hi = problem.lo, problem.hi
+    sol = least_squares(problem.residual, [math.log(M0), math.log(B0), fp0, fn0], jac=problem.jacobian,
+                        method="lm", xtol=1e-14, ftol=1e-14)  # fmt: skip
     if not (np.all(np.isfinite(sol.x)) and np.all(sol.x[:2] > lo) and np.all(sol.x[:2] < hi)):
         raise IdentificationError(
             f"the pair regression on irregular intervals diverged from M {M0:.4g}, B {B0:.4g}: "
