@@ -136,6 +136,8 @@ def effective_command(
         return u[:0].copy()
     if delay_s == 0 and offsets_s is None:
         return u[:-1].copy()
+    if np.ndim(dt_s) == 0 and offsets_s is None:
+        return _effective_regular(u, float(dt_s), delay_s, tau_s, u_before)
     u_m, dt_m, rows = merged_grid(u, dt_s, delay_s, u_before, offsets_s)
     grid = np.concatenate(([0.0], np.cumsum(dt_m)))
     # each grid interval i belongs to sample interval k(i); its end relative to t_{k+1}
@@ -146,6 +148,25 @@ def effective_command(
     den = np.add.reduceat(w, rows[:-1])
     out = np.where(den > 0, num / np.where(den > 0, den, 1.0), u_m[rows[:-1]])
     return out
+
+
+def _effective_regular(u: np.ndarray, dt_s: float, delay_s: float, tau_s: float, u_before: float) -> np.ndarray:
+    """:func:`effective_command` on one sample interval ``dt_s`` without offsets: with
+    ``delay_s = (m + f) dt_s`` (:func:`split_delay`) interval ``k`` holds ``u[k - m - 1]`` for
+    ``f dt_s`` and then ``u[k - m]`` (only ``u[k - m]`` where ``f`` is 0), so ``u_eff`` is their
+    mean with the weights ``exp(-(1 - f) dt/tau) - exp(-dt/tau)`` and ``1 - exp(-(1 - f) dt/tau)``
+    (``u_before`` before ``u[0]``; the last command stays in force past ``u[-1]``)."""
+    m, f = split_delay(delay_s, dt_s)
+    n = u.size
+    padded = np.concatenate(([float(u_before)], u))  # padded[j + 1] = u[j], padded[0]: before
+    k = np.arange(n - 1)
+    now = padded[np.clip(k - m, -1, n - 1) + 1]
+    if f == 0.0:
+        return now
+    before = padded[np.clip(k - m - 1, -1, n - 1) + 1]
+    late = np.exp(-(1.0 - f) * dt_s / tau_s)
+    w_before, w_now = late - np.exp(-dt_s / tau_s), 1.0 - late
+    return (w_before * before + w_now * now) / (w_before + w_now)
 
 
 def split_delay(delay_s: float, dt_s: float) -> tuple[int, float]:
