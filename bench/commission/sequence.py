@@ -34,6 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.commission import integration
 from servobench.bench.commission.bump import BumpResult, at_link_rate, plan_text, run_bump_test
 from servobench.bench.commission.checks import DriveCheck, check_drive
@@ -481,6 +482,7 @@ def _version() -> str:
     return __version__
 
 
+@on_one_blas_thread
 def commission(
     options: CommissionOptions,
     console: Console | None = None,

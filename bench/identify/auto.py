@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.identify.dataset import Dataset, prepare
 from servobench.bench.identify.drive_grid import (
     MIN_GAIN,
@@ -55,6 +56,7 @@ METHODS = ("auto", "sidbe", "joint")
 TIE_PERCENT = 1e-3
 
 
+@on_one_blas_thread
 def identify(
     log: ExperimentLog,
     method: str = "auto",
@@ -209,6 +211,7 @@ def _number(text: str | None) -> float:
         return 0.0
 
 
+@on_one_blas_thread
 def identify_data(
     data: Dataset, method: str = "auto", *, resonance: bool = False
 ) -> IdentificationResult:

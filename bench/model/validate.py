@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.diagnose.data import DiagnosisData, prepare
 from servobench.bench.diagnose.simulate import Candidate, gap_percent, simulate
 from servobench.bench.identify.dataset import Segment
@@ -146,6 +147,7 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
+@on_one_blas_thread
 def validate(
     model: ServoModel,
     log: ExperimentLog,

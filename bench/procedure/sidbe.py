@@ -41,6 +41,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.identify.auto import METHODS, identify
 from servobench.bench.log.io import read_log
 from servobench.bench.model.servo import IdentificationResult, ServoModel
@@ -355,6 +356,7 @@ class SidbeResult:
         return describe_files(self.out_dir, self.accepted_log, self.iterations, closed=self.hold is not None)
 
 
+@on_one_blas_thread
 def run_sidbe(
     drive: Drive,
     options: SidbeOptions,
