@@ -17,12 +17,13 @@ fleet) instead.
 
 :func:`one_blas_thread` limits the BLAS libraries loaded in this process to one
 thread for the duration of a ``with`` block (``threadpoolctl``) and restores
-them when the last such block in the process exits (the blocks nest, also
-across threads: the limit is the process's); the user's own settings outside
-them are untouched. :func:`on_one_blas_thread` is the same as a decorator, on
-the entry points of identification, validation, ``sidbe`` and commissioning.
-It limits the libraries loaded when the first block starts, so numpy's and
-scipy's (two OpenBLAS builds) are both imported first.
+them when the thread's outermost such block exits (blocks nest: an inner one
+changes nothing, and its exit restores nothing); the user's own settings
+outside the blocks are untouched.
+:func:`on_one_blas_thread` is the same as a decorator, on the entry points of
+identification, validation, ``sidbe`` and commissioning. It limits the
+libraries loaded when the block starts, so numpy's and scipy's (two OpenBLAS
+builds) are both imported first.
 """
 
 from __future__ import annotations
@@ -39,28 +40,24 @@ from threadpoolctl import threadpool_limits
 
 F = TypeVar("F", bound=Callable[..., Any])
 
-_lock = threading.Lock()
-_depth = 0
-_limits: threadpool_limits | None = None
+_local = threading.local()  # this thread's depth of blocks and the limits its outermost one set
 
 
 @contextlib.contextmanager
 def one_blas_thread() -> Iterator[None]:
-    """BLAS and LAPACK calls inside the block use one thread; restored when the process's
+    """BLAS and LAPACK calls inside the block use one thread; restored when this thread's
     outermost block exits."""
-    global _depth, _limits
-    with _lock:
-        if _depth == 0:
-            _limits = threadpool_limits(limits=1, user_api="blas")
-        _depth += 1
+    depth = getattr(_local, "depth", 0)
+    if depth == 0:
+        _local.limits = threadpool_limits(limits=1, user_api="blas")
+    _local.depth = depth + 1
     try:
         yield
     finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0 and _limits is not None:
-                _limits.restore_original_limits()
-                _limits = None
+        _local.depth = depth
+        if depth == 0:
+            _local.limits.restore_original_limits()
+            _local.limits = None
 
 
 def on_one_blas_thread(fn: F) -> F:

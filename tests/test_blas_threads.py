@@ -1,4 +1,5 @@
-"""``diagnose`` runs its solves on one BLAS thread and gives the user's setting back."""
+"""``diagnose``, identification and ``sidbe`` run their solves on one BLAS thread and give the
+user's setting back, also where the blocks nest."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from servobench.bench.blas_threads import one_blas_thread
 from servobench.bench.diagnose.workflow import diagnose
+from servobench.bench.identify.auto import identify
 from servobench.bench.log.io import ExperimentLog, RunData
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
@@ -37,4 +39,42 @@ def test_diagnose_runs_on_one_blas_thread():
         diagnose(ExperimentLog(tuple(runs), {}, fs, True, "test"), progress=lambda _m: seen.append(_blas_threads()))
         after = _blas_threads()
     assert seen and all(set(s) == {1} for s in seen)
+    assert max(after) == 2
+
+
+def test_nested_blocks_restore_only_at_the_outermost_exit():
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        with one_blas_thread():
+            with one_blas_thread():
+                pass
+            assert _blas_threads() == [1] * len(before)  # the inner exit restored nothing
+        assert _blas_threads() == before
+
+
+def test_identification_runs_on_one_blas_thread():
+    fs, n = 500.0, 1500
+    rng = np.random.default_rng(4)
+    runs = []
+    for number in (1, 2):
+        u = np.repeat(rng.choice([-2.0, 2.0], n // 50 + 1), 50)[:n] * (1.0 if number == 1 else 0.9)
+        v, x = simulate(u, fs, PlantParams(M=0.2, B=2.0, coulomb_pos=0.4, coulomb_neg=0.3), rng)
+        runs.append(RunData(number, np.arange(n) / fs, u, v, x))
+    seen: list[list[int]] = []
+    import servobench.bench.identify.auto as auto
+
+    original = auto._auto
+
+    def spy(*args, **kwargs):
+        seen.append(_blas_threads())
+        return original(*args, **kwargs)
+
+    auto._auto = spy
+    try:
+        with threadpool_limits(limits=2, user_api="blas"):
+            result = identify(ExperimentLog(tuple(runs), {}, fs, True, "test"))
+            after = _blas_threads()
+    finally:
+        auto._auto = original
+    assert result.model.M > 0 and seen and all(set(s) == {1} for s in seen)
     assert max(after) == 2

@@ -60,6 +60,20 @@ def test_effective_command_is_the_first_order_response_to_the_pieces():
     assert split_delay(0.00137, 1e-3) == (1, pytest.approx(0.37))
 
 
+@pytest.mark.parametrize("cycles", [-2.6, -1.0, -0.3, 0.37, 1.0, 1.0 + 1e-12, 2.0 - 1e-12, 2.5, 3.999])
+def test_effective_command_on_one_interval_is_the_merged_grids(cycles):
+    """The closed form for one sample interval (no offsets) against the merged grid's pieces
+    (the general path, taken with zero offsets)."""
+    rng = np.random.default_rng(int(abs(cycles) * 1000))
+    u = np.sign(rng.normal(size=300)) * 2.0 + 0.1 * rng.normal(size=300)
+    for tau in (1e-4, 0.01, 10.0):
+        for before in (0.0, 0.7):
+            fast = effective_command(u, 1e-3, cycles * 1e-3, tau, before)
+            pieces = effective_command(u, 1e-3, cycles * 1e-3, tau, before, offsets_s=np.zeros(u.size))
+            assert fast.shape == (u.size - 1,)
+            assert np.max(np.abs(fast - pieces)) < 1e-11
+
+
 @pytest.mark.parametrize("delay_samples", [0.0, 0.37, 1.0, 1.6])
 def test_joint_identifies_the_delay_exactly_on_noise_free_data(delay_samples):
     n = 6000
