@@ -26,17 +26,22 @@ def test_one_blas_thread_inside_and_the_setting_restored_after():
         assert _blas_threads() == before
 
 
-def test_diagnose_runs_on_one_blas_thread():
+def _sidbe_log(seed: int, ratio: float) -> ExperimentLog:
+    """Two runs of a switching command, the second ``ratio`` times the first, on a plant with friction."""
     fs, n = 500.0, 1500
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     runs = []
     for number in (1, 2):
-        u = np.repeat(rng.choice([-2.0, 2.0], n // 50 + 1), 50)[:n] * number
+        u = np.repeat(rng.choice([-2.0, 2.0], n // 50 + 1), 50)[:n] * (1.0 if number == 1 else ratio)
         v, x = simulate(u, fs, PlantParams(M=0.2, B=2.0, coulomb_pos=0.4, coulomb_neg=0.3), rng)
         runs.append(RunData(number, np.arange(n) / fs, u, v, x))
+    return ExperimentLog(tuple(runs), {}, fs, True, "test")
+
+
+def test_diagnose_runs_on_one_blas_thread():
     seen: list[list[int]] = []
     with threadpool_limits(limits=2, user_api="blas"):
-        diagnose(ExperimentLog(tuple(runs), {}, fs, True, "test"), progress=lambda _m: seen.append(_blas_threads()))
+        diagnose(_sidbe_log(3, 2.0), progress=lambda _m: seen.append(_blas_threads()))
         after = _blas_threads()
     assert seen and all(set(s) == {1} for s in seen)
     assert max(after) == 2
@@ -52,29 +57,19 @@ def test_nested_blocks_restore_only_at_the_outermost_exit():
         assert _blas_threads() == before
 
 
-def test_identification_runs_on_one_blas_thread():
-    fs, n = 500.0, 1500
-    rng = np.random.default_rng(4)
-    runs = []
-    for number in (1, 2):
-        u = np.repeat(rng.choice([-2.0, 2.0], n // 50 + 1), 50)[:n] * (1.0 if number == 1 else 0.9)
-        v, x = simulate(u, fs, PlantParams(M=0.2, B=2.0, coulomb_pos=0.4, coulomb_neg=0.3), rng)
-        runs.append(RunData(number, np.arange(n) / fs, u, v, x))
-    seen: list[list[int]] = []
+def test_identification_runs_on_one_blas_thread(monkeypatch):
     import servobench.bench.identify.auto as auto
 
+    seen: list[list[int]] = []
     original = auto._auto
 
     def spy(*args, **kwargs):
         seen.append(_blas_threads())
         return original(*args, **kwargs)
 
-    auto._auto = spy
-    try:
-        with threadpool_limits(limits=2, user_api="blas"):
-            result = identify(ExperimentLog(tuple(runs), {}, fs, True, "test"))
-            after = _blas_threads()
-    finally:
-        auto._auto = original
+    monkeypatch.setattr(auto, "_auto", spy)
+    with threadpool_limits(limits=2, user_api="blas"):
+        result = identify(_sidbe_log(4, 0.9))
+        after = _blas_threads()
     assert result.model.M > 0 and seen and all(set(s) == {1} for s in seen)
     assert max(after) == 2
