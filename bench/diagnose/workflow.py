@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from servobench.bench.blas_threads import one_blas_thread
+from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
 from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent, prepare
 from servobench.bench.diagnose.families import Family, offset_family
@@ -153,6 +153,7 @@ def named_parameters(
     return params
 
 
+@on_one_blas_thread  # see bench.blas_threads: thousands of small, tall solves
 def diagnose(
     log: ExperimentLog,
     horizon_s: float | None = None,
@@ -181,8 +182,7 @@ def diagnose(
     UsageError
         Unknown effect names, a non-positive horizon.
     """
-    with one_blas_thread():  # see bench.blas_threads: thousands of small, tall solves
-        return _diagnose(log, horizon_s, effects, progress)
+    return _diagnose(log, horizon_s, effects, progress)
 
 
 def _diagnose(

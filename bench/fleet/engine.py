@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
@@ -100,8 +101,6 @@ def connect(workers: int | None = None, scheduler: str | None = None) -> Iterato
             client = _remote(distributed, scheduler)
             stack.callback(client.close)
         else:
-            import os
-
             n = workers or os.cpu_count() or 1
             # one worker runs in this process: no worker process to keep from Ctrl-C
             ignore = contextlib.nullcontext() if n == 1 else _workers_ignore_ctrl_c(distributed)
