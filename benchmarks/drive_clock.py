@@ -40,9 +40,13 @@ delay| <= max(0.05 ms, tick / 10); no run stopped early (every log of the run
 below 0.01 %, the registers' rounding: stamps in 1 us, velocity in 1e-6 steps). The 10 EtherCAT
 runs without real-time priority within 0.5 % each.
 
+``--drift PPM`` (default 0) serves every drive with a clock that runs PPM
+parts per million fast against the host's (``serve-sim --drift``), as a real
+drive's crystal does: its ticks slide against the host's cycle along the run.
+
 Run: ``python benchmarks/drive_clock.py [--quick] [--transports modbus-tcp,canopen]
 [--ticks 0.001,0.00025] [--loads idle,busy] [--stamps yes,no] [--repeat N]
-[--ethercat-runs N]``. The full matrix takes about an hour. ``--ethercat-runs``
+[--drift PPM] [--ethercat-runs N]``. The full matrix takes about an hour. ``--ethercat-runs``
 defaults to 10 when ``ethercat`` is among the transports, else 0.
 """
 
@@ -164,11 +168,14 @@ def _status(log: str) -> str:
 
 
 def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra: list[str],
-        priority: int | None = DRIVE_PRIORITY) -> dict[str, object]:  # fmt: skip
-    """One ``sidbe`` through ``transport`` served at tick ``tick_s``; its figures and verdict."""
+        priority: int | None = DRIVE_PRIORITY, drift_ppm: float = 0.0) -> dict[str, object]:  # fmt: skip
+    """One ``sidbe`` through ``transport`` served at tick ``tick_s`` (its clock ``drift_ppm``
+    fast); its figures and verdict."""
     stamps = stamps and transport not in NO_STAMP_EVER
     state = out.with_suffix(".state.json")
     serve_args = ["--clock", "real", "--tick", f"{tick_s:g}", "--state-file", str(state)]
+    if drift_ppm:
+        serve_args += ["--drift", f"{drift_ppm:g}"]
     if priority is not None:
         serve_args += ["--rt-priority", str(priority)]
     if not stamps and transport not in NO_STAMP_EVER:
@@ -301,6 +308,8 @@ def main() -> None:
     ap.add_argument("--loads", default="idle,busy", help="idle,busy")
     ap.add_argument("--stamps", default="yes,no")
     ap.add_argument("--repeat", type=int, default=1, help="runs per case")
+    ap.add_argument("--drift", type=float, default=0.0, metavar="PPM",
+                    help="every served drive's clock runs PPM parts per million fast (default 0)")  # fmt: skip
     ap.add_argument("--keep-failed", type=Path, default=None, metavar="DIR",
                     help="copy each failed case's run folder and the served drive's record here")  # fmt: skip
     ap.add_argument("--ethercat-runs", type=int, default=None,
@@ -328,7 +337,8 @@ def main() -> None:
         if not any(math.isclose(x, 0.001) for x in ticks):
             print(f"{t}: served at a 1 ms tick only, and --ticks has no 0.001: not run")
     print(f"excitation: {'2 periods x 2 s per run' if args.quick else 'default'}; plant {sim_url(TRUTH)}"
-          f"&seed=N; {os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")  # fmt: skip
+          f"&seed=N; drive clock drift {args.drift:g} ppm; {os.cpu_count()} CPUs; load average at start "
+          f"{os.getloadavg()[0]:.1f}")  # fmt: skip
     print(HEAD)
     passed = ran = 0
     seed = 0
@@ -347,7 +357,7 @@ def main() -> None:
                                 out = (
                                     Path(tmp) / f"{transport}-{tick_s:g}-{stamp}-{load_name}-{seed}"
                                 )
-                                r = one(transport, tick_s, stamp, seed, out, extra)
+                                r = one(transport, tick_s, stamp, seed, out, extra, drift_ppm=args.drift)
                                 print_row(r, load_name)
                                 if args.keep_failed and ("error" in r or r["failed"]):
                                     _keep(out, args.keep_failed)

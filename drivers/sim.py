@@ -45,7 +45,7 @@ import numpy as np
 from servobench.drivers.base import BlockFeedback, Drive, DriveInfo, Feedback
 from servobench.errors import DriveConfigError, DriveFaultError
 from servobench.sim_backend.device import REAL, PowerState, SimulatedDevice, clock_mode_from_url
-from servobench.sim_backend.drive_tick import tick_from_url
+from servobench.sim_backend.drive_tick import drift_from_url, tick_from_url
 from servobench.sim_backend.servers.canopen.position_loop import (
     Gains,
     PositionLoop,
@@ -76,7 +76,10 @@ class SimDrive(Drive):
         given = {k: self._gain(k) for k in HOLD_KEYS if k in self.url.query}
         plant_url = replace(self.url, query={k: v for k, v in self.url.query.items() if k not in HOLD_KEYS})
         self.device = SimulatedDevice(
-            plant_from_url(plant_url), clock_mode=clock_mode, tick_s=tick_from_url(self.url)
+            plant_from_url(plant_url),
+            clock_mode=clock_mode,
+            tick_s=tick_from_url(self.url),
+            drift_ppm=drift_from_url(self.url),
         )
         p = self.device.params
         self.hold_gains: Gains | None = gains_from_keys(given, p.M, p.B) if given else None

@@ -51,6 +51,17 @@ its timing (:class:`~servobench.sim_backend.drive_tick.TimingRecord`). With
 ``tick_s == 0`` (the default) nothing of this applies. Lockstep drives have
 no tick of their own (a tick needs ``clock="real"``).
 
+A drive clock that drifts (``clock="real"``, ``drift_ppm != 0``)
+----------------------------------------------------------------
+``sim://?clock=real&drift=PPM``, ``serve-sim --drift PPM``: the drive's
+crystal runs ``PPM`` parts per million fast (negative: slow) against the
+host's clock, as every real drive's does by some 10-100 ppm. Its clock
+reads ``rate = 1 + PPM * 1e-6`` drive seconds per wall-clock second: the
+time stamps step by that much more, and with a tick ``S`` (S on the drive's
+own clock) the ticks fall ``S / rate`` apart on the wall clock, so their
+phase against the host's cycle slides along the run. The physics stays in
+wall-clock time. Default 0: the host's rate.
+
 Wall-clock time in lockstep (served drives)
 -------------------------------------------
 A real axis does not wait for the host: after a quick stop it coasts down
@@ -92,7 +103,14 @@ from enum import Enum
 import numpy as np
 
 from servobench.errors import DriveConfigError, DriveFaultError
-from servobench.sim_backend.drive_tick import TickGrid, TimingRecord, draw_phase, tick_from_url
+from servobench.sim_backend.drive_tick import (
+    TickGrid,
+    TimingRecord,
+    check_drift,
+    draw_phase,
+    drift_from_url,
+    tick_from_url,
+)
 from servobench.sim_backend.physics.plant import Plant, PlantParams
 from servobench.sim_backend.physics.realtime import TimedPlant
 
@@ -172,6 +190,9 @@ class SimulatedDevice:
     tick_s : float
         The drive's own control tick [s] (``"real"`` only; see the module
         doc); 0: none, the drive samples and acts at each request's instant.
+    drift_ppm : float
+        The drive clock's drift against the wall clock [ppm] (``"real"`` only; see the
+        module doc); 0: none.
     """
 
     def __init__(
@@ -186,6 +207,7 @@ class SimulatedDevice:
         watchdog_in_every_state: bool = False,
         clock_mode: str = LOCKSTEP,
         tick_s: float = 0.0,
+        drift_ppm: float = 0.0,
     ) -> None:
         if clock_mode not in CLOCK_MODES:
             raise ValueError(f"clock mode must be one of {', '.join(CLOCK_MODES)}, got {clock_mode!r}")
@@ -198,7 +220,15 @@ class SimulatedDevice:
                 f"a drive tick (tick={tick_s:g}) needs clock=real (serve-sim --clock real), "
                 f"not clock={clock_mode}: a lock-step drive is clocked by its host"
             )
+        drift_ppm = check_drift(drift_ppm)
+        if drift_ppm != 0 and clock_mode != REAL:
+            raise DriveConfigError(
+                f"a drifting drive clock (drift={drift_ppm:g}) needs clock=real (serve-sim --clock "
+                f"real), not clock={clock_mode}: a lock-step drive runs on its host's clock"
+            )
         self.params = params
+        #: The drive clock's seconds per wall-clock second (1 + its drift).
+        self.clock_rate = 1.0 + drift_ppm * 1e-6
         self.plant = Plant(params, compiled=False)  # a drive's loop never waits on a compile
         self.cycle_s = float(cycle_s)
         self.max_command = float(max_command)
@@ -223,8 +253,10 @@ class SimulatedDevice:
         #: The plant in wall-clock time (``clock="real"`` only).
         self.timed = TimedPlant(self.plant, self._wall_due, self.cycle_s) if self.realtime else None
         #: The drive's own tick grid (``tick_s > 0``), else None.
-        self.tick = TickGrid(float(tick_s), draw_phase(tick_s, params.seed)) if tick_s > 0 else None
-        self._timing = TimingRecord(tick_s, self.tick.phase_s if self.tick else 0.0)
+        self.tick = (
+            TickGrid(float(tick_s), draw_phase(tick_s, params.seed), self.clock_rate) if tick_s > 0 else None
+        )
+        self._timing = TimingRecord(tick_s, self.tick.phase_s if self.tick else 0.0, self.clock_rate)
         self._read_pinned = False  # a read of the request being handled was counted
         if self.tick is not None:  # the plant stood in its initial state at the last tick
             self._tick_k = self._tick_base = self.tick.index_at(self._wall_due)
@@ -467,7 +499,7 @@ class SimulatedDevice:
         with self._lock:
             self._catch_up()
             if self.timed is not None:
-                self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+                self._t_s = self._t_base_s + (self._wall_due - self._wall_base) * self.clock_rate
             return float(self._t_s), float(self.plant.state.v), float(self.plant.state.x)
 
     def _sample_now(self) -> DeviceSample:
@@ -481,7 +513,7 @@ class SimulatedDevice:
             self._note_read(self._tick_k)
             return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
         v, x = self.timed.measure()
-        self._t_s = self._t_base_s + (self._wall_due - self._wall_base)
+        self._t_s = self._t_base_s + (self._wall_due - self._wall_base) * self.clock_rate
         self._note_read()
         return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
 
@@ -500,7 +532,7 @@ class SimulatedDevice:
     def wall_instant_of(self, t_s: float) -> float:
         """The instant [s, the device's wall clock] the drive clock read ``t_s`` at (``real``)."""
         with self._lock:
-            return self._wall_base + (t_s - self._t_base_s)
+            return self._wall_base + (t_s - self._t_base_s) / self.clock_rate
 
     def _advance(self, n: int) -> None:
         self._k += n
@@ -619,10 +651,11 @@ class WatchdogThread(threading.Thread):
 
 
 def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
-    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``, ``clock``, ``tick``).
+    """A :class:`SimulatedDevice` for a ``sim://`` URL (plant keys, ``max_u``, ``clock``, ``tick``,
+    ``drift``).
 
     A ``clock_mode`` keyword wins over the URL's ``clock`` key, a ``tick_s``
-    keyword over its ``tick`` key.
+    keyword over its ``tick`` key, a ``drift_ppm`` keyword over its ``drift`` key.
     """
     from servobench.drivers.url import parse_drive_url
     from servobench.sim_backend.simurl import plant_from_url
@@ -636,6 +669,7 @@ def device_from_url(url: str, **kwargs: object) -> SimulatedDevice:
     max_u = parsed.get_float("max_u", math.inf)
     kwargs.setdefault("clock_mode", clock_mode_from_url(parsed))
     kwargs.setdefault("tick_s", tick_from_url(parsed))
+    kwargs.setdefault("drift_ppm", drift_from_url(parsed))
     return SimulatedDevice(params, max_command=max_u, **kwargs)  # type: ignore[arg-type]
 
 

@@ -39,7 +39,7 @@ PLANT_FIELDS: dict[str, str] = {
 }
 PLANT_KEYS = frozenset(PLANT_FIELDS)
 #: Keys that configure the simulated drive rather than the physics ("pace" is also a common key).
-DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units", "clock", "tick"})
+DEVICE_KEYS = frozenset({"seed", "pace", "plant", "units", "clock", "tick", "drift"})
 #: ``units=`` of ``sim://``: what the simulated axis's signals are in.
 AXIS_UNITS = {"rotary": ROTARY, "linear": LINEAR}
 

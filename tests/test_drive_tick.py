@@ -410,7 +410,7 @@ def test_tick_zero_still_keeps_a_record():
         clock.now += 0.3e-3
         dev.exchange(1.0)
     assert dev.timing() == {
-        "tick_s": 0.0, "phase_s": 0.0, "commands": 5, "mean_delay_s": 0.0, "min_delay_s": 0.0,
+        "tick_s": 0.0, "phase_s": 0.0, "drift_ppm": 0.0, "commands": 5, "mean_delay_s": 0.0, "min_delay_s": 0.0,
         "max_delay_s": 0.0, "changes": 1, "mean_change_delay_s": 0.0, "reads": 5,
         "repeated_reads": 0, "skipped_ticks": 0,
     }  # fmt: skip

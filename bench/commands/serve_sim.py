@@ -3,7 +3,8 @@
 The first line on stdout is the drive URL (a contract); ``--rt-priority``
 says on stderr what priority was obtained. ``--tick S`` (or the URL's
 ``tick=S``; the option wins) gives the drive a control tick of its own
-(:mod:`servobench.sim_backend.device`); ``--state-file`` reports its timing
+(:mod:`servobench.sim_backend.device`), ``--drift PPM`` (or ``drift=PPM``) a
+clock that drifts against the host's; ``--state-file`` reports its timing
 under ``"tick"``.
 """
 
@@ -70,6 +71,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sample and act at each request; default the --sim URL's tick=, else 0)",
     )
     p.add_argument(
+        "--drift",
+        type=float,
+        default=None,
+        metavar="PPM",
+        help="--clock real: the drive clock runs PPM parts per million fast (negative: slow) "
+        "against the host's, as a real drive's crystal does: its ticks and time stamps drift "
+        "against the host's cycle (default the --sim URL's drift=, else 0)",
+    )
+    p.add_argument(
         "--no-timestamp",
         action="store_true",
         help="serve a drive that gives no time stamp: CANopen without 0x1013 (EDS cia402-nostamp), "
@@ -107,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from servobench.drivers.url import parse_drive_url
     from servobench.errors import UsageError
     from servobench.sim_backend.device import REAL, clock_mode_from_url
-    from servobench.sim_backend.drive_tick import tick_from_url
+    from servobench.sim_backend.drive_tick import check_drift, drift_from_url, tick_from_url
     from servobench.sim_backend.servers.rt_priority import FIFO_MAX, FIFO_MIN, request_priority
     from servobench.sim_backend.servers.serve import no_timestamp_options
 
@@ -129,6 +139,9 @@ def run(args: argparse.Namespace) -> int:
     tick_s = args.tick if args.tick is not None else tick_from_url(sim)
     if tick_s > 0 and clock_mode != REAL:
         raise UsageError(f"--tick / tick= {tick_s:g} needs --clock real, not {clock_mode}")
+    drift_ppm = check_drift(args.drift, "--drift") if args.drift is not None else drift_from_url(sim)
+    if drift_ppm != 0 and clock_mode != REAL:
+        raise UsageError(f"--drift / drift= {drift_ppm:g} needs --clock real, not {clock_mode}")
     options = {
         "host": args.host,
         "port": str(args.port),
@@ -155,5 +168,6 @@ def run(args: argparse.Namespace) -> int:
         state_file=args.state_file,
         clock_mode=clock_mode,
         tick_s=tick_s,
+        drift_ppm=drift_ppm,
     )
     return 0

@@ -9,6 +9,16 @@ metadata names one. The checks that make an analysis meaningless (too short,
 nothing moves, no excitation) raise
 :class:`~servobench.errors.IdentificationError` here, once.
 
+A log whose instants are the drive's own time stamps (``clock_source =
+drive``) and that holds the host's instants beside them (``t_host``) has
+each run's stamps taken onto the host's seconds where the drive's clock
+drifts against the host's measurably (:mod:`~servobench.bench.identify.drive_rate`):
+a model identified with stamps and one identified without them then share
+one time base, and a drive's fast crystal no longer makes ``M`` that much
+large. Every run's rate is kept in :attr:`Dataset.drive_rates`, mapped or
+not: :meth:`Dataset.time_base_error_ppm` is what the time base may still be
+off by.
+
 Where a simulation starts from the data, :func:`initial_velocity` gives its
 initial velocity by one rule: the velocity at that sample, taken as rest when
 it lies within :data:`REST_SIGMAS` noise deviations of zero.
@@ -16,6 +26,7 @@ it lies within :data:`REST_SIGMAS` noise deviations of zero.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -27,6 +38,7 @@ from servobench.bench.identify.derivative import (
     lowpass,
     settle_samples,
 )
+from servobench.bench.identify.drive_rate import DriveRate, drive_rate, onto_host_seconds
 from servobench.bench.log.io import ExperimentLog, RunData
 from servobench.bench.procedure.excitation import ExcitationDesign, design_from_metadata
 from servobench.errors import IdentificationError
@@ -194,6 +206,10 @@ class Dataset:
         The earliest a command may act relative to its logged instant [s]: 0, or
         ``-command_lead_s`` where the transport sends the command ahead of its
         sample's query (the drive's action delay is identified from there on).
+    drive_rates : tuple of (int, DriveRate)
+        Per run of a stamped log with the host's instants, the drive clock's rate against the
+        host's (:mod:`~servobench.bench.identify.drive_rate`); the stamps of the runs whose
+        drift is significant were taken onto the host's seconds. Empty otherwise.
     """
 
     segments: tuple[Segment, ...]
@@ -204,6 +220,27 @@ class Dataset:
     closed_loop: bool | None = None
     units: SignalUnits = SignalUnits()
     min_delay_s: float = 0.0
+    drive_rates: tuple[tuple[int, DriveRate], ...] = ()
+
+    @property
+    def drive_drift_ppm(self) -> tuple[float, float]:
+        """The drive clock's drift against the host's [ppm] and its 1 sigma, weighted over the
+        runs (NaN, NaN: none was read)."""
+        if not self.drive_rates:
+            return math.nan, math.nan
+        w = np.array([1.0 / max(r.drift_std_ppm, 1e-9) ** 2 for _, r in self.drive_rates])
+        d = np.array([r.drift_ppm for _, r in self.drive_rates])
+        return float(w @ d / w.sum()), float(1.0 / math.sqrt(w.sum()))
+
+    @property
+    def time_base_error_ppm(self) -> float:
+        """How far the log's time base may be off the host's seconds [ppm, 1 sigma], worst run:
+        a mapped run's rate sigma; a run left on the drive's seconds (its drift not significant),
+        its drift and sigma together. 0 where no rate was read (host instants, or none logged)."""
+        worst = 0.0
+        for _, r in self.drive_rates:
+            worst = max(worst, r.drift_std_ppm if r.significant else math.hypot(r.drift_ppm, r.drift_std_ppm))
+        return worst
 
     @property
     def dt_s(self) -> float:
@@ -304,12 +341,20 @@ def prepare(
             "the log is incomplete (no 'status = complete' trailer): the run was cut short"
         )
     segments = []
+    rates: list[tuple[int, DriveRate]] = []
+    stamped = log.metadata.get("clock_source", "").strip() == "drive"
     for r in log.runs:
         if len(r) < min_samples:
             raise IdentificationError(
                 f"run {r.run} has {len(r)} samples; at least {min_samples} are needed"
             )
-        segment, how = _segment(r, fs, velocity_cutoff_hz, derivative_method)
+        rate = drive_rate(r.t, r.extra["t_host"]) if stamped and "t_host" in r.extra else None
+        mapped = rate is not None and rate.significant
+        if rate is not None and rate.is_clock:
+            rates.append((r.run, rate))
+        if mapped:
+            r = replace(r, t=onto_host_seconds(r.t, rate))
+        segment, how = _segment(r, fs, velocity_cutoff_hz, derivative_method, per_interval=mapped)
         segments.append(segment)
         notes.extend(note for note in how if note not in notes)
     if not any(_moves(s) for s in segments):
@@ -329,11 +374,16 @@ def prepare(
     closed = True if loop.startswith("closed") else False if loop.startswith("open") else None
     if closed is None and all(r.u_exc is not None for r in log.runs):
         closed = True
+    if any(r.significant for _, r in rates):
+        drifts = ", ".join(f"run {run} {r.drift_ppm:+.1f} +- {r.drift_std_ppm:.1f} ppm" for run, r in rates)
+        notes.append(f"the drive's clock drifted against the host's ({drifts}; its time stamps against "
+                     "the host's instants): the stamps were taken onto the host's seconds")  # fmt: skip
     lead_s = _lead(log.metadata.get("command_lead_s"))
     if lead_s > 0 and not any(s.derived for s in segments):
         notes.append(f"each command was sent {lead_s * 1e3:.3g} ms ahead of its sample's query "
                      "(command_lead_s): the drive's action delay was identified from -command_lead_s on")  # fmt: skip
-    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units, -lead_s)
+    return Dataset(tuple(segments), fs, design, log.source, tuple(notes), closed, log.units, -lead_s,
+                   tuple(rates))  # fmt: skip
 
 
 def _lead(text: str | None) -> float:
@@ -345,9 +395,12 @@ def _lead(text: str | None) -> float:
 
 
 def _segment(
-    r: RunData, fs_hz: float, cutoff_hz: float | None, method: str
+    r: RunData, fs_hz: float, cutoff_hz: float | None, method: str, per_interval: bool = False
 ) -> tuple[Segment, list[str]]:
-    """One run as a :class:`Segment`, and notes on how it was prepared (none if plainly)."""
+    """One run as a :class:`Segment`, and notes on how it was prepared (none if plainly).
+
+    ``per_interval``: use the intervals of ``t`` even where they are regular (stamps taken onto
+    the host's seconds: the nominal ``1/fs`` is the drive's)."""
     notes = []
     r, repeated = merge_repeated(r)
     if repeated:
@@ -370,6 +423,8 @@ def _segment(
     if dt.std() > JITTER_RTOL * dt.mean() or abs(np.median(dt) - nominal) > 1e-2 * nominal:
         dt_s = dt
         notes.append("irregular time stamps: per-sample intervals from t are used")
+    elif per_interval:
+        dt_s = dt
     motion = None
     if r.v is not None:
         v = np.asarray(r.v, dtype=float)

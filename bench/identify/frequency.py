@@ -520,9 +520,12 @@ def _linear_fit(
     separable = True
     if delay:
         std_q = math.sqrt(max(cov[-1, -1], 0.0))
-        d = np.sqrt(np.abs(np.diag(cov)))
+        # how the delay trades against the plant is the design's, not the residual's: an exact
+        # fit (a residual of 0, a covariance of 0) reads it from (J'J)^-1 alone
+        shape = cov if np.all(np.diag(cov) > 0) else _unscaled(jac)
+        d = np.sqrt(np.abs(np.diag(shape)))
         with np.errstate(divide="ignore", invalid="ignore"):
-            corr = float(np.max(np.abs(cov[-1, :-1] / (d[-1] * d[:-1]))))
+            corr = float(np.max(np.abs(shape[-1, :-1] / (d[-1] * d[:-1]))))
         separable = bool(
             corr <= DELAY_CORRELATION_LIMIT and std_q <= 1.0 and q < MAX_DELAY_SAMPLES - DELAY_ZERO
         )  # a nan correlation is not separable
@@ -548,15 +551,22 @@ def _linear_fit(
     )
 
 
+def _unscaled(jac: np.ndarray) -> np.ndarray:
+    """``(J'J)^-1``: the covariance's shape without its scale (NaN where singular)."""
+    try:
+        return np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((jac.shape[1], jac.shape[1]), np.nan)
+
+
 def _covariance(
     jac: np.ndarray, r: np.ndarray, G: np.ndarray, var_G: np.ndarray | None
 ) -> np.ndarray:
     """Parameter covariance of the relative-misfit fit (see :func:`_linear_fit`)."""
     size = jac.shape[1]
-    try:
-        h_inv = np.linalg.inv(jac.T @ jac)
-    except np.linalg.LinAlgError:
-        return np.full((size, size), np.nan)
+    h_inv = _unscaled(jac)
+    if not np.all(np.isfinite(h_inv)):
+        return h_inv
     dof = max(1, r.size - size)
     if var_G is not None and np.all(np.isfinite(var_G)):
         # noise (known per line) plus whatever the residual holds beyond it, as relative misfit

@@ -143,6 +143,11 @@ class TimingFigure:
     skipped_ticks: int = 0
     #: The model's own statistical 1 sigma of each parameter [%], folded into the prediction.
     statistical_pct: Mapping[str, float] = field(default_factory=dict)
+    #: The drive clock's drift against the host's and its 1 sigma [ppm], read from its stamps
+    #: against the host's instants (:mod:`~servobench.bench.identify.drive_rate`; the stamps were
+    #: taken onto the host's seconds where it is significant); NaN: not read.
+    drive_drift_ppm: float = math.nan
+    drive_drift_std_ppm: float = math.nan
 
     @property
     def model_error_max_pct(self) -> float:
@@ -220,6 +225,8 @@ class TimingFigure:
             delay_s=_finite(self.delay_s),
             delay_std_s=_finite(self.delay_std_s),
             drive_tick_s=_finite(self.drive_tick_s),
+            drive_drift_ppm=_finite(self.drive_drift_ppm),
+            drive_drift_std_ppm=_finite(self.drive_drift_std_ppm),
             repeated_samples=int(self.repeated_samples),
             skipped_ticks=int(self.skipped_ticks),
             statistical_pct={k: _finite(v) for k, v in self.statistical_pct.items()},
@@ -299,6 +306,9 @@ def timing_figure(
     # the timing's share and the model's own statistical sigma, independent: added in quadrature
     error = {k: math.hypot(timing[k], statistical[k]) if math.isfinite(statistical[k]) else timing[k]
              for k in STD_KEYS}  # fmt: skip
+    drift, drift_std = data.drive_drift_ppm
+    # the time base's own error scales every time constant: M's [ppm -> %]
+    error["M"] = math.hypot(error["M"], data.time_base_error_ppm * 1e-4)
     tau = m.M / m.B if m.B > 0 else math.inf
     return TimingFigure(source, cycle, data.fs_hz, error, method=method, time_constant_s=tau,
                         link_max_hz=_number(metadata.get("link_max_rate_hz")),
@@ -307,7 +317,8 @@ def timing_figure(
                         drive_tick_s=_number(metadata.get("drive_tick_s")),
                         repeated_samples=_count(metadata.get("repeated_samples")),
                         skipped_ticks=_count(metadata.get("skipped_ticks")),
-                        statistical_pct=statistical)  # fmt: skip
+                        statistical_pct=statistical, drive_drift_ppm=drift,
+                        drive_drift_std_ppm=drift_std)  # fmt: skip
 
 
 def _relative_pct(std: float, value: float) -> float:

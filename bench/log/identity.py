@@ -44,7 +44,7 @@ ADDRESS_KEYS = ("channel", "node", "unit", "axis")
 #: Keys that do not tell one simulated plant from another: those every drive URL takes
 #: (limits, watchdog, pace: servobench.drivers.base.COMMON_QUERY_KEYS) and the simulated
 #: drive's own control tick (``tick``, a property of the drive, not of the plant).
-NOT_PLANT_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace", "tick"})
+NOT_PLANT_KEYS = frozenset({"max_u", "max_v", "xmin", "xmax", "watchdog", "pace", "tick", "drift"})
 #: The scheme of the in-process simulated drive, named by its plant.
 SIM_SCHEME = "sim"
 

@@ -110,8 +110,11 @@ def timing_row(result: IdentificationResult) -> dict[str, str]:
         return {}
     c = t.cycle
     ms = [f"{c.get(k, math.nan) * 1e3:.3g}" for k in ("host_jitter_p50_s", "host_jitter_p99_s", "host_jitter_max_s")]
+    drift = ""
+    if math.isfinite(t.drive_drift_ppm):
+        drift = f"drive clock {t.drive_drift_ppm:+.3g} +- {t.drive_drift_std_ppm:.2g} ppm against the host's; "
     return {
-        "timing": f"clock_source {t.clock_source}; host jitter p50/p99/max {'/'.join(ms)} ms; "
+        "timing": f"clock_source {t.clock_source}; {drift}host jitter p50/p99/max {'/'.join(ms)} ms; "
         f"{int(c.get('missed_cycles', 0) or 0)} missed cycles; predicted model error "
         f"{t.model_error_max_pct:.2g} % ({'within' if t.within_accuracy else 'OUTSIDE'} the stated "
         f"{t.accuracy_pct:g} %)"

@@ -150,16 +150,20 @@ def run_server(
     state_file: str | None = None,
     clock_mode: str = REAL,
     tick_s: float | None = None,
+    drift_ppm: float | None = None,
 ) -> SimulatedDevice:
     """Serve ``sim_url`` over ``transport`` until SIGINT/SIGTERM (or ``stop``); return the device.
 
     ``state_file``: write the drive's state report there (:mod:`servobench.sim_backend.faults.state`).
     ``clock_mode``: ``real`` (default) or ``lockstep`` (:mod:`servobench.sim_backend.device`).
     ``tick_s``: the drive's own control tick [s] (``real`` only); ``None``: the URL's ``tick``.
+    ``drift_ppm``: its clock's drift [ppm] (``real`` only); ``None``: the URL's ``drift``.
     """
     serve = load_transport(transport)
     sim_url, served_keys = split_served_keys(transport, sim_url)
     ticked = {} if tick_s is None else {"tick_s": tick_s}
+    if drift_ppm is not None:
+        ticked["drift_ppm"] = drift_ppm
     device = device_from_url(sim_url, wall_clock=True, clock_mode=clock_mode, **ticked)
     stop = stop or threading.Event()
     opts = {"transport": transport, **(options or {}), "sim_keys": served_keys}
