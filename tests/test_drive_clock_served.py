@@ -7,6 +7,8 @@ streams a short SIDBE excitation (two periods of 2 s per run) in real time
 through the real protocol stack, with and without the drive's time stamp,
 and identifies the axis. The plant is M 0.01, B 1, Coulomb 0.5 / 0.4 (a
 time constant of 10 ms, so a 1 ms tick left unmodelled costs M about 30 %).
+Two Modbus TCP cases serve a drive whose clock drifts against the host's
+(:data:`DRIFT_PPM`, ``serve-sim --drift``), as every real drive's does.
 
 Judged per case, the issue's bounds: M, B and each Coulomb level within
 0.5 % with stamps and 1 % without; fit >= 99 % (98 % where the loaded suite
@@ -46,6 +48,12 @@ CASES = [
     for stamps in (True, False)
     if not (transport == "serial" and stamps)  # the ODrive protocol has no time stamp
 ]
+#: Drive clocks that drift against the host's [ppm] (``serve-sim --drift``): a crystal 100 ppm
+#: slow without stamps (the tick grid located on the host's clock slides along the run), and a
+#: ceramic resonator 4000 ppm fast with them (on the stamps as they are M would be 0.4 % large:
+#: here it must be within 0.1 %, taken onto the host's seconds, with the drift in the timing
+#: figure). The other cases keep the host's rate.
+DRIFT_PPM = {("modbus-tcp", 1e-3, False): -100.0, ("modbus-tcp", 1e-3, True): 4000.0}
 
 
 def _sidbe(transport: str, tick: float, stamps: bool, tmp_path: Path, seed: int,
@@ -69,7 +77,9 @@ def _sidbe(transport: str, tick: float, stamps: bool, tmp_path: Path, seed: int,
 @pytest.mark.parametrize(("transport", "tick", "stamps"), CASES,
                          ids=[f"{t}-{k * 1e3:g}ms-{'stamps' if s else 'nostamp'}" for t, k, s in CASES])  # fmt: skip
 def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
-    model, record = _sidbe(transport, tick, stamps, tmp_path, seed=CASES.index((transport, tick, stamps)))
+    drift = DRIFT_PPM.get((transport, tick, stamps), 0.0)
+    model, record = _sidbe(transport, tick, stamps, tmp_path, seed=CASES.index((transport, tick, stamps)),
+                           drift_ppm=drift)  # fmt: skip
     bound = 0.5 if stamps else 1.0
     fit_floor = 99.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
@@ -111,6 +121,11 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
     # the timing figure do not reproduce). The benchmark judges every case from 0.01 %.
     floor = timing["accuracy_pct"] / 50.0 if not stamps else 0.01
     assert timing["model_error_max_pct"] >= worst or worst < floor or told, (timing["model_error_pct"], errors)
+    assert record["drift_ppm"] == pytest.approx(drift)
+    if stamps and drift:
+        assert abs(errors["M"]) <= 0.1, errors  # in the host's seconds, not the drive's
+        drifted = timing["drive_drift_ppm"]
+        assert abs(drifted - drift) <= 4.0 * timing["drive_drift_std_ppm"], timing
     if stamps:
         assert model["clock_source"] == "drive"
         # the stamps show the drive's grid: the tick itself, or the coarsest grid they were read on
@@ -119,36 +134,3 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
     else:
         assert model["clock_source"] != "drive"
 
-
-# ------------------------------------------------------------------ a drive clock that drifts
-def test_a_drive_clock_0_4_percent_fast_gives_m_in_the_hosts_seconds(tmp_path):
-    """Stamps from a clock 4000 ppm fast (a ceramic resonator's): on the stamps as they are, M
-    would be 0.4 % large; taken onto the host's seconds it is within 0.1 %, and the timing figure
-    gives the drift with a sigma that covers it."""
-    model, record = _sidbe("modbus-tcp", 1e-3, True, tmp_path, seed=41, drift_ppm=4000.0)
-    errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
-    timing = model["timing"]
-    print("seen:", json.dumps({"errors": errors, "timing": timing, "record": record}, default=str))
-    assert record["drift_ppm"] == pytest.approx(4000.0)
-    assert abs(errors["M"]) <= 0.1, errors
-    assert max(abs(e) for e in errors.values()) <= 0.5, errors
-    assert abs(timing["drive_drift_ppm"] - 4000.0) <= 4.0 * timing["drive_drift_std_ppm"], timing
-    assert timing["model_error_pct"]["M"] >= abs(errors["M"]) or abs(errors["M"]) < 0.01, timing
-    assert abs(model["delay_s"] - record["mean_change_delay_s"]) <= 0.05e-3, (model["delay_s"], record)
-
-
-def test_a_crystal_that_drifts_100_ppm_without_stamps(tmp_path):
-    """No stamps, a crystal 100 ppm slow: the tick grid located on the host's clock slides; the
-    issue's bounds hold (1 %, fit 99 %, the delay within 0.05 ms of the record)."""
-    model, record = _sidbe("modbus-tcp", 1e-3, False, tmp_path, seed=42, drift_ppm=-100.0)
-    errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
-    timing = model["timing"]
-    print("seen:", json.dumps({"errors": errors, "fit": model["fit_percent"], "timing": timing,
-                               "record": record}, default=str))  # fmt: skip
-    worst = max(abs(e) for e in errors.values())
-    told = not timing["within_accuracy"] and 2.0 * timing["model_error_max_pct"] >= worst
-    assert worst <= 1.0 or told, errors
-    stalled = timing["jitter_max_s"] > 10.0 / model["fs"]
-    assert model["fit_percent"] >= (98.0 if stalled else 99.0) or told, model["fit_percent"]
-    assert abs(model["delay_s"] - record["mean_change_delay_s"]) <= 0.05e-3 or told, (model["delay_s"], record)
-    assert timing["model_error_max_pct"] >= worst or worst < 0.02 or told, (timing["model_error_pct"], errors)
