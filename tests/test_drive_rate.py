@@ -128,3 +128,20 @@ def test_a_fast_drive_clock_no_longer_makes_m_large():
     j = res.timing.to_json()
     assert j["drive_drift_ppm"] == pytest.approx(5000.0, abs=50.0)
     assert j["model_error_pct"]["M"] >= abs(m.M / TRUTH.M - 1) * 100 or abs(m.M / TRUTH.M - 1) < 1e-4
+
+
+def test_reads_moved_onto_a_grid_carry_the_grids_time_base_in_m():
+    """``tests/data/served_modbus_tcp_1ms_drift100_nostamp.csv``: a default quick ``sidbe``
+    against a served Modbus TCP drive without stamps, tick 1 ms, its clock 100 ppm fast
+    (M 0.01, B 1). The grid located on the host's clock kept no drift, so M came out 100 ppm
+    large in the drive's seconds, and the timing figure predicted 0.00075 %: a grid is known
+    only to a tick over the run (1 ms over 4 s: 144 ppm, 1 sigma), which M's prediction carries."""
+    from pathlib import Path
+
+    from servobench.bench.log.io import read_log
+
+    res = identify(read_log(Path(__file__).parent / "data" / "served_modbus_tcp_1ms_drift100_nostamp.csv"))
+    error_pct = abs(res.model.M / 0.01 - 1) * 100
+    assert 0.005 < error_pct < 0.05  # the drive's seconds, not the host's
+    assert res.timing.model_error_pct["M"] >= error_pct
+    assert res.timing.model_error_pct["M"] >= 1e-3 / 4.0 / 3**0.5 * 100

@@ -131,7 +131,27 @@ def drive_rate(stamps_s: np.ndarray, host_s: np.ndarray) -> DriveRate | None:
     sxx = float(np.sum((xs - xs.mean()) ** 2))
     stat = math.sqrt(float(r @ r) / max(n - 2, 1) / sxx) if sxx > 0 else math.inf
     span = float(xs[-1] - xs[0])
-    return DriveRate(float(slope), math.hypot(stat, q / (span * math.sqrt(3.0))), n)
+    return DriveRate(float(slope), math.hypot(stat, _quantum_std(q, span)), n)
+
+
+def quantised_rate_std(t_s: np.ndarray) -> float:
+    """The 1-sigma [relative] to which instants that step by whole ticks fix a clock's rate over
+    their span: ``q / (span sqrt(3))``, ``q`` their median positive step (0 where they hold fewer
+    than two distinct instants). The same bound holds where a log's reads were moved onto a tick
+    grid located on the host's clock: a grid whose drift is off by less than a tick over the run
+    places every read alike."""
+    t = np.asarray(t_s, dtype=float)
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    span = float(t[-1] - t[0]) if t.size else 0.0
+    if steps.size == 0 or not span > 0:
+        return 0.0
+    return _quantum_std(float(np.median(steps)), span)
+
+
+def _quantum_std(q: float, span: float) -> float:
+    """A step ``q`` over ``span``, uniform: ``q / (span sqrt(3))``."""
+    return q / (span * math.sqrt(3.0))
 
 
 def onto_host_seconds(stamps_s: np.ndarray, rate: DriveRate) -> np.ndarray:

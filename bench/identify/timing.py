@@ -66,6 +66,7 @@ from typing import Any
 import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.drive_rate import quantised_rate_std
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.model.servo import DELAY_KEY, STD_KEYS
 from servobench.errors import IdentificationError
@@ -307,8 +308,13 @@ def timing_figure(
     error = {k: math.hypot(timing[k], statistical[k]) if math.isfinite(statistical[k]) else timing[k]
              for k in STD_KEYS}  # fmt: skip
     drift, drift_std = data.drive_drift_ppm
-    # the time base's own error scales every time constant: M's [ppm -> %]
-    error["M"] = math.hypot(error["M"], data.time_base_error_ppm * 1e-4)
+    # the time base's own error scales every time constant: M's [ppm -> %]. Stamps: the drive's
+    # clock against the host's; reads moved onto a grid located on the host's clock: the grid's
+    # drift, known to a tick over the run
+    time_base_ppm = data.time_base_error_ppm
+    if regrid is not None and logged is not None:
+        time_base_ppm = max(time_base_ppm, *(1e6 * quantised_rate_std(s.t) for s in data.segments))
+    error["M"] = math.hypot(error["M"], time_base_ppm * 1e-4)
     tau = m.M / m.B if m.B > 0 else math.inf
     return TimingFigure(source, cycle, data.fs_hz, error, method=method, time_constant_s=tau,
                         link_max_hz=_number(metadata.get("link_max_rate_hz")),
