@@ -60,3 +60,27 @@ def test_the_delay_s_sigma_covers_its_error_off_its_bound(delayed):
     assert RMS_BAND[0] <= delay["rms"] <= RMS_BAND[1], delay
     assert delay["within2"] >= WITHIN_2, delay
     assert all(abs(c["error"]["delay_s"]) < 0.5 * DELAY_S for c in cases), cases
+
+
+@pytest.fixture(scope="module")
+def clean_default(tmp_path_factory):
+    """The benchmark's pair: 4 periods of 4 s per run (three steady periods to read the FRF's
+    noise from: the shorter pair's two leave that sigma itself too uncertain to judge)."""
+    return clean_log(tmp_path_factory.mktemp("coverage") / "default")
+
+
+def test_the_sidbe_methods_sigma_covers_its_friction_leakage(clean_default):
+    """``--method sidbe`` at amplitude 1 (the published estimate): friction leaks into the
+    differential FRF and M comes out some 20 % low, a bias the noise's sigma (3 %) did not
+    cover (rms of error over sigma 4.3-4.8, under a fifth within 2 sigma). The leakage, simulated
+    at the model, is in the sigma now, and the estimate says so."""
+    cases = [coverage_case(clean_default, "white", seed, "sidbe") for seed in SEEDS]
+    figures = summarise(cases)
+    for key in PARAMETERS[:4]:
+        s = figures[key]
+        assert s["unstated"] == 0, (key, s)
+        assert RMS_BAND[0] <= s["rms"] <= RMS_BAND[1], (key, s)
+        assert s["within2"] >= WITHIN_2, (key, s)
+    assert all(c["estimator"] == "sidbe/frf" for c in cases)
+    assert all(abs(c["error"]["M"]) > 0.05 * 0.1 for c in cases)  # the bias is there to cover
+    assert all(any("friction leaks into the differential FRF" in n for n in c["notes"]) for c in cases)

@@ -17,7 +17,14 @@
 
 The differential pair does not cancel friction exactly (the zero-crossing
 times of the two runs differ), so at amplitudes close to the friction level
-the estimate is biased; :mod:`servobench.bench.identify.joint` is not.
+the estimate is biased; :mod:`servobench.bench.identify.joint` is not. The
+stated sigma says how far (:func:`leakage_sigma`): the identified model, its
+friction included, is simulated on both runs' commands and put through steps
+1-2 again; what comes back off the model is the bias this excitation gives
+it (taken again at the model less that bias, nearer the truth, and the larger
+kept), added in quadrature to the noise's sigma of ``M``, ``B`` and the
+delay, and carried into the Coulomb levels'. A note gives the leakage where it
+outweighs the noise. The point estimate stays the published method's.
 
 Closed-loop logs (a hold loop kept the axis inside its travel): ``u`` is the
 total command the drive applied, the hold loop's share included, and the FRF
@@ -118,6 +125,23 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B, fit.delay_s)
     else:
         fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B, fit.delay_s)
+    bias = leakage_sigma(data, ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res, fit.delay_s),
+                        resonance=res is not None)  # fmt: skip
+    if bias is not None:
+        noise_sd = (fit.std_M, fit.std_B)
+        fit = with_bias(fit, bias)
+        if abs(bias[0]) > noise_sd[0] or abs(bias[1]) > noise_sd[1]:
+            notes.append(
+                f"friction leaks into the differential FRF at this amplitude: simulated, it moves M by "
+                f"{100 * bias[0] / fit.M:+.2g} % and B by {100 * bias[1] / fit.B:+.2g} %, beyond the "
+                "noise's sigma, and the stated sigma includes it; raise the amplitude, or use "
+                "--method auto (the joint estimator has no such bias)"
+            )
+    if data.derived:
+        if bias is not None:  # the levels at the biased block: how far the leakage moves them
+            bp, bn, *_ = _friction_derived(data, fit.M + bias[0], fit.B + bias[1], max(fit.delay_s + bias[2], 0.0))
+            sp, sn = math.hypot(sp, bp - fp), math.hypot(sn, bn - fn)
+    else:
         sp, sn = _friction_std(data, fit, NOISE_SIGMAS * sigma if sigma > 0 else 0.0, sigma)
     if fp < 0 or fn < 0:
         notes.append("a negative Coulomb level was estimated and clipped to 0")
@@ -135,6 +159,68 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         DELAY_KEY: fit.std_delay_s,
     }
     return MethodEstimate(model, "sidbe", std, "frf", sigma, tuple(notes), frf)
+
+
+def leakage_bias(data: Dataset, model: ServoModel, resonance: bool = False) -> np.ndarray | None:
+    """``(dM, dB, d delay_s)``: how far steps 1-2 land off ``model`` when the data are ``model``'s
+    own noise-free response to both runs' commands (its friction and delay included), each run
+    simulated from its first velocity; None where the simulation or its fit fails."""
+    from servobench.bench.identify.simulation import simulate_velocity
+
+    assert data.design is not None
+    r1, r2 = data.run(1), data.run(2)
+    try:
+        v1 = simulate_velocity(model, r1.u, data.dt_s, float(r1.v[0]))
+        v2 = simulate_velocity(model, r2.u, data.dt_s, float(r2.v[0]))
+        back = fit_linear_block(differential_frf(r1.u, v1, r2.u, v2, data.design), resonance=resonance)
+    except (IdentificationError, ValueError, FloatingPointError):
+        return None
+    bias = np.array([back.M - model.M, back.B - model.B, back.delay_s - model.delay_s])
+    return bias if np.all(np.isfinite(bias)) else None
+
+
+#: Fixed-point steps of :func:`leakage_sigma` towards the model whose leakage gives the estimate.
+LEAKAGE_STEPS = 4
+
+
+def leakage_sigma(data: Dataset, model: ServoModel, resonance: bool = False) -> np.ndarray | None:
+    """The leakage to state in the sigma of ``(M, B, delay_s)``, or None where it cannot be
+    simulated.
+
+    :func:`leakage_bias` at the estimate gives the bias there; but the bias that made the
+    estimate arose at the truth, where it may differ (a bias of 100 % in ``B`` on a short
+    pair). So the model ``m`` whose own leakage lands on the estimate, ``m + bias(m) =
+    estimate``, is sought by fixed-point steps ``m <- estimate - bias(m)``
+    (:data:`LEAKAGE_STEPS`), and the larger of ``estimate - m`` and the bias at the estimate
+    is stated, per parameter."""
+    at_estimate = leakage_bias(data, model, resonance)
+    if at_estimate is None:
+        return None
+    total, bias = at_estimate, at_estimate
+    for _ in range(LEAKAGE_STEPS):
+        M, B = model.M - bias[0], model.B - bias[1]
+        if not (M > 0 and B > 0):  # the bias is as large as the estimate: no model lands there
+            break
+        nearer = replace(model, M=M, B=B, delay_s=max(model.delay_s - bias[2], 0.0))
+        step = leakage_bias(data, nearer, resonance)
+        if step is None:
+            break
+        total, bias = np.array([model.M - nearer.M, model.B - nearer.B, model.delay_s - nearer.delay_s]), step
+    last = np.array(bias)  # the leakage at the last model tried: estimate - that model, one step on
+    stated = np.where(np.abs(total) > np.abs(at_estimate), total, at_estimate)
+    return np.where(np.abs(last) > np.abs(stated), last, stated)
+
+
+def with_bias(fit, bias: np.ndarray):
+    """``fit`` with ``bias`` (:func:`leakage_bias`) in its sigma and covariance, in quadrature."""
+    cov = None if fit.cov is None else fit.cov + np.outer(bias, bias)
+    return replace(
+        fit,
+        std_M=math.hypot(fit.std_M, bias[0]),
+        std_B=math.hypot(fit.std_B, bias[1]),
+        std_delay_s=math.hypot(fit.std_delay_s, bias[2]) if math.isfinite(fit.std_delay_s) else fit.std_delay_s,
+        cov=cov,
+    )
 
 
 def _friction_sampled(
