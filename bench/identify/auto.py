@@ -274,7 +274,7 @@ def _auto(data: Dataset, resonance: bool) -> tuple[MethodEstimate, str, dict[str
     validation: dict[str, float] = {}
     failures: dict[str, str] = {}
     for name, run in (
-        ("sidbe", lambda d: identify_sidbe(d, resonance=resonance)),
+        ("sidbe", lambda d: identify_sidbe(d, resonance=resonance, leakage=False)),
         ("joint", identify_joint),
     ):
         try:
@@ -299,11 +299,10 @@ def _auto(data: Dataset, resonance: bool) -> tuple[MethodEstimate, str, dict[str
         failed = next(iter(failures))
         why = f"auto: {winner} (validation fit {validation[winner]:.3f} % {where}); {failed} failed: {failures[failed]}"
     final = candidates[winner]
-    if fit_data is not data:
-        if winner == "sidbe":
-            final = identify_sidbe(data, resonance=resonance)
-        else:
-            final = identify_joint(data, start=final)
+    if winner == "sidbe":  # on all the data, and with the friction leakage in its sigma
+        final = identify_sidbe(data, resonance=resonance)
+    elif fit_data is not data:
+        final = identify_joint(data, start=final)
     # the measured FRF (for the plot) from the held-out comparison is good enough
     frf = candidates["sidbe"].frf if "sidbe" in candidates else None
     return final, why, validation, frf

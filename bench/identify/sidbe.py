@@ -78,8 +78,9 @@ def sidbe_applicable(data: Dataset) -> str:
     return ""
 
 
-def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
-    """SIDBE on a two-run periodic log (see module docstring)."""
+def identify_sidbe(data: Dataset, *, resonance: bool = False, leakage: bool = True) -> MethodEstimate:
+    """SIDBE on a two-run periodic log (see module docstring). ``leakage=False``: the sigma
+    without the friction leakage (a candidate that is only compared on its fit)."""
     reason = sidbe_applicable(data)
     if reason:
         raise IdentificationError(f"sidbe cannot run: {reason}")
@@ -125,8 +126,10 @@ def identify_sidbe(data: Dataset, *, resonance: bool = False) -> MethodEstimate:
         fp, fn, sp, sn, sigma = _friction_derived(data, fit.M, fit.B, fit.delay_s)
     else:
         fp, fn, sp, sn, sigma = _friction_sampled(data, fit.M, fit.B, fit.delay_s)
-    bias = leakage_sigma(data, ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res, fit.delay_s),
-                        resonance=res is not None)  # fmt: skip
+    bias = None
+    if leakage:
+        bias = leakage_sigma(data, ServoModel(fit.M, fit.B, max(fp, 0.0), max(fn, 0.0), res, fit.delay_s),
+                             resonance=res is not None)  # fmt: skip
     if bias is not None:
         noise_sd = (fit.std_M, fit.std_B)
         fit = with_bias(fit, bias)
