@@ -11,20 +11,13 @@ import math
 
 import numpy as np
 import pytest
+from fake_clock import FakeClock
 
 from servobench.sim_backend.device import WATCHDOG_FAULT, PowerState, SimulatedDevice
 from servobench.sim_backend.physics.plant import PlantParams, simulate
 
 PARAMS = PlantParams(M=0.1, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4)
 DT = 1e-3
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def coast_to_rest(v0: float, p: PlantParams = PARAMS) -> tuple[float, float]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fake_clock import FakeClock
 
 from servobench.bench.identify.auto import identify
 from servobench.bench.identify.dataset import prepare
@@ -24,14 +25,6 @@ from servobench.sim_backend.physics.plant import PlantParams
 TRUTH = PlantParams(M=0.01, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4, seed=3)
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 50.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def stamped_log(drift_ppm: float, seconds: float = 6.0, stalls: bool = True, source: str = "drive") -> str:
     """Two runs (u2 = 0.9 u1) of a random binary command held 20 ms, exchanged at 1 kHz with
     jitter (and three 30 ms stalls) with a drive of a 1 ms tick whose clock runs ``drift_ppm``
@@ -40,7 +33,7 @@ def stamped_log(drift_ppm: float, seconds: float = 6.0, stalls: bool = True, sou
     levels = rng.choice([-1.0, 1.0], size=int(seconds / 0.02) + 1)
     rows = ["# fs = 1000", f"# clock_source = {source}", "run,t,u,v,x,t_host"]
     for run, scale in ((1, 1.0), (2, 0.9)):
-        clock = FakeClock()
+        clock = FakeClock(50.0)
         dev = SimulatedDevice(TRUTH, cycle_s=1e-3, clock=clock, clock_mode=REAL, tick_s=1e-3,
                               drift_ppm=drift_ppm)  # fmt: skip
         dev.begin_session()

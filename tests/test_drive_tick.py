@@ -18,6 +18,7 @@ import math
 import time
 
 import pytest
+from fake_clock import FakeClock
 
 from servobench.bench.cli import main as cli_main
 from servobench.bench.log.identity import axis_of_url
@@ -42,14 +43,6 @@ NOISY = PlantParams(
 #: A fake wall clock's instants carry rounding of about 1e-14 s at 100 s; a command misplaced by
 #: one microsecond would show as 1e-4 [rad/s].
 EXACT = 1e-9
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def ticked(
@@ -435,11 +428,15 @@ def test_a_tick_needs_the_real_clock_and_a_sane_value():
         (["--clock", "lockstep", "--tick", "0.001"], "needs --clock real"),
         (["--sim", "sim://?M=0.01&tick=0.001", "--clock", "lockstep"], "needs --clock real"),
         (["--tick", "-1"], "--tick must be"),
+        (["--clock", "lockstep", "--drift", "50"], "needs --clock real"),
+        (["--sim", "sim://?M=0.01&drift=50", "--clock", "lockstep"], "needs --clock real"),
+        (["--drift", "nan"], "--drift must be"),
     ],
 )
-def test_serve_sim_refuses_a_tick_it_cannot_serve(args, message, capsys):
+def test_serve_sim_refuses_a_tick_or_drift_it_cannot_serve(args, message, capsys):
     assert cli_main(["serve-sim", "--transport", "modbus-tcp", *args]) != 0
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
 
 
 def test_the_tick_is_the_drives_not_the_plants():
