@@ -517,24 +517,30 @@ class EthercatMaster:
         up to ``max_wkc_errors`` times in a row.
         """
         with self._lock:
-            self.outputs = outputs
-            self.slave.output = outputs
-            timeout_us = round(self.options.frame_timeout_s * 1e6)
-            for _ in range(self.options.max_wkc_errors):
-                self.master.send_processdata()
-                # the GIL released while SOEM waits: the host's other threads (the log writer) run
-                wkc = self.master.receive_processdata(timeout_us, release_gil=True)
-                self._last_cycle = time.monotonic()
-                if wkc == self.master.expected_wkc:
-                    return bytes(self.slave.input), int(self.master.dc_time)
-                if not count_errors:
-                    return bytes(self.slave.input), int(self.master.dc_time)
-                self.wkc_errors += 1
-            raise DriveConnectionError(
-                f"{self.name}: {self.options.max_wkc_errors} frames in a row lost or with a wrong working counter "
-                f"(last {wkc}, expected {self.master.expected_wkc}): link lost; "
-                "the slave's SM watchdog stops the axis"
-            )
+            return self._cycle_locked(outputs, count_errors)
+
+    def _cycle_locked(self, outputs: bytes | None, count_errors: bool = True) -> tuple[bytes, int]:
+        """:meth:`cycle` with the lock held; ``outputs`` None: the last sent again (read under the
+        lock, so a frame sent meanwhile is never undone by an older one)."""
+        outputs = self.outputs if outputs is None else outputs
+        self.outputs = outputs
+        self.slave.output = outputs
+        timeout_us = round(self.options.frame_timeout_s * 1e6)
+        for _ in range(self.options.max_wkc_errors):
+            self.master.send_processdata()
+            # the GIL released while SOEM waits: the host's other threads (the log writer) run
+            wkc = self.master.receive_processdata(timeout_us, release_gil=True)
+            self._last_cycle = time.monotonic()
+            if wkc == self.master.expected_wkc:
+                return bytes(self.slave.input), int(self.master.dc_time)
+            if not count_errors:
+                return bytes(self.slave.input), int(self.master.dc_time)
+            self.wkc_errors += 1
+        raise DriveConnectionError(
+            f"{self.name}: {self.options.max_wkc_errors} frames in a row lost or with a wrong working counter "
+            f"(last {wkc}, expected {self.master.expected_wkc}): link lost; "
+            "the slave's SM watchdog stops the axis"
+        )
 
     def start_keepalive(self) -> None:
         self._stop.clear()
@@ -547,7 +553,12 @@ class EthercatMaster:
             if not self.keep_alive or time.monotonic() - self._last_cycle < KEEPALIVE_S:
                 continue
             try:
-                self.cycle(self.outputs)
+                # the outputs read under the lock, and the need checked again there: outputs taken
+                # before the host's own frame (a controlword 0 before an enable) and sent after it
+                # would undo it (0x0260: SWITCH ON DISABLED right after OPERATION ENABLED)
+                with self._lock:
+                    if self.keep_alive and time.monotonic() - self._last_cycle >= KEEPALIVE_S:
+                        self._cycle_locked(None)
             except (DriveError, OSError) as err:
                 self.keepalive_error = err
                 return
