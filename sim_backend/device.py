@@ -499,7 +499,7 @@ class SimulatedDevice:
         with self._lock:
             self._catch_up()
             if self.timed is not None:
-                self._t_s = self._t_base_s + (self._wall_due - self._wall_base) * self.clock_rate
+                self._t_s = self._drive_clock_at(self._wall_due)
             return float(self._t_s), float(self.plant.state.v), float(self.plant.state.x)
 
     def _sample_now(self) -> DeviceSample:
@@ -513,7 +513,7 @@ class SimulatedDevice:
             self._note_read(self._tick_k)
             return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
         v, x = self.timed.measure()
-        self._t_s = self._t_base_s + (self._wall_due - self._wall_base) * self.clock_rate
+        self._t_s = self._drive_clock_at(self._wall_due)
         self._note_read()
         return DeviceSample(self._t_s, v, x, self.state, self.fault_code)
 
@@ -528,6 +528,11 @@ class SimulatedDevice:
         """The drive's record of its timing: see :meth:`.drive_tick.TimingRecord.as_dict`."""
         with self._lock:
             return self._timing.as_dict()
+
+    def _drive_clock_at(self, wall_s: float) -> float:
+        """The drive clock [s] at the wall instant ``wall_s`` (its rate taken in); the inverse of
+        :meth:`wall_instant_of`."""
+        return self._t_base_s + (wall_s - self._wall_base) * self.clock_rate
 
     def wall_instant_of(self, t_s: float) -> float:
         """The instant [s, the device's wall clock] the drive clock read ``t_s`` at (``real``)."""
