@@ -3,19 +3,24 @@
 The Jacobian is held against scipy's central differences of the same residual
 (weighted and not, inside and at the bound that stops a diverged step), and
 the fit recovers an exact plant from jittered intervals, from a start 20 %
-off.
+off. The fit's variable projection reaches the minimum scipy's
+Levenberg-Marquardt finds on all four unknowns (noisy and weighted pairs, a
+direction without motion), and where the command does not drive the
+velocity it returns the bounded problem's least sum, below what LM stalls at.
 """
 
 import math
 
 import numpy as np
 import pytest
+from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
 
 from servobench.bench.identify.regression import (
     DIVERGED_LOG,
     IrregularPairs,
     Pairs,
+    _projected,
     fit_pairs_irregular,
 )
 
@@ -62,3 +67,50 @@ def test_the_fit_recovers_the_exact_plant_from_a_start_off():
     fit = fit_pairs_irregular(_pairs(4), (0.012, 1.2, 0.4, 0.5))
     assert [fit.M, fit.B, fit.coulomb_pos, fit.coulomb_neg] == pytest.approx(TRUE, rel=1e-9)
     assert np.max(np.abs(fit.residual)) < 1e-12
+
+
+def _lm(problem: IrregularPairs, start) -> np.ndarray:
+    """scipy's Levenberg-Marquardt on the four unknowns, converged to rounding."""
+    x0 = [math.log(start[0]), math.log(start[1]), start[2], start[3]]
+    return least_squares(problem.residual, x0, jac=problem.jacobian, method="lm", xtol=1e-15,
+                         ftol=1e-15, gtol=1e-15, max_nfev=10_000).x  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_the_projection_reaches_the_minimum_of_the_full_problem(seed, weighted):
+    pairs = _pairs(seed, noise=0.02)
+    w = np.random.default_rng(seed).uniform(0.2, 2.0, len(pairs)) if weighted else 1.0
+    start = (0.013, 0.8, 0.3, 0.6)
+    problem = IrregularPairs(pairs, w, (math.log(start[0]), math.log(start[1])))
+    ours, theirs = _projected(problem, start), _lm(problem, start)
+    assert ours == pytest.approx(theirs, rel=1e-7, abs=1e-9)
+    cost = lambda x: float(problem.residual(x) @ problem.residual(x))  # noqa: E731
+    assert cost(ours) <= cost(theirs) * (1.0 + 1e-12)
+    fit = fit_pairs_irregular(pairs, start, None if not weighted else w**2)
+    assert [math.log(fit.M), math.log(fit.B), fit.coulomb_pos, fit.coulomb_neg] == pytest.approx(ours, rel=1e-12)
+
+
+def test_a_direction_without_motion_keeps_its_start():
+    p = _pairs(8, noise=0.01)
+    keep = p.v0 > 0
+    pairs = Pairs(p.v0[keep], p.v1[keep], p.u[keep], p.pos[keep], p.neg[keep], p.dt[keep], p.z0[keep])
+    start = (0.012, 1.1, 0.45, 0.123)
+    problem = IrregularPairs(pairs, 1.0, (math.log(start[0]), math.log(start[1])))
+    ours, theirs = _projected(problem, start), _lm(problem, start)
+    assert ours[3] == 0.123 and theirs[3] == pytest.approx(0.123, rel=1e-12)
+    assert ours[:3] == pytest.approx(theirs[:3], rel=1e-7)
+
+
+def test_a_command_that_does_not_drive_the_velocity_gives_the_bounded_least_sum():
+    p = _pairs(9, noise=0.01)
+    u = -p.u  # the command against the motion: the least sum wants 1/B < 0
+    pairs = Pairs(p.v0, p.v1, u, p.pos, p.neg, p.dt, p.z0)
+    start = (0.01, 1.0, 0.5, 0.4)
+    problem = IrregularPairs(pairs, 1.0, (math.log(start[0]), math.log(start[1])))
+    ours = _projected(problem, start)
+    assert ours is not None and math.exp(ours[1]) > 1e12  # B near the bound, finite
+    cost = lambda x: float(problem.residual(x) @ problem.residual(x))  # noqa: E731
+    theirs = least_squares(problem.residual, [math.log(0.01), 0.0, 0.5, 0.4], jac=problem.jacobian,
+                           method="lm", xtol=1e-14, ftol=1e-14).x  # fmt: skip
+    assert cost(ours) <= cost(theirs)
