@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from servobench.bench.testing.served import ServedSim
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
 from servobench.drivers.registry import open_drive
 
 N_EXCHANGES = 300
@@ -25,7 +25,8 @@ def test_exchange_rate_near_the_link_limit(extra):
     sim = ServedSim("serial", "sim://?M=0.1&B=1&fc_pos=0.5&fc_neg=0.4")
     sim.start()
     try:
-        with open_drive(sim.url + extra) as drive:
+        # patient: a loaded machine may hold the served drive past the 0.1 s default reply time
+        with open_drive(sim.url + PATIENT_KEYS["serial"] + extra) as drive:
             drive.set_cycle(0.001)
             drive.enable()
             for _ in range(20):
