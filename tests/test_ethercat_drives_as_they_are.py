@@ -320,9 +320,11 @@ def test_canopen_quick_stop_active_counts_as_stopped_and_mode_csp_holds() -> Non
 
 
 def open_drive_canopen(url: str):
+    from servobench.bench.testing.served import PATIENT_KEYS
     from servobench.drivers.registry import open_drive
 
-    return open_drive(url + "&pace=fast")
+    # patient: a loaded suite may hold the served node past the 100 ms default wait for its TPDO
+    return open_drive(url + "&pace=fast" + PATIENT_KEYS["canopen"])
 
 
 def test_canopen_drive_without_cst_is_commanded_under_its_own_hold(tmp_path) -> None:
