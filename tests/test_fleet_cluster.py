@@ -217,13 +217,24 @@ def test_diagnose_flags_an_effect_the_first_record_lacked(scheduler, tmp_path):
     assert rows[3]["gap_after"] < rows[3]["gap_before"] / 4
 
 
+#: Runs argv[1:] with SIGINT unblocked and at its default action, as a terminal's foreground job.
+FOREGROUND = (
+    "import os, signal, sys; signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT}); "
+    "signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
+)
+
+
 def test_ctrl_c_shuts_the_local_cluster_down_and_keeps_the_rows(fleet, tmp_path):
     logs = tmp_path / "logs"
     for i in range(16):
         shutil.copytree(fleet / "worn", logs / f"copy{i}")
     out = tmp_path / "out"
     cmd = [*CLI, "fleet", str(logs), "--out", str(out), "--workers", "2", "--json"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    # started as a terminal's foreground job is, Ctrl-C at its default action: a suite started in
+    # a shell's background ignores SIGINT (seen: the xdist workers under pytest 9.2), and a child
+    # inherits that, as nohup means it to (the fleet then rightly runs to its end)
+    foreground = [sys.executable, "-c", FOREGROUND, *cmd]
+    proc = subprocess.Popen(foreground, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)  # fmt: skip
     try:
         started = proc.stderr.readline()  # the cluster is up: "... logs on 2 Dask workers ..."
