@@ -69,6 +69,11 @@ def test_the_fit_recovers_the_exact_plant_from_a_start_off():
     assert np.max(np.abs(fit.residual)) < 1e-12
 
 
+def _cost(problem: IrregularPairs, x: np.ndarray) -> float:
+    r = problem.residual(x)
+    return float(r @ r)
+
+
 def _lm(problem: IrregularPairs, start) -> np.ndarray:
     """scipy's Levenberg-Marquardt on the four unknowns, converged to rounding."""
     x0 = [math.log(start[0]), math.log(start[1]), start[2], start[3]]
@@ -85,8 +90,7 @@ def test_the_projection_reaches_the_minimum_of_the_full_problem(seed, weighted):
     problem = IrregularPairs(pairs, w, (math.log(start[0]), math.log(start[1])))
     ours, theirs = _projected(problem, start), _lm(problem, start)
     assert ours == pytest.approx(theirs, rel=1e-7, abs=1e-9)
-    cost = lambda x: float(problem.residual(x) @ problem.residual(x))  # noqa: E731
-    assert cost(ours) <= cost(theirs) * (1.0 + 1e-12)
+    assert _cost(problem, ours) <= _cost(problem, theirs) * (1.0 + 1e-12)
     fit = fit_pairs_irregular(pairs, start, None if not weighted else w**2)
     assert [math.log(fit.M), math.log(fit.B), fit.coulomb_pos, fit.coulomb_neg] == pytest.approx(ours, rel=1e-12)
 
@@ -110,7 +114,6 @@ def test_a_command_that_does_not_drive_the_velocity_gives_the_bounded_least_sum(
     problem = IrregularPairs(pairs, 1.0, (math.log(start[0]), math.log(start[1])))
     ours = _projected(problem, start)
     assert ours is not None and math.exp(ours[1]) > 1e12  # B near the bound, finite
-    cost = lambda x: float(problem.residual(x) @ problem.residual(x))  # noqa: E731
     theirs = least_squares(problem.residual, [math.log(0.01), 0.0, 0.5, 0.4], jac=problem.jacobian,
                            method="lm", xtol=1e-14, ftol=1e-14).x  # fmt: skip
-    assert cost(ours) <= cost(theirs)
+    assert _cost(problem, ours) <= _cost(problem, theirs)

@@ -350,15 +350,12 @@ def _projected(problem: IrregularPairs, start: tuple[float, float, float, float]
 
     P = problem.pairs
     w = problem.root_w
-    M0, B0, fp0, fn0 = start
-    cols = [np.asarray(P.u, dtype=float)]
-    held = {}
-    for name, mask, sign, value in (("pos", P.pos, -1.0, fp0), ("neg", P.neg, 1.0, fn0)):
-        if np.any(mask):
-            cols.append(sign * np.asarray(mask, dtype=float))
-        else:
-            held[name] = value
-    C = np.stack(cols, axis=1)
+    M0, B0 = start[0], start[1]
+    # the Coulomb levels (entries 2, 3 of p) of the directions with motion, and their columns
+    moving = [(i, sign * np.asarray(mask, dtype=float))
+              for i, mask, sign in ((2, P.pos, -1.0), (3, P.neg, 1.0)) if np.any(mask)]  # fmt: skip
+    coulomb = [i for i, _ in moving]
+    C = np.stack([np.asarray(P.u, dtype=float), *(col for _, col in moving)], axis=1)
     dt = np.asarray(P.dt, dtype=float)
     v0 = np.asarray(P.v0, dtype=float)
     v1 = np.asarray(P.v1, dtype=float)
@@ -402,19 +399,13 @@ def _projected(problem: IrregularPairs, start: tuple[float, float, float, float]
     # (the sum's rise there is below its rounding; the full problem's steps stall short of it)
     bound = not c[0] > 0.0
     B = B0 * math.exp(DIVERGED_LOG - 1.0) if bound else 1.0 / c[0]
-    k = 1
-    fp = held.get("pos")
-    if fp is None:
-        fp, k = float(c[k] * B), k + 1
-    fn = held.get("neg")
-    if fn is None:
-        fn = float(c[k] * B)
-    x = np.array([math.log(B) - s, math.log(B), fp, fn])
+    x = np.array([math.log(B) - s, math.log(B), start[2], start[3]], dtype=float)
+    x[coulomb] = c[1:] * B
     if not np.all(np.isfinite(x)):
         return None
     if bound:
         return x
-    free = [0, 1] + ([2] if "pos" not in held else []) + ([3] if "neg" not in held else [])
+    free = [0, 1, *coulomb]
     r = problem.residual(x)
     cost = float(r @ r)
     for _ in range(POLISH_STEPS):
@@ -451,7 +442,7 @@ def fit_pairs_irregular(
     problem = IrregularPairs(pairs, 1.0 if weights is None else np.sqrt(weights), (math.log(M0), math.log(B0)))
     lo, hi = problem.lo, problem.hi
     x = _projected(problem, start)
-    if x is None:  # the projection found no positive B: the full problem from the start
+    if x is None:  # the projection's search failed: the full problem from the start
         x = least_squares(problem.residual, [math.log(M0), math.log(B0), fp0, fn0], jac=problem.jacobian,
                           method="lm", xtol=1e-14, ftol=1e-14).x  # fmt: skip
     if not (np.all(np.isfinite(x)) and np.all(x[:2] > lo) and np.all(x[:2] < hi)):
