@@ -130,3 +130,30 @@ def test_the_compiled_path_search_equals_its_numpy_reference():
         assert np.array_equal(got, want), i
         moved += bool(np.any(want != cand[np.arange(n), np.argmin(np.abs(shifts))]))
     assert moved > 100  # the cases move reads off their logged tick
+
+
+def test_only_the_pairs_of_allowed_ticks_are_computed_and_only_they_decide():
+    """A read's bracket holds a few of its candidate ticks, so the pair residuals are computed only
+    where both reads' candidates are allowed: there they equal the full computation, elsewhere 0,
+    and the least-cost path is the one the full residuals give (it never reads a pair with an end
+    its bracket rules out)."""
+    from servobench.bench.identify.pair_placement import (
+        _allowed_pair_errors,
+        _pair_errors,
+        _viterbi,
+    )
+
+    logged, _, u, v, _, _ = _log(3)
+    rng = np.random.default_rng(1)
+    shifts = np.arange(-3.0, 4.0)
+    cand = np.floor(logged / TICK)[:, None] + shifts[None, :]
+    allowed = rng.random(cand.shape) < 0.35
+    allowed[:, 3] = True
+    u_first = np.concatenate(([0.0], u[:-2]))
+    full = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], TICK, PLANT)
+    got = _allowed_pair_errors(cand, allowed, v, u_first, u[:-1], TICK, PLANT)
+    both = allowed[:-1, :, None] & allowed[1:, None, :]
+    assert np.isfinite(full).all() and 0.1 < both.mean() < 0.4
+    assert np.array_equal(got[both], full[both]) and not got[~both].any()
+    for bar in (0.0, 1e-4, 1e-2):
+        assert np.array_equal(_viterbi(cand, allowed, got, shifts, bar), _viterbi(cand, allowed, full, shifts, bar))

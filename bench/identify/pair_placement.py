@@ -114,7 +114,7 @@ def place_by_pairs(
         if allowed.sum() == n and not wide.any():
             return k.copy()
         u_first = np.concatenate(([0.0], u[:-2]))  # pair (j - 1, j): over its first tick, u[j - 2]
-        e = _pair_errors(cand[:-1, :, None], cand[1:, None, :], v[:-1], v[1:], u_first, u[:-1], tick_s, params)
+        e = _allowed_pair_errors(cand, allowed, v, u_first, u[:-1], tick_s, params)
         if scale is None:
             steps = np.diff(k) > 0
             scale = 1.4826 * float(np.median(np.abs(e[:, reach, reach][steps & ~wide[1:] & ~wide[:-1]])))
@@ -232,6 +232,19 @@ def _best_alone(i: int, k: np.ndarray, first: float, last: float, u: np.ndarray,
                          np.full(c.size, u[i - 1] if i >= 1 else 0.0), np.full(c.size, u[i]), tick_s, params)  # fmt: skip
         cost += e * e
     return float(c[int(np.argmin(cost))])
+
+
+def _allowed_pair_errors(cand: np.ndarray, allowed: np.ndarray, v: np.ndarray, u_first: np.ndarray,
+                         u_rest: np.ndarray, tick_s: float, params) -> np.ndarray:  # fmt: skip
+    """:func:`_pair_errors` of every pair of neighbouring reads' candidates ``cand`` (n, S), shape
+    (n - 1, S, S), computed only where both candidates are ``allowed`` (a read's bracket holds a
+    few of the S ticks, so most pairs are never a path's); 0 elsewhere, which no least-cost path
+    reads (:func:`_viterbi` adds it to an infinite cost)."""
+    both = allowed[:-1, :, None] & allowed[1:, None, :]
+    j, a, b = np.nonzero(both)
+    e = np.zeros(both.shape)
+    e[j, a, b] = _pair_errors(cand[j, a], cand[j + 1, b], v[j], v[j + 1], u_first[j], u_rest[j], tick_s, params)
+    return e
 
 
 def _pair_errors(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s: float, params) -> np.ndarray:
