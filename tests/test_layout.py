@@ -87,6 +87,21 @@ def test_a_subcommand_imports_only_its_own_module():
     assert "servobench.drivers.canopen.drive" not in loaded
 
 
+def test_a_served_base_plant_starts_without_the_effects_simulator():
+    """``serve-sim`` of a plant without effects (the commonest served drive, started hundreds of
+    times by the suite) loads neither the effects' compiled simulator nor numba; a plant with
+    effects does."""
+    code = (
+        "import sys\nfrom servobench.sim_backend.servers.serve import device_from_url\n"
+        "device_from_url({url!r}, wall_clock=True, clock_mode='real')\n"
+        "print('numba' in sys.modules, 'servobench.sim_backend.physics.rich_plant' in sys.modules)"
+    )
+    for url, loaded in (("sim://?M=0.01&B=1", "False False"), ("sim://?backlash=0.01", "True True")):
+        out = subprocess.run([sys.executable, "-c", code.format(url=url)], capture_output=True,
+                             text=True, timeout=60, check=True)  # fmt: skip
+        assert out.stdout.split() == loaded.split(), (url, out.stdout, out.stderr)
+
+
 def test_cli_loads_where_grp_does_not_exist():
     code = (
         "import sys\nsys.modules['grp'] = None\n"

@@ -15,8 +15,6 @@ from __future__ import annotations
 import numpy as np
 
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState, simulate_coulomb
-from servobench.sim_backend.physics.effects import collect_terms
-from servobench.sim_backend.physics.rich_plant import RichModel, build_model
 
 __all__ = ["Plant", "PlantParams", "PlantState", "simulate", "simulate_coulomb"]
 
@@ -116,6 +114,11 @@ class _CoulombModel:
 def _make_model(params: PlantParams, compiled: bool = True):
     if not params.effects:
         return _CoulombModel(params)
+    # the effects' simulator (and with it numba) only where there are effects: a served base plant,
+    # the commonest drive, starts without them
+    from servobench.sim_backend.physics.effects import collect_terms
+    from servobench.sim_backend.physics.rich_plant import RichModel, build_model
+
     return build_model(params) if compiled else RichModel(params, collect_terms(params), reference=True)
 
 
