@@ -306,3 +306,31 @@ def test_cogging_periodogram_peak_is_the_direct_sine_and_cosine_one(seed):
     s, c = np.sin(ks[:, None] * x), np.cos(ks[:, None] * x)
     power = (s @ e) ** 2 / np.sum(s * s, axis=1) + (c @ e) ** 2 / np.sum(c * c, axis=1)
     assert _peak(k_lo, k_hi, count, x, e) == ks[np.argmax(power)]
+
+
+class _PhaseError:
+    """A training error whose cost is the distance of the cogging phase from ``best`` [rad]."""
+
+    def __init__(self, best: float) -> None:
+        self.best = best
+
+    def residuals(self, cands):
+        return [np.array([c.effects["cogging"]["phase"] - self.best, c.effects["cogging"]["amp"] - 1.0])
+                for c in cands]  # fmt: skip
+
+
+def test_the_coarse_scan_moves_an_angle_by_offsets_and_an_amplitude_by_factors():
+    from servobench.bench.diagnose.refit import ANGLE_COARSE, COARSE, _line_search
+
+    start = Candidate({"M": 0.1, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4},
+                      {"cogging": {"amp": 0.8, "period": 0.2, "phase": 0.0}})  # fmt: skip
+    error = _PhaseError(best=0.12)
+    cost = float(np.sum(error.residuals([start])[0] ** 2))
+    bounds = {"cogging": {"amp": (0.0, 4.0), "phase": (-math.pi, math.pi)}}
+    found, found_cost = _line_search(
+        error, start, cost, {"cogging": ("phase", "amp")}, COARSE, bounds, ANGLE_COARSE
+    )
+    # a phase at 0 times any factor stays 0: only an offset reaches the well 0.12 rad away
+    assert found.effects["cogging"]["phase"] == pytest.approx(0.12)
+    assert found.effects["cogging"]["amp"] == pytest.approx(0.8 * 1.25)  # the factor nearest 1.0
+    assert found_cost < cost

@@ -9,8 +9,9 @@ region shrinks early: the gradient fit restarts while it keeps gaining.
 Parameters a screening marks *fixed* (a quantization step, on which the error
 is piecewise constant) are searched on a small grid after the gradient fit.
 Candidates with *scan* parameters (a play that closes or not before a
-reversal, cogging wells that hold the axis) get a coordinate search of those and
-of the base friction and inertia before it, and a Nelder-Mead polish after it;
+reversal, cogging wells that hold the axis) get a coordinate search of those, then
+of the base friction and inertia, before it (an angle, a cogging phase, by offsets in
+radians, not factors), and a Nelder-Mead polish after it;
 the gradient fit from the start itself is kept where it ends lower. Only training samples
 enter the cost; held-out samples judge the result.
 
@@ -67,6 +68,11 @@ PENALTY = 10.0
 GRID = (0.94, 0.97, 0.985, 1.015, 1.03, 1.06)
 #: Multipliers tried for rugged (scanned) parameters before it.
 COARSE = (0.6, 0.75, 0.9, 1.1, 1.25, 1.5)
+#: Offsets [rad] tried for angles (a parameter in ``rad``, such as a cogging phase) in place of
+#: multipliers, which would not move an angle near 0: before the gradient fit, a span a
+#: screening's phase may miss by; after it, the steps between its iterates.
+ANGLE_COARSE = tuple(round(k * 0.03, 2) for k in range(-10, 11) if k)
+ANGLE_GRID = (-0.02, -0.01, 0.01, 0.02)
 
 Bounds = Mapping[str, Mapping[str, tuple[float, float]]]
 
@@ -260,6 +266,11 @@ def _with_value(cand: Candidate, name: str, pname: str, value: float) -> Candida
     return Candidate(base, effects)
 
 
+def _is_angle(name: str, pname: str) -> bool:
+    """Whether effect ``name``'s parameter ``pname`` is an angle (declared in ``rad``)."""
+    return name != BASE and any(p.name == pname and p.unit == "rad" for p in library.spec(name).params)
+
+
 def _line_search(
     error: _TrainingError,
     cand: Candidate,
@@ -267,8 +278,10 @@ def _line_search(
     params: Mapping[str, tuple[str, ...]],
     factors: tuple[float, ...],
     bounds: Bounds,
+    angles: tuple[float, ...] = ANGLE_GRID,
 ) -> tuple[Candidate, float]:
-    """Coordinate search: each parameter times each factor, keeping what lowers the cost.
+    """Coordinate search: each parameter times each factor (an angle plus each of ``angles``
+    [rad]), keeping what lowers the cost.
 
     A parameter's trials differ from the candidate in that parameter alone, whichever of them
     was kept, so they are simulated in one batch and kept in order as one at a time would be.
@@ -279,10 +292,12 @@ def _line_search(
                 continue
             centre = cand.base[pname] if name == BASE else cand.effects[name][pname]
             lo, hi = bounds.get(name, {}).get(pname, (-np.inf, np.inf))
-            trials = [
-                _with_value(cand, name, pname, min(max(centre * factor, lo), hi))
-                for factor in factors
-            ]
+            values = (
+                [centre + a for a in angles]
+                if _is_angle(name, pname)
+                else [centre * factor for factor in factors]
+            )
+            trials = [_with_value(cand, name, pname, min(max(v, lo), hi)) for v in values]
             for trial, residual in zip(trials, error.residuals(trials), strict=True):
                 trial_cost = float(np.sum(residual**2))
                 if trial_cost < cost:
@@ -459,11 +474,12 @@ def refit(
     best, best_cost = cand, error.cost(cand)
     plain = None
     if rugged:
-        # Rugged surfaces: search the base friction and inertia with the rugged parameters,
-        # and keep the gradient fit from the start itself where that ends lower.
+        # Rugged surfaces: search the rugged parameters, then the base friction and inertia
+        # (searched first, the friction bends to a poor phase of the wells), and keep the
+        # gradient fit from the start itself where that ends lower.
         plain = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
         best, best_cost = _line_search(
-            error, best, best_cost, {BASE: BASE_SCAN, **scan}, COARSE, bounds
+            error, best, best_cost, {**scan, BASE: BASE_SCAN}, COARSE, bounds, ANGLE_COARSE
         )
     best, best_cost, solution = _gradient_fit(error, best, best_cost, bounds, fixed, grid, max_nfev)
     if plain is not None and plain[1] < best_cost:

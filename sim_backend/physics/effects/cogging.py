@@ -151,8 +151,10 @@ def screen(ctx: ScreenInput) -> Screening:
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": coef[2], "coulomb_neg": coef[3]}
     score = explained(sse0, sse, 3, y.size)
     # Wells near the breakaway hold the axis: where it sticks, and so the rest of the run, turns
-    # on the base friction and the amplitude together -- a rugged surface, scanned. Shallow ones
-    # (a screw's pitch error beside a large friction) are not: the gradient refit suffices.
+    # on where the wells lie (the phase: a few hundredths of a radian from the equation error's
+    # can miss the basin), the amplitude and the base friction together -- a rugged surface,
+    # scanned. Shallow ones (a screw's pitch error beside a large friction) are not: the
+    # gradient refit suffices.
     breakaway = min(base["coulomb_pos"], base["coulomb_neg"])
     deep = max([amp] + [g["amp"] for g in others]) >= WELL_SHARE * breakaway
     return Screening(
@@ -161,6 +163,6 @@ def screen(ctx: ScreenInput) -> Screening:
         bounds,
         evidence,
         base=base,
-        scan=("amp",) if deep else (),
+        scan=("phase", "amp") if deep else (),
         alternatives=tuple(others),
     )
