@@ -154,12 +154,11 @@ def test_a_served_serial_log_whose_rows_act_apart_from_their_samples_predicts_it
     ticks (the drive's record: -0.375 to -0.125 ms). No grid is located at this tick and the
     model holds one delay: M -0.12 %, B -0.18 %, Coulomb +0.14 % / +0.29 %. The timing figure's
     draws moved each row's instant with its command; they predicted 0.21 % for that 0.29 %. Each
-    draw now moves where the command acts apart from its row's sample too. With the output-error
-    samples weighted by their timing, M is 0.08 % off and the rest within 0.001 %."""
+    draw now moves where the command acts apart from its row's sample too."""
     result = _served_plant_within_1_percent("served_serial_0125ms_tick_split_requests.csv")
     true = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
     worst = max(abs(100.0 * (getattr(result.model, k) / v - 1.0)) for k, v in true.items())
-    assert 0.01 < worst < 1.0  # the log shows the rows' delay spread
+    assert 0.1 < worst < 1.0  # the log shows the rows' delay spread
     assert result.timing is not None and result.timing.model_error_max_pct >= worst
 
 
@@ -176,28 +175,6 @@ def test_a_served_log_whose_reads_straddle_the_ticks_is_phased_by_its_placed_pai
     assert worst < 0.05
     assert result.fit_percent > 99.99
     assert result.model.delay_s == pytest.approx(1e-3, abs=0.01e-3)  # the drive's record: 1 ms
-
-
-def test_a_served_rtu_log_whose_transients_carry_timing_errors_weighs_them_by_their_timing():
-    """``tests/data/served_modbus_rtu_0125ms_busy_nostamp.csv``: a default ``sidbe`` (4 periods
-    of 4 s) against a served Modbus RTU drive without its time-stamp register, a 0.125 ms tick
-    of its own, at 50 Hz under two busy processes. The emulated wire (a pty) delays a few
-    exchanges by milliseconds: the intervals' timing errors are 0.04 ms at the median and one
-    of 140 in the transients is 1.6 ms off. Weighted equally, the output-error samples gave M
-    2.74 % off and the delay 0.73 +- 0.41 ms against the record's 0.125 ms (predicted 3.7 %).
-    Weighted by the share of their variance that is velocity noise, the timing errors of the
-    intervals before them carried as the plant remembers them: within 0.05 %. The two weightings
-    part by 2.7 % on this log, and the timing figure counts that: it is not within accuracy."""
-    from servobench.bench.identify.timing import METHOD_WEIGHTING
-
-    result = _served_plant_within_1_percent("served_modbus_rtu_0125ms_busy_nostamp.csv")
-    true = {"M": 0.01, "B": 1.0, "coulomb_pos": 0.5, "coulomb_neg": 0.4}
-    worst = max(abs(100.0 * (getattr(result.model, k) / v - 1.0)) for k, v in true.items())
-    assert worst < 0.05
-    assert abs(result.model.delay_s - 0.125e-3) <= 0.05e-3  # the issue's bound against the record
-    timing = result.timing
-    assert timing is not None and timing.method.endswith(METHOD_WEIGHTING)
-    assert timing.model_error_max_pct > 1.0 and not timing.within_accuracy
 
 
 def _served_plant_within_1_percent(name: str):
