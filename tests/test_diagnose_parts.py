@@ -332,5 +332,5 @@ def test_the_coarse_scan_moves_an_angle_by_offsets_and_an_amplitude_by_factors()
     )
     # a phase at 0 times any factor stays 0: only an offset reaches the well 0.12 rad away
     assert found.effects["cogging"]["phase"] == pytest.approx(0.12)
-    assert found.effects["cogging"]["amp"] == pytest.approx(0.8 * 1.25)  # the factor nearest 1.0
+    assert found.effects["cogging"]["amp"] == pytest.approx(0.8 * 1.25)  # the factor that reaches 1.0
     assert found_cost < cost
