@@ -177,6 +177,21 @@ def test_a_served_log_whose_reads_straddle_the_ticks_is_phased_by_its_placed_pai
     assert result.model.delay_s == pytest.approx(1e-3, abs=0.01e-3)  # the drive's record: 1 ms
 
 
+def test_the_delays_stated_sigma_holds_its_timing_share():
+    """``tests/data/served_serial_1ms_tick_delay_spread.csv``: a fresh-clone suite's default
+    ``sidbe`` (two periods of 2 s) against a served ODrive-protocol drive with a 1 ms tick, at
+    200 Hz, no stamps (the drive's record: the commands that changed the value acted 0.4915 ms
+    after their samples on average, each 0 or 1 ms). The delay came out 0.552 ms with a fit's
+    1 sigma of 0.0006 ms: a hundred sigma off. The stated sigma now holds the delay's spread over
+    the timing figure's draws too (0.028 ms)."""
+    result = _served_plant_within_1_percent("served_serial_1ms_tick_delay_spread.csv")
+    error = abs(result.model.delay_s - 0.4915e-3)
+    assert error > 10.0 * result.timing.delay_std_s  # the fit's sigma alone does not hold
+    assert error <= 3.0 * result.std["delay_s"]
+    assert result.std["delay_s"] == pytest.approx(result.timing.delay_error_s)
+    assert result.timing.to_json()["delay_error_s"] == pytest.approx(result.std["delay_s"])
+
+
 def _served_plant_within_1_percent(name: str):
     """``identify`` on the kept served log ``tests/data/<name>`` (plant M 0.01, B 1, Coulomb
     0.5 / 0.4), checked within 1 % and a fit over 99 %."""

@@ -47,7 +47,7 @@ from servobench.bench.identify.sidbe import identify_sidbe, sidbe_applicable
 from servobench.bench.identify.timing import timing_figure
 from servobench.bench.identify.verify import verify
 from servobench.bench.log.io import ExperimentLog
-from servobench.bench.model.servo import IdentificationResult
+from servobench.bench.model.servo import DELAY_KEY, IdentificationResult
 from servobench.errors import IdentificationError, UsageError
 
 #: Methods :func:`identify` accepts.
@@ -131,7 +131,10 @@ def identify(
         data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
     timing = timing_figure(log.metadata, data, estimate, regrid, logged)
-    return result if timing is None else replace(result, timing=timing)
+    if timing is None:
+        return result
+    # the delay's stated sigma holds its timing share too (the draws' spread of the delay)
+    return replace(result, timing=timing, std={**result.std, DELAY_KEY: timing.delay_error_s})
 
 
 #: Grids located once more under the model identified on them: every one (the first search's model
