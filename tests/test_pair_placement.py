@@ -157,3 +157,30 @@ def test_only_the_pairs_of_allowed_ticks_are_computed_and_only_they_decide():
     assert np.array_equal(got[both], full[both]) and not got[~both].any()
     for bar in (0.0, 1e-4, 1e-2):
         assert np.array_equal(_viterbi(cand, allowed, got, shifts, bar), _viterbi(cand, allowed, full, shifts, bar))
+
+
+def test_the_compiled_placement_of_stalled_reads_equals_its_numpy_reference():
+    """Reads the host stalled on are placed one at a time, each among the ticks its bracket holds
+    (compiled: a loaded host stalls on thousands). Against the numpy reference, read by read, the
+    one before as already placed: random brackets of 1-9 ticks over the test's log, noisy and
+    exact, with a plant that breaks away above its Coulomb level; the same ticks every time."""
+    from servobench.bench.identify.pair_placement import _best_alone, _place_alone, _plant
+
+    rng = np.random.default_rng(4)
+    moved = 0
+    for seed, noise in ((5, 0.0), (6, 0.002), (7, 0.02)):
+        logged, _, u, v, _, _ = _log(seed, noise)
+        for params in (PLANT, PlantParams(M=0.01, B=1.0, coulomb_pos=0.5, coulomb_neg=0.4, brk_pos=0.7,
+                                          brk_neg=0.6)):  # fmt: skip
+            k = np.floor(logged / TICK)
+            wide = np.flatnonzero(rng.random(k.size) < 0.3)
+            first = k - rng.integers(0, 5, k.size)
+            last = k + rng.integers(0, 5, k.size)
+            want = k.copy()
+            for i in wide.tolist():
+                want[i] = _best_alone(i, want, first[i], last[i], u, v, TICK, params)
+            got = k.copy()
+            _place_alone(wide, got, first, last, u, v, TICK, *_plant(params))
+            assert np.array_equal(got, want), (seed, noise)
+            moved += int(np.count_nonzero(want != k))
+    assert moved > 500  # the cases move reads off their logged tick
