@@ -219,7 +219,7 @@ def _plant(params) -> tuple[float, float, float, float, float, float]:
 
 
 @njit(cache=True, error_model="numpy")
-def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):  # pragma: no cover - compiled
+def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):
     """Each stalled read ``wide[j]`` (ascending) placed in ``k`` in turn, as :func:`_best_alone`
     places it: of ticks ``first`` to ``last`` within its neighbours' (the one before as placed), the
     one its two pairs fit best, the first of equal costs. Compiled: a loaded host stalls on
@@ -251,7 +251,7 @@ def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn): 
 
 
 @njit(cache=True, error_model="numpy")
-def _pair_error1(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s, M, B, fcp, fcn, bkp, bkn):  # pragma: no cover
+def _pair_error1(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s, M, B, fcp, fcn, bkp, bkn):
     """:func:`_pair_errors` of one pair (compiled)."""
     ticks = k_b - k_a
     mid = _step1(v_a, u_first, tick_s if ticks >= 1 else 0.0, M, B, fcp, fcn, bkp, bkn)
@@ -259,7 +259,7 @@ def _pair_error1(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s, M, B, fcp, fcn, bk
 
 
 @njit(cache=True, error_model="numpy")
-def _step1(v, u, dt, M, B, fcp, fcn, bkp, bkn):  # pragma: no cover - compiled
+def _step1(v, u, dt, M, B, fcp, fcn, bkp, bkn):
     """:func:`_step` of one velocity (compiled)."""
     tau = M / B
     forward = v > 0 or (v == 0 and u > bkp)
@@ -305,11 +305,28 @@ def _allowed_pair_errors(cand: np.ndarray, allowed: np.ndarray, v: np.ndarray, u
     """:func:`_pair_errors` of every pair of neighbouring reads' candidates ``cand`` (n, S), shape
     (n - 1, S, S), computed only where both candidates are ``allowed`` (a read's bracket holds a
     few of the S ticks, so most pairs are never a path's); 0 elsewhere, which no least-cost path
-    reads (:func:`_viterbi` adds it to an infinite cost)."""
-    both = allowed[:-1, :, None] & allowed[1:, None, :]
-    j, a, b = np.nonzero(both)
-    e = np.zeros(both.shape)
-    e[j, a, b] = _pair_errors(cand[j, a], cand[j + 1, b], v[j], v[j + 1], u_first[j], u_rest[j], tick_s, params)
+    reads (:func:`_viterbi` adds it to an infinite cost). Compiled; equal to :func:`_pair_errors`
+    within rounding (a few units in the last place: the C library's exp and log against numpy's)."""
+    return _allowed_pair_errors_c(np.ascontiguousarray(cand, dtype=float), np.ascontiguousarray(allowed, dtype=np.bool_),
+                                  np.asarray(v, dtype=float), np.asarray(u_first, dtype=float),
+                                  np.asarray(u_rest, dtype=float), float(tick_s), *_plant(params))  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _allowed_pair_errors_c(cand, allowed, v, u_first, u_rest, tick_s, M, B, fcp, fcn, bkp, bkn):
+    """:func:`_allowed_pair_errors`, compiled: a log's placement runs it tens of times over
+    thousands of reads (numpy's temporaries over every allowed pair were a sixth of a served run's
+    identification)."""
+    n, size = cand.shape
+    e = np.zeros((n - 1, size, size))
+    for j in range(n - 1):
+        for a in range(size):
+            if not allowed[j, a]:
+                continue
+            for b in range(size):
+                if allowed[j + 1, b]:
+                    e[j, a, b] = _pair_error1(cand[j, a], cand[j + 1, b], v[j], v[j + 1], u_first[j], u_rest[j],
+                                              tick_s, M, B, fcp, fcn, bkp, bkn)  # fmt: skip
     return e
 
 
