@@ -58,8 +58,8 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   time constant, the data cannot tell the delay from the plant's lag: the
   figure is not within accuracy and its first lines say what to change.
 
-A figure whose largest parameter error exceeds the stated accuracy
-(:data:`ACCURACY_PCT`) is not :attr:`TimingFigure.within_accuracy`; its
+A figure whose largest parameter error, at :data:`COVERAGE` sigma, exceeds the
+stated accuracy (:data:`ACCURACY_PCT`) is not :attr:`TimingFigure.within_accuracy`; its
 :meth:`TimingFigure.advice` says what to change: a lower ``--fs``, a free
 core, a drive that time-stamps its samples.
 """
@@ -83,6 +83,10 @@ from servobench.errors import IdentificationError
 
 #: Accuracy the model states for its parameters [%]: timing that predicts more is reported.
 ACCURACY_PCT = 1.0
+#: Coverage factor of that statement: the predicted 1 sigma times this within the accuracy (two
+#: sigma, 95 % of a normal error). At one sigma a run said "within accuracy" with M 1.15 % off and
+#: 0.65 % predicted (a fresh-clone suite, served Modbus RTU at a 0.25 ms tick, host stalls of 37 ms).
+COVERAGE = 2.0
 #: Re-identifications with perturbed instants.
 DRAWS = 4
 #: Seed of the perturbations (the figure is reproducible from the log).
@@ -176,7 +180,7 @@ class TimingFigure:
 
     @property
     def within_accuracy(self) -> bool:
-        return self.model_error_max_pct <= self.accuracy_pct and self.delay_separable
+        return COVERAGE * self.model_error_max_pct <= self.accuracy_pct and self.delay_separable
 
     @property
     def delay_separable(self) -> bool:
@@ -224,7 +228,8 @@ class TimingFigure:
         c = self.cycle
         first = (
             f"WARNING: timing takes the model outside its stated accuracy: {worst} may be off by "
-            f"{self.model_error_pct[worst]:.2g} % (1 sigma; stated accuracy {self.accuracy_pct:g} %), "
+            f"{COVERAGE * self.model_error_pct[worst]:.2g} % ({COVERAGE:g} sigma; stated accuracy "
+            f"{self.accuracy_pct:g} %), "
             f"clock_source = {self.clock_source}, instants uncertain by up to "
             f"{_ms(c.get('t_unc_p99_s'))} ms (p99), host jitter p99 {_ms(c.get('host_jitter_p99_s'))} ms, "
             f"{int(c.get('missed_cycles', 0) or 0)} missed cycles"
