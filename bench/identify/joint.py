@@ -666,8 +666,8 @@ def _sample_weights(seg, dt_s: float, timing: _Timing | None) -> float | np.ndar
     sigma_t = np.minimum(scatter, uniform) if math.isfinite(scatter) else uniform
     u_acting = np.concatenate((seg.u[:1], seg.u[:-1]))  # the command acting as each sample is taken
     force = np.where(seg.v > 0, m.coulomb_pos, 0.0) - np.where(seg.v < 0, m.coulomb_neg, 0.0)
-    acc = (u_acting - force - m.B * seg.v) / m.M  # at the measured velocity (measured: the model's
-    # own trajectory put a served ODrive serial log at a 0.25 ms tick 1.1 % off, against 0.004 %)
+    acc = (u_acting - force - m.B * seg.v) / m.M  # at the measured velocity (when ODrive serial logs
+    # were weighted too, the model's own trajectory put one at a 0.25 ms tick 1.1 % off, against 0.004 %)
     dt = np.full(len(seg) - 1, dt_s) if seg.dt_s is None else np.asarray(seg.dt_s)
     exposure = _carried(2.0 * (acc * sigma_t) ** 2, np.exp(-2.0 * m.B * dt / m.M))
     return kept * timing.sigma_v**2 / (timing.sigma_v**2 + exposure)
