@@ -334,7 +334,8 @@ def _pair_errors(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s: float, params) -> 
     """Residuals of pairs of samples ``v_a`` at ticks ``k_a`` and ``v_b`` at ``k_b`` (broadcast;
     the leading axis is the pair's): ``v_b`` less the model's exact stick-slip response from
     ``v_a`` under ``u_first`` over the first tick and ``u_rest`` over the others. Two reads of one
-    tick hold one sample (residual ``v_b - v_a``)."""
+    tick hold one sample (residual ``v_b - v_a``). Numpy: the reference the compiled
+    :func:`_pair_error1` (the placement's path) is tested against, with :func:`_best_alone`."""
     shape = np.broadcast_shapes(np.shape(k_a), np.shape(k_b))
     ticks = np.broadcast_to(k_b - k_a, shape)
     ones = np.ones(shape)
