@@ -29,6 +29,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from servobench.sim_backend.physics.kernels import stick_slip_step
+
 #: A read's shift from its logged tick differing from the read before's costs this many residual
 #: scales, squared: the shift changes only where the pairs then fit better by that much (a
 #: three-sigma decision). The host's bracket sits off the drive's arrival alike for neighbouring
@@ -252,30 +254,10 @@ def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):
 
 @njit(cache=True, error_model="numpy")
 def _pair_error1(k_a, k_b, v_a, v_b, u_first, u_rest, tick_s, M, B, fcp, fcn, bkp, bkn):
-    """:func:`_pair_errors` of one pair (compiled)."""
+    """:func:`_pair_errors` of one pair (compiled), by the base plant's compiled step."""
     ticks = k_b - k_a
-    mid = _step1(v_a, u_first, tick_s if ticks >= 1 else 0.0, M, B, fcp, fcn, bkp, bkn)
-    return v_b - _step1(mid, u_rest, max(ticks - 1.0, 0.0) * tick_s, M, B, fcp, fcn, bkp, bkn)
-
-
-@njit(cache=True, error_model="numpy")
-def _step1(v, u, dt, M, B, fcp, fcn, bkp, bkn):
-    """:func:`_step` of one velocity (compiled)."""
-    tau = M / B
-    forward = v > 0 or (v == 0 and u > bkp)
-    backward = v < 0 or (v == 0 and u < -bkn)
-    if not (forward or backward):
-        return 0.0
-    f = fcp if forward else -fcn
-    vinf = (u - f) / B
-    vn = vinf + (v - vinf) * np.exp(-dt / tau)
-    if (vn > 0) if forward else (vn < 0):
-        return vn
-    if -bkn <= u <= bkp:
-        return 0.0
-    tc = tau * np.log((v - vinf) / -vinf)
-    f2 = fcp if u > bkp else -fcn
-    return (u - f2) / B * (1.0 - np.exp(-(dt - tc) / tau))
+    mid = stick_slip_step(v_a, u_first, tick_s if ticks >= 1 else 0.0, M, B, fcp, fcn, bkp, bkn)
+    return v_b - stick_slip_step(mid, u_rest, max(ticks - 1.0, 0.0) * tick_s, M, B, fcp, fcn, bkp, bkn)
 
 
 def _best_alone(i: int, k: np.ndarray, first: float, last: float, u: np.ndarray, v: np.ndarray,

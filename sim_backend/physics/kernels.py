@@ -483,35 +483,39 @@ def _coulomb(line, i0, n, state, out_v, out_x, o0, fpar):
 def variable_dt_velocity(u, dts, M, B, fcp, fcn, bkp, bkn, v0, out):
     """:func:`servobench.bench.identify.simulation.simulate_variable_dt_reference` into ``out``:
     ``u[k]`` over the interval ``dts[k]`` after sample ``k`` (``dts`` one shorter than ``u``)."""
-    tau = M / B
     v = v0
     n = u.size
     for k in range(n):
-        uk = u[k]
-        dt = dts[k] if k < n - 1 else 0.0
         out[k] = v
-        if v > 0.0:
-            f = fcp
-        elif v < 0.0:
-            f = -fcn
-        elif uk > bkp:
-            f = fcp
-        elif uk < -bkn:
-            f = -fcn
-        else:
-            continue
-        vinf = (uk - f) / B
-        vn = vinf + (v - vinf) * math.exp(-dt / tau)
-        forward = v > 0.0 or (v == 0.0 and uk > bkp)
-        if (vn > 0.0) == forward and vn != 0.0:
-            v = vn
-            continue
-        tc = tau * math.log((v - vinf) / -vinf)
-        if -bkn <= uk <= bkp:
-            v = 0.0
-            continue
-        f2 = fcp if uk > bkp else -fcn
-        v = (uk - f2) / B * (1.0 - math.exp(-(dt - tc) / tau))
+        v = stick_slip_step(v, u[k], dts[k] if k < n - 1 else 0.0, M, B, fcp, fcn, bkp, bkn)
+
+
+@njit(**_JIT)
+def stick_slip_step(v, uk, dt, M, B, fcp, fcn, bkp, bkn):
+    """The exact stick-slip velocity ``dt`` [s] after ``v`` under the constant command ``uk``:
+    the piecewise exponential of the base plant (:func:`variable_dt_velocity`'s step; the pair
+    placement's residuals, :mod:`servobench.bench.identify.pair_placement`)."""
+    if v > 0.0:
+        f = fcp
+    elif v < 0.0:
+        f = -fcn
+    elif uk > bkp:
+        f = fcp
+    elif uk < -bkn:
+        f = -fcn
+    else:
+        return v
+    tau = M / B
+    vinf = (uk - f) / B
+    vn = vinf + (v - vinf) * math.exp(-dt / tau)
+    forward = v > 0.0 or (v == 0.0 and uk > bkp)
+    if (vn > 0.0) == forward and vn != 0.0:
+        return vn
+    tc = tau * math.log((v - vinf) / -vinf)
+    if -bkn <= uk <= bkp:
+        return 0.0
+    f2 = fcp if uk > bkp else -fcn
+    return (uk - f2) / B * (1.0 - math.exp(-(dt - tc) / tau))
 
 
 @njit(cache=True)
