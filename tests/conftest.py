@@ -71,6 +71,8 @@ _viterbi(np.arange(4.0)[:, None] + np.array([-1.0, 0.0]), np.ones((4, 2), bool),
 _place_alone(np.array([1]), np.arange(3.0), np.zeros(3), np.full(3, 2.0), u[:3], u[:3], 1e-3, 0.01, 1.0, 0.5,
              0.4, 0.5, 0.4)
 _allowed_pair_errors(np.arange(3.0)[:, None], np.ones((3, 1), bool), u[:3], u[:2], u[:2], 1e-3, PlantParams())
+from servobench.bench.identify.derivative import lowpass
+lowpass(np.cumsum(u), 1000.0)
 """
 
 

@@ -108,10 +108,10 @@ def derivative_gain(fs_hz: float, cutoff_hz: float, method: str = "butter") -> f
         window = max(5, int(round(fs_hz / cutoff_hz)) | 1)
         taps = savgol_coeffs(window, 3, deriv=1, delta=dt)
         return float(np.sqrt(np.sum(taps * taps)))
-    from scipy.signal import butter, freqz
+    from servobench.bench.dsp.iir import butter_lowpass, freqz
 
-    b, a = butter(4, cutoff_hz / (0.5 * fs_hz))
-    w, h = freqz(b, a, worN=8192)
+    b, a = butter_lowpass(4, cutoff_hz / (0.5 * fs_hz))
+    w, h = freqz(b, a, points=8192)
     power = np.abs(h) ** 4 * (np.sin(w) / dt) ** 2  # forward-backward, then central difference
     return float(math.sqrt(np.trapezoid(power, w) / math.pi))
 

@@ -190,7 +190,7 @@ def _norm_xcorr(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[np.ndarray,
 
 def compute_signatures(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> Signatures:
     """Analyse the residual of the simulated velocity ``v_sim`` (one array per run)."""
-    from scipy.signal import welch
+    from servobench.bench.dsp.spectral import welch
 
     res, vel, pos, acc, rev = [], [], [], [], []
     linear = []
@@ -215,7 +215,7 @@ def compute_signatures(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> Sign
     u = data.cat("u")
     energy = float(np.sum(e * e)) or 1.0
     nper = int(min(max(64, 2 ** int(math.log2(max(e.size // 8, 64)))), e.size))
-    freqs, psd = welch(e, fs=data.fs_hz, nperseg=nper)
+    freqs, psd = welch(e, data.fs_hz, nper)
     peak_hz = float(freqs[1 + int(np.argmax(psd[1:]))]) if psd.size > 1 else 0.0
     lags, xc = _norm_xcorr(e, u, MAX_LAG)
     i = int(np.argmax(np.abs(xc)))

@@ -194,7 +194,7 @@ def _through_block(phi: np.ndarray, starts: np.ndarray, M: float, B: float, dt: 
     """``phi`` (columns of forces) through ``1/(M s + B)`` under ZOH, restarted at ``starts``;
     the time constant ``M/B`` held within [:data:`TAU_MIN_SAMPLES` dt, :data:`TAU_MAX_S`] (a
     fit with B near zero would integrate the regressors into drifts)."""
-    from scipy.signal import lfilter
+    from servobench.bench.dsp.iir import lfilter
 
     B = min(max(B, M / TAU_MAX_S), M / (TAU_MIN_SAMPLES * dt))
     a = math.exp(-dt * B / M)
@@ -248,10 +248,10 @@ def _held_out_share(X: np.ndarray, e: np.ndarray, train: np.ndarray, test: np.nd
 # ------------------------------------------------------------------ floor and verdict
 def _spectrum(data: DiagnosisData, e: np.ndarray) -> str:
     """Where the residual's energy lies in frequency, in words."""
-    from scipy.signal import welch
+    from servobench.bench.dsp.spectral import welch
 
     nper = int(min(max(64, 2 ** int(math.log2(max(e.size // 8, 64)))), e.size))
-    f, p = welch(e, fs=data.fs_hz, nperseg=nper)
+    f, p = welch(e, data.fs_hz, nper)
     if p.sum() <= 0:
         return "no residual energy"
     cum = np.cumsum(p) / p.sum()

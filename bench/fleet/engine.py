@@ -40,7 +40,7 @@ MAX_BATCH = 16
 #: How long to wait for a scheduler to answer, and for a worker to join it [s].
 CONNECT_TIMEOUT_S = 15.0
 #: Modules the workers' forkserver imports once for all of them.
-FORKSERVER_PRELOAD = ("distributed", "numpy", "scipy.signal", "servobench.bench.fleet.job",
+FORKSERVER_PRELOAD = ("distributed", "numpy", "servobench.bench.dsp.iir", "servobench.bench.fleet.job",
                       "servobench.bench.identify.auto")  # fmt: skip
 #: Error text of the logs that a Ctrl-C left undone.
 INTERRUPTED = "not processed: interrupted (Ctrl-C)"

@@ -1,8 +1,8 @@
 """Velocity and acceleration from sampled position, with zero-phase filtering.
 
 Used when a log has position but no velocity (e.g. the EMPS data set). The
-position is low-pass filtered forward and backward (``scipy.signal.filtfilt``,
-Butterworth, no phase lag) and differentiated by central differences; or,
+position is low-pass filtered forward and backward (``scipy.signal.filtfilt``'s
+operations, Butterworth, no phase lag, :mod:`servobench.bench.dsp.iir`) and differentiated by central differences; or,
 with ``method="savgol"``, a Savitzky-Golay derivative does both at once. For
 inverse-dynamic least squares on the filtered signals, the command and any
 other regressor are filtered in parallel with :func:`lowpass` (the IDIM-LS
@@ -46,25 +46,21 @@ def settle_samples(fs_hz: float, cutoff_hz: float) -> int:
     return int(math.ceil(3.0 * fs_hz / cutoff_hz))
 
 
-@functools.lru_cache(maxsize=64)
 def butterworth(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
     """``scipy.signal.butter(order, wn)``, designed once per order and normalised cut-off (the
-    diagnosis filters the same signals thousands of times)."""
-    from scipy import signal
+    diagnosis filters the same signals thousands of times): :func:`.dsp.iir.butter_lowpass`."""
+    from servobench.bench.dsp.iir import butter_lowpass
 
-    b, a = signal.butter(order, wn)
-    b.flags.writeable = False
-    a.flags.writeable = False
-    return b, a
+    return butter_lowpass(order, wn)
 
 
 @functools.lru_cache(maxsize=64)
 def _steady_state(order: int, wn: float) -> np.ndarray:
     """``scipy.signal.lfilter_zi`` of :func:`butterworth` ``(order, wn)``: the filter's state in
     its step response's steady state, solved once (``filtfilt`` solves it on every call)."""
-    from scipy import signal
+    from servobench.bench.dsp.iir import lfilter_zi
 
-    zi = signal.lfilter_zi(*butterworth(order, wn))
+    zi = lfilter_zi(*butterworth(order, wn))
     zi.flags.writeable = False
     return zi
 
@@ -72,16 +68,17 @@ def _steady_state(order: int, wn: float) -> np.ndarray:
 def _filtfilt(order: int, wn: float, y: np.ndarray, axis: int) -> np.ndarray:
     """``scipy.signal.filtfilt(b, a, y, axis=axis)`` (its default odd padding of ``3 * max(len(a),
     len(b))`` samples at each end and steady-state initial conditions), operation for
-    operation, with the steady state solved once per filter (:func:`_steady_state`)."""
-    from scipy import signal
+    operation, with the steady state solved once per filter (:func:`_steady_state`) and the
+    filter's loop :func:`.dsp.iir.lfilter` (scipy's, without importing :mod:`scipy.signal`)."""
+    from servobench.bench.dsp.iir import lfilter
 
     b, a = butterworth(order, wn)
     n = 3 * max(len(a), len(b))
     x = np.moveaxis(y, axis, 0)
     ext = np.concatenate((2 * x[:1] - x[n:0:-1], x, 2 * x[-1:] - x[-2 : -(n + 2) : -1]), axis=0)
     zi = _steady_state(order, wn).reshape((-1,) + (1,) * (x.ndim - 1))
-    fwd, _ = signal.lfilter(b, a, ext, axis=0, zi=zi * ext[:1])
-    back, _ = signal.lfilter(b, a, fwd[::-1], axis=0, zi=zi * fwd[-1:])
+    fwd, _ = lfilter(b, a, ext, axis=0, zi=zi * ext[:1])
+    back, _ = lfilter(b, a, fwd[::-1], axis=0, zi=zi * fwd[-1:])
     return np.moveaxis(back[::-1][n:-n], 0, axis)
 
 

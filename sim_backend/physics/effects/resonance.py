@@ -75,17 +75,17 @@ def contribute(p, plant, terms: Terms) -> None:
 
 
 def screen(ctx: ScreenInput) -> Screening:
-    from scipy.signal import csd, welch
+    from servobench.bench.dsp.spectral import csd, welch  # the diagnosis's, not scipy.signal's
 
     fs = 1.0 / ctx.dt_s
     num = den = out = res = 0.0
     freqs = None
     for r in ctx.runs:
         nper = int(min(r.v.size, 2 ** int(np.log2(max(r.v.size // 4, 16)))))
-        freqs, pxy = csd(r.v_sim, r.v, fs=fs, nperseg=nper)
-        _, pxx = welch(r.v_sim, fs=fs, nperseg=nper)
-        _, pyy = welch(r.v, fs=fs, nperseg=nper)
-        _, prr = welch(r.residual, fs=fs, nperseg=nper)
+        freqs, pxy = csd(r.v_sim, r.v, fs, nper)
+        _, pxx = welch(r.v_sim, fs, nper)
+        _, pyy = welch(r.v, fs, nper)
+        _, prr = welch(r.residual, fs, nper)
         num, den, out, res = num + pxy, den + pxx, out + pyy, res + prr
     base = ctx.base
     f_rigid = base["B"] / base["M"] / (2 * math.pi)

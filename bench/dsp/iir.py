@@ -1,0 +1,156 @@
+"""Infinite-impulse-response filters: the Butterworth low-pass, direct form II transposed.
+
+The same numbers as :func:`scipy.signal.butter`, :func:`scipy.signal.lfilter` and
+:func:`scipy.signal.lfilter_zi` (bit for bit on the filters the package designs:
+``tests/test_dsp.py``), without importing :mod:`scipy.signal`. The filter's loop is
+compiled with numba (``cache=True``), one column at a time, in scipy's order of operations.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from numba import njit
+
+
+@functools.lru_cache(maxsize=64)
+def butter_lowpass(order: int, wn: float) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.butter(order, wn)``: a digital Butterworth low-pass, transfer function ``(b, a)``.
+
+    ``wn``: the cut-off as a fraction of the Nyquist frequency, ``0 < wn < 1``. The analog
+    prototype's poles, pre-warped and taken through the bilinear transform as scipy does; the
+    arrays are read-only and cached per ``(order, wn)``.
+    """
+    if order < 1:
+        raise ValueError(f"filter order must be at least 1, got {order}")
+    if not 0.0 < wn < 1.0:
+        raise ValueError(f"digital filter cut-off must lie in (0, 1) of Nyquist, got {wn}")
+    m = np.arange(-order + 1, order, 2, dtype=np.float64)
+    p = -np.exp(1j * np.pi * m / (2 * order))  # scipy.signal.buttap: no zeros, gain 1
+    fs = 2.0
+    warped = float(2 * fs * np.tan(np.pi * np.asarray(wn, dtype=np.float64) / fs))  # numpy's tan
+    z = np.array([])
+    p = warped * p  # lp2lp_zpk
+    k = 1.0 * warped ** (len(p) - len(z))
+    fs2 = 2.0 * fs  # bilinear_zpk
+    z_z = np.append((fs2 + z) / (fs2 - z), -np.ones(len(p) - len(z)))
+    p_z = (fs2 + p) / (fs2 - p)
+    k_z = k * np.real(np.prod(fs2 - z) / np.prod(fs2 - p))
+    b = k_z * _poly(z_z)  # zpk2tf
+    a = _poly(p_z)
+    b.flags.writeable = False
+    a.flags.writeable = False
+    return b, a
+
+
+def _poly(roots: np.ndarray) -> np.ndarray:
+    """The monic polynomial of ``roots``, real where they come in conjugate pairs (scipy's
+    ``_polyutils.poly``: it compares the sorted imaginary parts, where :func:`numpy.poly` sorts
+    the roots themselves and may keep a complex result)."""
+    a = np.ones((1,), dtype=roots.dtype)
+    for root in roots:
+        a = np.convolve(a, np.array([np.ones_like(root), -root]), mode="full")
+    if np.iscomplexobj(a) and np.all(np.sort(roots.imag) == np.sort(np.conj(roots).imag)):
+        a = np.array(a.real, copy=True)
+    return a
+
+
+def _normalised(b: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b = np.atleast_1d(np.asarray(b, dtype=float))
+    a = np.atleast_1d(np.asarray(a, dtype=float))
+    while a.size > 1 and a[0] == 0.0:
+        a = a[1:]
+    if a.size < 1 or a[0] == 0.0:
+        raise ValueError("the filter needs a nonzero leading denominator coefficient")
+    n = max(a.size, b.size)
+    b = np.concatenate((b, np.zeros(n - b.size)))
+    a = np.concatenate((a, np.zeros(n - a.size)))
+    return b, a
+
+
+def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``scipy.signal.lfilter_zi(b, a)``: the state of the filter in its step response's steady
+    state, shape ``(max(len(a), len(b)) - 1,)``."""
+    b, a = _normalised(b, a)
+    if a[0] != 1.0:
+        b, a = b / a[0], a / a[0]
+    n = a.size
+    companion = np.zeros((n - 1, n - 1))  # scipy.linalg.companion(a)
+    companion[0] = -a[1:] / (1.0 * a[0])
+    companion[np.arange(1, n - 1), np.arange(n - 2)] = 1.0
+    i_minus_a = np.eye(n - 1) - companion.T
+    return np.linalg.solve(i_minus_a, b[1:] - a[1:] * b[0])
+
+
+@njit(cache=True)
+def _filter_columns(b, a, x, z):  # pragma: no cover - compiled
+    """Direct form II transposed over the rows of ``x`` (n, m), each column from its state
+    ``z`` (order, m), which ends as the final state; ``b`` and ``a`` normalised, equal lengths.
+    scipy's loop (``_lfilter.c``), operation for operation."""
+    n, m = x.shape
+    taps = b.size
+    y = np.empty_like(x)
+    for j in range(m):
+        for k in range(n):
+            xn = x[k, j]
+            if taps > 1:
+                yn = z[0, j] + b[0] * xn
+                for i in range(taps - 2):
+                    z[i, j] = z[i + 1, j] + xn * b[i + 1] - yn * a[i + 1]
+                z[taps - 2, j] = xn * b[taps - 1] - yn * a[taps - 1]
+            else:
+                yn = xn * b[0]
+            y[k, j] = yn
+    return y
+
+
+def lfilter(
+    b: np.ndarray, a: np.ndarray, x: np.ndarray, axis: int = -1, zi: np.ndarray | None = None
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.lfilter(b, a, x, axis, zi)`` for real float arrays.
+
+    Returns the filtered ``x``; with ``zi`` (the initial state, shape ``x``'s with ``axis``
+    of length ``max(len(a), len(b)) - 1``) also the final state, as scipy does.
+    """
+    b, a = _normalised(b, a)
+    b, a = b / a[0], a / a[0]
+    x = np.asarray(x, dtype=float)
+    moved = np.moveaxis(x, axis, 0)
+    rows = moved.shape[0]
+    columns = np.ascontiguousarray(moved.reshape(rows, -1))
+    order = b.size - 1
+    if zi is None:
+        state = np.zeros((order, columns.shape[1]))
+    else:
+        zi = np.asarray(zi, dtype=float)
+        want = (order,) + moved.shape[1:]
+        state = np.moveaxis(zi, axis, 0) if zi.ndim == x.ndim else zi
+        if state.shape != want:
+            raise ValueError(
+                f"initial state of shape {zi.shape} does not fit the signal {x.shape} along axis {axis}"
+            )
+        state = np.array(state.reshape(order, -1), dtype=float, order="C")
+    y = _filter_columns(b, a, columns, state).reshape(moved.shape)
+    y = np.moveaxis(y, 0, axis)
+    if zi is None:
+        return y
+    return y, np.moveaxis(state.reshape((order,) + moved.shape[1:]), 0, axis)
+
+
+def freqz(b: np.ndarray, a: np.ndarray, points: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.freqz(b, a, worN=points)``: angular frequencies ``w`` [rad/sample] from 0
+    up to (not including) pi, and the response ``h`` there (both polynomials in ``e^-jw`` by
+    Horner's rule, as scipy evaluates a recursive filter's)."""
+    b, a = _normalised(b, a)
+    w = np.linspace(0.0, np.pi, points, endpoint=False)
+    zm1 = np.exp(-1j * w)
+    return w, _horner(b, zm1) / _horner(a, zm1)
+
+
+def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``numpy.polynomial.polynomial.polyval(x, c)``: ``c[0] + c[1] x + ...``."""
+    out = c[-1] + x * 0
+    for coef in c[-2::-1]:
+        out = coef + out * x
+    return out
