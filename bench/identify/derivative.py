@@ -68,18 +68,19 @@ def _steady_state(order: int, wn: float) -> np.ndarray:
 def _filtfilt(order: int, wn: float, y: np.ndarray, axis: int) -> np.ndarray:
     """``scipy.signal.filtfilt(b, a, y, axis=axis)`` (its default odd padding of ``3 * max(len(a),
     len(b))`` samples at each end and steady-state initial conditions), operation for
-    operation, with the steady state solved once per filter (:func:`_steady_state`) and the
-    filter's loop :func:`.dsp.iir.lfilter` (scipy's, without importing :mod:`scipy.signal`)."""
-    from servobench.bench.dsp.iir import lfilter
+    operation, with the steady state solved once per filter (:func:`_steady_state`) and both
+    passes in one compiled call (:func:`.dsp.iir.filtfilt_padded`, without importing
+    :mod:`scipy.signal`)."""
+    from servobench.bench.dsp.iir import filtfilt_padded
 
     b, a = butterworth(order, wn)
     n = 3 * max(len(a), len(b))
     x = np.moveaxis(y, axis, 0)
+    shape = x.shape
+    x = x.reshape(shape[0], -1)
     ext = np.concatenate((2 * x[:1] - x[n:0:-1], x, 2 * x[-1:] - x[-2 : -(n + 2) : -1]), axis=0)
-    zi = _steady_state(order, wn).reshape((-1,) + (1,) * (x.ndim - 1))
-    fwd, _ = lfilter(b, a, ext, axis=0, zi=zi * ext[:1])
-    back, _ = lfilter(b, a, fwd[::-1], axis=0, zi=zi * fwd[-1:])
-    return np.moveaxis(back[::-1][n:-n], 0, axis)
+    out = filtfilt_padded(b, a, _steady_state(order, wn), ext, n)
+    return np.moveaxis(out.reshape(shape), 0, axis)
 
 
 def lowpass(
