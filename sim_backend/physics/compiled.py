@@ -164,21 +164,32 @@ def run(
         The state at each window's end.
     """
     P, runs = len(packs), len(lines[0]) if lines else 0
-    ipar = np.empty((P, k.NI), dtype=np.int64)
-    seg_at = table_at = force_at = line_next = mode_at = 0
+    if len(lines) != P:
+        raise ValueError(f"{P} models need {P} sets of command lines, got {len(lines)}")
+    ipar = np.array([pk.ipar for pk in packs], dtype=np.int64).reshape(P, k.NI)
+    # each model's rows follow the ones before it in the shared arrays: offsets by running sums
+    for first, last in ((k.SEG0, k.SEG1), (k.TAB0, k.TAB1), (k.FOR0, k.FOR1)):
+        ends = np.cumsum(ipar[:, last] - ipar[:, first])
+        offset = np.concatenate(([0], ends[:-1])) - ipar[:, first]
+        ipar[:, first] += offset
+        ipar[:, last] += offset
+    has_modes = [pk.modes.size > 0 for pk in packs]
+    if any(has_modes):
+        rows = np.array([pk.modes.shape[0] for pk in packs])
+        ipar[has_modes, k.MODE] = (np.cumsum(rows) - rows)[has_modes]
+    # a line several models share (the same array: no command transform) is stored once
     line_at = np.empty((P, runs), dtype=np.int64)
-    for p, (pk, per_run) in enumerate(zip(packs, lines, strict=True)):
-        ipar[p] = pk.ipar
-        ipar[p, [k.SEG0, k.SEG1]] += seg_at
-        ipar[p, [k.TAB0, k.TAB1]] += table_at
-        ipar[p, [k.FOR0, k.FOR1]] += force_at
-        if pk.modes.size:
-            ipar[p, k.MODE] = mode_at
-            mode_at += pk.modes.shape[0]
-        seg_at, table_at, force_at = ipar[p, k.SEG1], ipar[p, k.TAB1], ipar[p, k.FOR1]
+    stored: dict[int, int] = {}
+    unique: list[np.ndarray] = []
+    line_next = 0
+    for p, per_run in enumerate(lines):
         for r, ln in enumerate(per_run):
-            line_at[p, r] = line_next
-            line_next += ln.size
+            at = stored.get(id(ln))
+            if at is None:
+                stored[id(ln)] = at = line_next
+                unique.append(ln)
+                line_next += ln.size
+            line_at[p, r] = at
     windows = np.ascontiguousarray(windows, dtype=np.int64).reshape(-1, 4)
     n = int((windows[:, 3] + windows[:, 2]).max()) if windows.size else 0
     out_v, out_x = np.empty((P, n)), np.empty((P, n))
@@ -192,7 +203,7 @@ def run(
         np.ascontiguousarray(
             np.concatenate([pk.modes for pk in packs]).reshape(-1, 6 * k.MODE_COLS), dtype=complex
         ),
-        np.concatenate([ln for per_run in lines for ln in per_run]) if line_next else np.zeros(1),
+        np.concatenate(unique) if line_next else np.zeros(1),
         line_at,
         windows,
         np.ascontiguousarray(start, dtype=float).reshape(-1, 5),
