@@ -27,7 +27,9 @@ the drive record's mean delay over the commands that changed the value [ms]
 (``mean_change_delay_s``: a repeated command acts alike from either tick, so
 only a change shows its delay) and their difference, the repeated samples
 and skipped ticks the timing figure found, the predicted model error (max over
-the parameters) beside the true largest error and whether predicted >= true,
+the parameters, at the figure's stated coverage: ``model_error_bound_pct``, two of
+its 1 sigma, the bound "within accuracy" is judged by) beside the true largest
+error and whether predicted >= true,
 and PASS / FAIL (the criteria that failed in brackets); then cases passed / run
 and the total runtime. Then ``--ethercat-runs`` default ``sidbe`` runs (1 ms
 tick, time stamp, idle) against the EtherCAT slave served WITHOUT real-time
@@ -36,7 +38,7 @@ priority, each run's worst parameter error.
 Targets (issue 28): M, B and each Coulomb level within 0.5 % with time stamps,
 within 1 % without (2 % at a 2 ms tick); fit >= 99 %; |delay - drive's mean
 delay| <= max(0.05 ms, tick / 10); no run stopped early (every log of the run
-``status = complete``); predicted model error >= true error (or the true one
+``status = complete``); predicted model error (two sigma) >= true error (or the true one
 below 0.01 %, the registers' rounding: stamps in 1 us, velocity in 1e-6 steps). The 10 EtherCAT
 runs without real-time priority within 0.5 % each.
 
@@ -217,7 +219,9 @@ def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra
     row["drive_delay"] = record.get("mean_change_delay_s", record.get("mean_delay_s"))
     row["repeated"] = timing.get("repeated_samples")
     row["skipped"] = timing.get("skipped_ticks")
-    row["pred"] = timing.get("model_error_max_pct")
+    # the prediction at the figure's stated coverage (two of its 1 sigma): what "within accuracy"
+    # is judged by; at one sigma an honest prediction falls short in a third of the runs
+    row["pred"] = timing.get("model_error_bound_pct")
     row["true"] = max(abs(e) for e in row["errors"].values())
     logs = [it.get("log", "") for it in model.get("iterations", [])] or [model.get("log", "")]
     row["stopped"] = [s for s in map(_status, logs) if s != "complete"] + [
@@ -257,7 +261,7 @@ def _ms(value, fmt: str = ".4f") -> str:
 
 HEAD = (f"{'transport':<10} {'tick ms':>7} {'stamp':>5} {'load':>4} {'M %':>8} {'B %':>8} {'Fc+ %':>8} "
         f"{'Fc- %':>8} {'fit %':>7} {'delay ms +- sd':>17} {'drive ms':>8} {'diff ms':>8} {'rep':>4} "
-        f"{'skip':>5} {'pred %':>8} {'true %':>8} {'p>=t':>4}  verdict  {'s':>4} {'lavg':>4}")  # fmt: skip
+        f"{'skip':>5} {'pred2s %':>8} {'true %':>8} {'p>=t':>4}  verdict  {'s':>4} {'lavg':>4}")  # fmt: skip
 
 
 def print_row(r: dict[str, object], load_name: str) -> None:
@@ -380,7 +384,7 @@ def main() -> None:
                 worst = abs(r["errors"][name])
                 worst_all = max(worst_all, worst)
                 good += worst <= 0.5
-                print(f"  run {k + 1:>2}: worst parameter error {worst:.3g} % ({name}), predicted {r['pred'] or math.nan:.3g} %, fit {r['fit']:.3f} %, "
+                print(f"  run {k + 1:>2}: worst parameter error {worst:.3g} % ({name}), predicted {r['pred'] or math.nan:.3g} % (2 sigma), fit {r['fit']:.3f} %, "
                       f"delay {_ms(r['delay'])} ms vs drive {_ms(r['drive_delay'])} ms, "
                       f"{'PASS' if not r['failed'] else 'FAIL(' + ','.join(r['failed']) + ')'} "
                       f"({r['wall_s']:.0f} s, load {r['load']:.1f})")  # fmt: skip

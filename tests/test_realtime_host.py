@@ -315,6 +315,10 @@ def test_timing_figure_predicts_an_error_that_grows_with_the_uncertainty(tmp_pat
     assert js["clock_source"] == "host"
     assert set(js["timing"]) >= {"jitter_p50_s", "jitter_p99_s", "jitter_max_s", "missed_cycles",
                                  "model_error_pct", "model_error_max_pct", "within_accuracy"}  # fmt: skip
+    # the bound "within accuracy" is judged by: the 1-sigma prediction at the figure's coverage
+    assert js["timing"]["coverage_sigma"] == 2.0
+    assert js["timing"]["model_error_bound_pct"] == pytest.approx(2.0 * js["timing"]["model_error_max_pct"])
+    assert js["timing"]["within_accuracy"] == (js["timing"]["model_error_bound_pct"] <= 1.0)
     json.dumps(js, allow_nan=False)
 
 

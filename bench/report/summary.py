@@ -117,8 +117,8 @@ def timing_row(result: IdentificationResult) -> dict[str, str]:
     return {
         "timing": f"clock_source {t.clock_source}; {drift}host jitter p50/p99/max {'/'.join(ms)} ms; "
         f"{int(c.get('missed_cycles', 0) or 0)} missed cycles; predicted model error "
-        f"{t.model_error_max_pct:.2g} % (1 sigma; {'within' if t.within_accuracy else 'OUTSIDE'} the stated "
-        f"{t.accuracy_pct:g} % at {COVERAGE:g} sigma)"
+        f"{t.model_error_max_pct:.2g} % (1 sigma), {t.model_error_bound_pct:.2g} % at {COVERAGE:g} sigma: "
+        f"{'within' if t.within_accuracy else 'OUTSIDE'} the stated {t.accuracy_pct:g} %"
     }
 
 
