@@ -2,8 +2,10 @@
 
 The same numbers as :func:`scipy.signal.butter`, :func:`scipy.signal.lfilter` and
 :func:`scipy.signal.lfilter_zi` (bit for bit on the filters the package designs:
-``tests/test_dsp.py``), without importing :mod:`scipy.signal`. The filter's loop is
-compiled with numba (``cache=True``), one column at a time, in scipy's order of operations.
+``tests/test_dsp.py``), and ``filtfilt``'s two passes in one call
+(:func:`filtfilt_padded`, ``tests/test_lowpass.py``), without importing :mod:`scipy.signal`.
+The filter's loop is compiled with numba (``cache=True``), one column at a time, in scipy's
+order of operations.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ def _poly(roots: np.ndarray) -> np.ndarray:
 
 
 def _normalised(b: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``b`` and ``a`` as float arrays of one length (zeros appended), leading zeros of ``a`` dropped."""
     b = np.atleast_1d(np.asarray(b, dtype=float))
     a = np.atleast_1d(np.asarray(a, dtype=float))
     while a.size > 1 and a[0] == 0.0:
