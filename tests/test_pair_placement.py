@@ -186,3 +186,71 @@ def test_the_compiled_placement_of_stalled_reads_equals_its_numpy_reference():
             assert np.array_equal(got, want), (seed, noise)
             moved += int(np.count_nonzero(want != k))
     assert moved > 500  # the cases move reads off their logged tick
+
+
+def test_the_posterior_draws_follow_the_exact_posterior_of_a_small_chain():
+    """The timing figure's draws place the reads by a draw from the pairs' posterior (forward
+    filtering, backward sampling, compiled). On chains of 4 reads with 3 candidate ticks each,
+    random costs and reads not allowed everywhere, the frequency of every path over 20 000 draws
+    matches the posterior enumerated path by path (``exp(-cost / T)`` of :func:`_viterbi`'s cost)."""
+    import itertools
+
+    from servobench.bench.identify.pair_placement import _posterior, _viterbi_costs
+
+    rng = np.random.default_rng(5)
+    for case in range(3):
+        n, size = 4, 3
+        shifts = np.array([-1.0, 0.0, 1.0])
+        cand = np.arange(n, dtype=float)[:, None] * 2.0 + shifts[None, :]
+        allowed = rng.random((n, size)) < 0.8
+        allowed[:, 1] = True
+        e = rng.normal(0.0, 1.0, (n - 1, size, size))
+        bar, temperature = 0.7, 2.0
+        moved, switch, pair = _viterbi_costs(cand, e, shifts, bar)
+        exact = {}
+        for path in itertools.product(range(size), repeat=n):
+            if not all(allowed[j, s] for j, s in enumerate(path)):
+                continue
+            cost = sum(moved[s] for s in path) + sum(pair[j - 1, path[j - 1], path[j]] + switch[path[j - 1], path[j]]
+                                                     for j in range(1, n))  # fmt: skip
+            exact[path] = np.exp(-cost / temperature)
+        total = sum(exact.values())
+        draws = 20_000
+        seen: dict[tuple, int] = {}
+        for _ in range(draws):
+            ticks = _posterior(cand, allowed, e, shifts, bar, temperature, rng)
+            path = tuple(int(np.flatnonzero(cand[j] == ticks[j])[0]) for j in range(n))
+            seen[path] = seen.get(path, 0) + 1
+        assert set(seen) <= set(exact), case
+        for path, weight in exact.items():
+            p = weight / total
+            assert abs(seen.get(path, 0) / draws - p) <= 4.0 * np.sqrt(p * (1 - p) / draws) + 1e-3, (case, path, p)
+
+
+def test_reads_the_pairs_decide_keep_their_tick_in_every_posterior_draw():
+    """A noise-free log: the pairs decide every read in a transient, so each posterior draw gives
+    the least-cost ticks there (where a steady stretch leaves a read free, both ticks hold one
+    sample and the draw costs the model nothing); with noise the draws move reads the pairs leave
+    in doubt, and only those."""
+    logged, unc, u, v, k_true, v_tick = _log(1)
+    k0 = np.floor(logged / TICK)
+    grid = lambda m: np.asarray(m) * TICK  # noqa: E731
+    mode = place_by_pairs(logged, unc, u, v, k0, grid, TICK, PLANT)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        drawn = place_by_pairs(logged, unc, u, v, k0, grid, TICK, PLANT, rng)
+        assert np.all(np.diff(drawn) >= 0)
+        assert _cost(drawn, mode, v_tick) < 1e-9
+    noisy = _log(2, noise=0.02)
+    k0 = np.floor(noisy[0] / TICK)
+    mode = place_by_pairs(*noisy[:4], k0, grid, TICK, PLANT)
+    moved = [place_by_pairs(*noisy[:4], k0, grid, TICK, PLANT, rng) != mode for _ in range(3)]
+    assert 0 < np.mean(moved) < 0.2  # some reads move, most keep the mode's tick
+
+
+def test_a_grids_drift_is_known_to_a_tick_over_the_run_not_to_the_reads_spacing():
+    from servobench.bench.identify.drive_rate import quantised_rate_std
+
+    t = np.arange(0.0, 16.0, 0.02)  # reads every 20 ms on a 1 ms grid over 16 s
+    assert quantised_rate_std(t) == pytest.approx(0.02 / (t[-1] * np.sqrt(3.0)))
+    assert quantised_rate_std(t, 1e-3) == pytest.approx(1e-3 / (t[-1] * np.sqrt(3.0)))

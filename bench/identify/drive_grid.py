@@ -213,12 +213,13 @@ class Placement:
 ACTION_DOUBT = 0.15
 
 
-def place_reads(segment: Segment, grid: DriveGrid, model=None, pairs: bool = False) -> Placement:
+def place_reads(segment: Segment, grid: DriveGrid, model=None, pairs: bool = False,
+                rng: np.random.Generator | None = None) -> Placement:  # fmt: skip
     """Each read's sample and action tick on ``grid`` (:class:`Placement`); with ``model``, and a
     command lead, a read whose instants are in doubt decided by ``model``'s simulation; without a
     lead, and ``pairs``, by ``model``'s one-step pairs around it
     (:func:`~servobench.bench.identify.pair_placement.place_by_pairs`: a read and its command
-    move together).
+    move together; with ``rng``, one draw from the pairs' posterior instead of its mode).
 
     The command of a read arrived ``lead_s`` before it and acts from the first
     tick after; where a tick lies within the doubt of that arrival
@@ -238,7 +239,7 @@ def place_reads(segment: Segment, grid: DriveGrid, model=None, pairs: bool = Fal
         if not pairs:
             return Placement(k, ka)
         k = place_by_pairs(t, segment.t_unc, segment.u, segment.v, k, grid.instant, grid.period_s,
-                           model.to_plant_params())  # fmt: skip
+                           model.to_plant_params(), rng)  # fmt: skip
         return Placement(k, k + 1.0)
     unc = np.asarray(segment.t_unc, dtype=float)
     v = np.asarray(segment.v, dtype=float)
@@ -367,12 +368,13 @@ def grid_delay_s(data: Dataset, grid: DriveGrid | RunGrids, placed: dict | None 
     return total / count if count else _grid_of(grid, data.segments[0].run).period_s
 
 
-def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None, pairs: bool = False) -> tuple[Dataset, int]:
+def on_grid(data: Dataset, grid: DriveGrid | RunGrids, model=None, pairs: bool = False,
+            rng: np.random.Generator | None = None) -> tuple[Dataset, int]:  # fmt: skip
     """Every run of ``data`` on the grid (:func:`onto_grid`; its own where ``grid`` holds one per
     run), and the reads merged in all; with ``model`` and a command lead (or ``pairs``), the
-    reads near a tick placed by it (:func:`place_reads`)."""
+    reads near a tick placed by it (:func:`place_reads`; ``rng``: drawn from the pairs' posterior)."""
     segments, merged = [], 0
-    placed = {s.run: place_reads(s, _grid_of(grid, s.run), model, pairs) for s in data.segments}
+    placed = {s.run: place_reads(s, _grid_of(grid, s.run), model, pairs, rng) for s in data.segments}
     mean_delay = grid_delay_s(data, grid, placed) if grid.lead_s > 0 else None
     for s in data.segments:
         moved, n = onto_grid(s, _grid_of(grid, s.run), mean_delay, placed[s.run])

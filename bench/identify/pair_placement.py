@@ -57,6 +57,7 @@ def place_by_pairs(
     tick_instant,
     tick_s: float,
     params,
+    rng: np.random.Generator | None = None,
 ) -> np.ndarray:
     """The sample ticks ``k`` with each read whose bracket holds a tick decided by its pairs.
 
@@ -85,6 +86,12 @@ def place_by_pairs(
         The tick on the log's clock [s].
     params : PlantParams
         The model the pairs are judged under.
+    rng : numpy.random.Generator, optional
+        Instead of the least-cost ticks, one draw from their posterior under the pairs
+        (:func:`_posterior_states`): each pair's residual normal with the residuals' robust
+        scale, each change of shift as unlikely as its cost says, a stalled read's ticks weighed
+        by its two pairs. The timing figure's draws: a read the pairs decide keeps its tick, one
+        they leave in doubt moves as often as its odds say.
 
     Returns
     -------
@@ -124,8 +131,14 @@ def place_by_pairs(
                 return k.copy()
         if not judged:
             e[wide[:-1] | wide[1:]] = 0.0
-        placed = _viterbi(cand, allowed, e, shifts, (PAIR_DECISIVE * scale) ** 2)
-        _place_alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params))
+        bar = (PAIR_DECISIVE * scale) ** 2
+        if rng is None:
+            placed = _viterbi(cand, allowed, e, shifts, bar)
+            _place_alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params))
+        else:
+            placed = _posterior(cand, allowed, e, shifts, bar, 2.0 * scale * scale, rng)
+            _sample_alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params),
+                          2.0 * scale * scale, rng.random(int(wide.sum())))  # fmt: skip
         if not wide.any():
             break
         centre = np.where(wide, placed, k)
@@ -189,6 +202,125 @@ def _viterbi_states(pair, switch, allowed, moved):
     for j in range(n1, 0, -1):
         state[j - 1] = back[j - 1, state[j]]
     return state
+
+
+def _posterior(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float,
+               temperature: float, rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+    """One path of ticks of ``cand`` drawn from the posterior whose negative log is :func:`_viterbi`'s
+    cost over ``temperature`` (twice the pairs' residual variance: each residual normal), by
+    forward filtering and backward sampling; :func:`_viterbi` gives this posterior's mode."""
+    n, size = cand.shape
+    moved, switch, pair = _viterbi_costs(cand, e, shifts, bar)
+    state = _posterior_states(
+        np.ascontiguousarray(pair, dtype=float) / temperature,
+        np.ascontiguousarray(switch, dtype=float) / temperature,
+        np.ascontiguousarray(allowed, dtype=np.bool_),
+        np.ascontiguousarray(moved, dtype=float) / temperature,
+        rng.random(n),
+    )
+    return cand[np.arange(n), state]
+
+
+@njit(cache=True)
+def _posterior_states(pair, switch, allowed, moved, uniform):  # pragma: no cover - compiled
+    """A state per read drawn from ``p(path) ~ exp(-sum(moved[s_j]) - sum(pair[j - 1, s_{j-1}, s_j]
+    + switch[s_{j-1}, s_j]))`` over the ``allowed`` states (costs already over the temperature):
+    forward log-weights, then each state from the last back, given the one after it, by inverting
+    its cumulative weight at ``uniform[j]``."""
+    n1, size = pair.shape[0], pair.shape[1]
+    n = n1 + 1
+    alpha = np.full((n, size), -np.inf)
+    for b in range(size):
+        if allowed[0, b]:
+            alpha[0, b] = -moved[b]
+    for j in range(1, n):
+        for b in range(size):
+            if not allowed[j, b]:
+                continue
+            top = -np.inf
+            for a in range(size):
+                w = alpha[j - 1, a] - pair[j - 1, a, b] - switch[a, b]
+                if w > top:
+                    top = w
+            if top == -np.inf:
+                continue
+            total = 0.0
+            for a in range(size):
+                total += np.exp(alpha[j - 1, a] - pair[j - 1, a, b] - switch[a, b] - top)
+            alpha[j, b] = top + np.log(total) - moved[b]
+    state = np.empty(n, dtype=np.int64)
+    weights = np.empty(size)
+    for j in range(n - 1, -1, -1):
+        top = -np.inf
+        for a in range(size):
+            w = alpha[j, a] if j == n - 1 else alpha[j, a] - pair[j, a, state[j + 1]] - switch[a, state[j + 1]]
+            weights[a] = w
+            if w > top:
+                top = w
+        if top == -np.inf:  # nothing reaches the state after (cannot happen on an allowed path)
+            state[j] = 0
+            for a in range(size):
+                if allowed[j, a]:
+                    state[j] = a
+                    break
+            continue
+        total = 0.0
+        for a in range(size):
+            weights[a] = np.exp(weights[a] - top)
+            total += weights[a]
+        pick, run = size - 1, 0.0
+        for a in range(size):
+            run += weights[a]
+            if uniform[j] * total < run:
+                pick = a
+                break
+        while weights[pick] == 0.0 and pick > 0:  # rounding at the top of the cumulative weight
+            pick -= 1
+        state[j] = pick
+    return state
+
+
+@njit(cache=True, error_model="numpy")
+def _sample_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn, temperature, uniform):  # pragma: no cover - compiled
+    """:func:`_place_alone` drawing each stalled read's tick instead of taking the best: among the
+    same ticks, with weights ``exp(-cost / temperature)`` of its two pairs' squared residuals."""
+    n = k.size
+    for j in range(wide.size):
+        i = wide[j]
+        lo = first[i] if i == 0 else max(first[i], k[i - 1])
+        hi = last[i] if i + 1 >= n else min(last[i], k[i + 1])
+        if not lo <= hi:
+            continue
+        count = int(hi - lo) + 1
+        costs = np.empty(count)
+        best = np.inf
+        for m in range(count):
+            c = lo + m
+            cost = 0.0
+            if i > 0:
+                before = u[i - 2] if i >= 2 else 0.0
+                e = _pair_error1(k[i - 1], c, v[i - 1], v[i], before, u[i - 1], tick_s, M, B, fcp, fcn, bkp, bkn)
+                cost += e * e
+            if i + 1 < n:
+                prior = u[i - 1] if i >= 1 else 0.0
+                e = _pair_error1(c, k[i + 1], v[i], v[i + 1], prior, u[i], tick_s, M, B, fcp, fcn, bkp, bkn)
+                cost += e * e
+            costs[m] = cost
+            if cost < best:
+                best = cost
+        if not best < np.inf:
+            continue
+        total = 0.0
+        for m in range(count):
+            costs[m] = np.exp(-(costs[m] - best) / temperature) if costs[m] == costs[m] else 0.0
+            total += costs[m]
+        run, pick = 0.0, count - 1
+        for m in range(count):
+            run += costs[m]
+            if uniform[j] * total < run:
+                pick = m
+                break
+        k[i] = lo + pick
 
 
 def _viterbi_reference(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float) -> np.ndarray:
