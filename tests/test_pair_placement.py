@@ -247,10 +247,3 @@ def test_reads_the_pairs_decide_keep_their_tick_in_every_posterior_draw():
     moved = [place_by_pairs(*noisy[:4], k0, grid, TICK, PLANT, rng) != mode for _ in range(3)]
     assert 0 < np.mean(moved) < 0.2  # some reads move, most keep the mode's tick
 
-
-def test_a_grids_drift_is_known_to_a_tick_over_the_run_not_to_the_reads_spacing():
-    from servobench.bench.identify.drive_rate import quantised_rate_std
-
-    t = np.arange(0.0, 16.0, 0.02)  # reads every 20 ms on a 1 ms grid over 16 s
-    assert quantised_rate_std(t) == pytest.approx(0.02 / (t[-1] * np.sqrt(3.0)))
-    assert quantised_rate_std(t, 1e-3) == pytest.approx(1e-3 / (t[-1] * np.sqrt(3.0)))

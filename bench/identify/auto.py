@@ -139,8 +139,7 @@ def identify(
 
         data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
-    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements,
-                           grid.tick_s if best is not None else None)  # fmt: skip
+    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements)
     if timing is None:
         return result
     # the delay's stated sigma holds its timing share too (the draws' spread of the delay)

@@ -63,17 +63,11 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   doubt moves as often as its odds say. Placed by the grid alone, each read
   anywhere in its bracket, the draws moved reads the pairs had decided: Modbus
   RTU at a 1 ms tick without stamps, on four suites' logs, stated the delay
-  +- 0.13 to 0.88 ms for delays within 0.005 ms of the record, and M 0.5-0.8 %
-  for models within 0.02 %; now +- 0.003 to 0.007 ms, and M 0.018-0.026 % for
-  errors of 0.005-0.017 %. Where the delay's fit sigma is
+  +- 0.13 to 0.88 ms for delays within 0.005 ms of the record; now +- 0.003 to
+  0.007 ms. Where the delay's fit sigma is
   more than :data:`DELAY_SEPARABLE_SHARE` of the longer of a cycle and the
   time constant, the data cannot tell the delay from the plant's lag: the
   figure is not within accuracy and its first lines say what to change.
-
-The time base: a grid located on the host's clock knows its drift to a tick of
-the drive over a run (:func:`~servobench.bench.identify.drive_rate.quantised_rate_std`
-with the grid's tick; the reads' spacing, 20 ticks at 50 Hz, stated M 0.29 % off on
-those Modbus RTU logs), which the figure adds to M's error.
 
 A figure whose largest parameter error, at :data:`COVERAGE` sigma, exceeds the
 stated accuracy (:data:`ACCURACY_PCT`) is not :attr:`TimingFigure.within_accuracy`; its
@@ -335,7 +329,6 @@ def timing_figure(
     regrid: Callable[[Dataset], Dataset] | None = None,
     logged: Dataset | None = None,
     placements: Callable[[Dataset, np.random.Generator], Dataset] | None = None,
-    grid_tick_s: float | None = None,
 ) -> TimingFigure | None:
     """The timing figure of a real-time log and the model identified from it.
 
@@ -345,7 +338,6 @@ def timing_figure(
     logged. The draws then place each read anywhere in its bracket ``t +- t_unc``
     (where the request really reached the drive) and move it onto the grid again,
     so a read that could have landed on either of two ticks does so at random.
-    ``grid_tick_s``: that grid's tick [s], the quantum its drift is known to over a run.
     ``placements`` (with ``logged``): instead, each draw places the reads of ``logged``
     anew by a draw from the posterior of the pairs that placed them
     (:func:`~servobench.bench.identify.pair_placement.place_by_pairs` with a generator): a
@@ -390,7 +382,7 @@ def timing_figure(
     # drift, known to a tick over the run
     time_base_ppm = data.time_base_error_ppm
     if (regrid is not None or placements is not None) and logged is not None:
-        time_base_ppm = max(time_base_ppm, *(1e6 * quantised_rate_std(s.t, grid_tick_s) for s in data.segments))
+        time_base_ppm = max(time_base_ppm, *(1e6 * quantised_rate_std(s.t) for s in data.segments))
     error["M"] = math.hypot(error["M"], time_base_ppm * 1e-4)
     tau = m.M / m.B if m.B > 0 else math.inf
     return TimingFigure(source, cycle, data.fs_hz, error, method=method, time_constant_s=tau,
