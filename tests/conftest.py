@@ -62,7 +62,7 @@ u = np.sign(np.sin(np.arange(400) * 0.05))
 for effect in (None, *effects.names()):
     build_model(random_case(effect, rng).params).simulate(u, 1e-3, PlantState(0.0, 0.0))
 engaged(np.cumsum(u) * 1e-3, 0.01)
-from servobench.bench.identify.pair_placement import _allowed_pair_errors, _place_alone, _posterior, _sample_alone, _viterbi
+from servobench.bench.identify.pair_placement import _allowed_pair_errors, _alone, _place_alone, _posterior, _viterbi
 from servobench.bench.identify.simulation import simulate_variable_dt
 from servobench.sim_backend.physics.coulomb import PlantParams
 simulate_variable_dt(u, np.full(u.size - 1, 1e-3), PlantParams(), 0.0)
@@ -73,8 +73,8 @@ _place_alone(np.array([1]), np.arange(3.0), np.zeros(3), np.full(3, 2.0), u[:3],
 _allowed_pair_errors(np.arange(3.0)[:, None], np.ones((3, 1), bool), u[:3], u[:2], u[:2], 1e-3, PlantParams())
 _posterior(np.arange(4.0)[:, None] + np.array([-1.0, 0.0]), np.ones((4, 2), bool), np.zeros((3, 2, 2)),
            np.array([-1.0, 0.0]), 1.0, 2.0, rng)
-_sample_alone(np.array([1]), np.arange(3.0), np.zeros(3), np.full(3, 2.0), u[:3], u[:3], 1e-3, 0.01, 1.0, 0.5,
-              0.4, 0.5, 0.4, 2.0, np.full(1, 0.5))
+_alone(np.array([1]), np.arange(3.0), np.zeros(3), np.full(3, 2.0), u[:3], u[:3], 1e-3, 0.01, 1.0, 0.5, 0.4,
+       0.5, 0.4, 2.0, np.full(1, 0.5))
 from servobench.bench.identify.derivative import lowpass
 lowpass(np.cumsum(u), 1000.0)
 """

@@ -137,8 +137,8 @@ def place_by_pairs(
             _place_alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params))
         else:
             placed = _posterior(cand, allowed, e, shifts, bar, 2.0 * scale * scale, rng)
-            _sample_alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params),
-                          2.0 * scale * scale, rng.random(int(wide.sum())))  # fmt: skip
+            _alone(np.flatnonzero(wide), placed, first, last, u, v, tick_s, *_plant(params),
+                   2.0 * scale * scale, rng.random(int(wide.sum())))  # fmt: skip
         if not wide.any():
             break
         centre = np.where(wide, placed, k)
@@ -280,49 +280,6 @@ def _posterior_states(pair, switch, allowed, moved, uniform):  # pragma: no cove
     return state
 
 
-@njit(cache=True, error_model="numpy")
-def _sample_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn, temperature, uniform):  # pragma: no cover - compiled
-    """:func:`_place_alone` drawing each stalled read's tick instead of taking the best: among the
-    same ticks, with weights ``exp(-cost / temperature)`` of its two pairs' squared residuals."""
-    n = k.size
-    for j in range(wide.size):
-        i = wide[j]
-        lo = first[i] if i == 0 else max(first[i], k[i - 1])
-        hi = last[i] if i + 1 >= n else min(last[i], k[i + 1])
-        if not lo <= hi:
-            continue
-        count = int(hi - lo) + 1
-        costs = np.empty(count)
-        best = np.inf
-        for m in range(count):
-            c = lo + m
-            cost = 0.0
-            if i > 0:
-                before = u[i - 2] if i >= 2 else 0.0
-                e = _pair_error1(k[i - 1], c, v[i - 1], v[i], before, u[i - 1], tick_s, M, B, fcp, fcn, bkp, bkn)
-                cost += e * e
-            if i + 1 < n:
-                prior = u[i - 1] if i >= 1 else 0.0
-                e = _pair_error1(c, k[i + 1], v[i], v[i + 1], prior, u[i], tick_s, M, B, fcp, fcn, bkp, bkn)
-                cost += e * e
-            costs[m] = cost
-            if cost < best:
-                best = cost
-        if not best < np.inf:
-            continue
-        total = 0.0
-        for m in range(count):
-            costs[m] = np.exp(-(costs[m] - best) / temperature) if costs[m] == costs[m] else 0.0
-            total += costs[m]
-        run, pick = 0.0, count - 1
-        for m in range(count):
-            run += costs[m]
-            if uniform[j] * total < run:
-                pick = m
-                break
-        k[i] = lo + pick
-
-
 def _viterbi_reference(cand: np.ndarray, allowed: np.ndarray, e: np.ndarray, shifts: np.ndarray, bar: float) -> np.ndarray:
     """:func:`_viterbi` in numpy, one read at a time (what the compiled path is tested against)."""
     n, size = cand.shape
@@ -359,6 +316,14 @@ def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):
     one its two pairs fit best, the first of equal costs. Compiled: a loaded host stalls on
     thousands of reads, and each is placed alone (numpy on a handful of ticks per read cost a
     served CANopen run 30 s)."""
+    _alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn, 0.0, np.empty(0))
+
+
+@njit(cache=True, error_model="numpy")
+def _alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn, temperature, uniform):
+    """Each stalled read ``wide[j]`` placed in turn among the ticks its bracket and its neighbours
+    allow: the best (``temperature`` 0: :func:`_place_alone`), or one drawn with weights
+    ``exp(-cost / temperature)`` by ``uniform[j]`` (the timing figure's draws)."""
     n = k.size
     for j in range(wide.size):
         i = wide[j]
@@ -366,22 +331,65 @@ def _place_alone(wide, k, first, last, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):
         hi = last[i] if i + 1 >= n else min(last[i], k[i + 1])
         if not lo <= hi:
             continue
-        best, arg = np.inf, lo
-        c = lo
-        while c <= hi:
-            cost = 0.0
-            if i > 0:
-                before = u[i - 2] if i >= 2 else 0.0
-                e = _pair_error1(k[i - 1], c, v[i - 1], v[i], before, u[i - 1], tick_s, M, B, fcp, fcn, bkp, bkn)
-                cost += e * e
-            if i + 1 < n:
-                prior = u[i - 1] if i >= 1 else 0.0
-                e = _pair_error1(c, k[i + 1], v[i], v[i + 1], prior, u[i], tick_s, M, B, fcp, fcn, bkp, bkn)
-                cost += e * e
-            if cost < best or (cost != cost and best == best):
-                best, arg = cost, c
-            c += 1.0
-        k[i] = arg
+        count = int(hi - lo) + 1
+        costs = np.empty(count)
+        for m in range(count):
+            costs[m] = _alone_cost(i, lo + m, k, u, v, tick_s, M, B, fcp, fcn, bkp, bkn)
+        pick = _least(costs) if temperature <= 0.0 else _drawn(costs, temperature, uniform[j])
+        if pick >= 0:
+            k[i] = lo + pick
+
+
+@njit(cache=True)
+def _least(costs):
+    """The index of the least cost, the first of equal ones, a NaN first (``np.argmin``'s choice)."""
+    best, arg = np.inf, 0
+    for m in range(costs.size):
+        cost = costs[m]
+        if cost < best or (cost != cost and best == best):
+            best, arg = cost, m
+    return arg
+
+
+@njit(cache=True)
+def _drawn(costs, temperature, uniform):
+    """An index drawn with weights ``exp(-(cost - least) / temperature)`` by inverting their
+    cumulative sum at ``uniform`` (NaN weighs nothing); -1 where no cost is finite."""
+    best = np.inf
+    for m in range(costs.size):
+        if costs[m] < best:
+            best = costs[m]
+    if not best < np.inf:
+        return -1
+    weights = np.empty(costs.size)
+    total = 0.0
+    for m in range(costs.size):
+        weights[m] = np.exp(-(costs[m] - best) / temperature) if costs[m] == costs[m] else 0.0
+        total += weights[m]
+    run = 0.0
+    for m in range(costs.size):
+        run += weights[m]
+        if uniform * total < run:
+            return m
+    return costs.size - 1
+
+
+@njit(cache=True, error_model="numpy")
+def _alone_cost(i, c, k, u, v, tick_s, M, B, fcp, fcn, bkp, bkn):
+    """The squared residuals of read ``i``'s two pairs with it at tick ``c``, its neighbours at
+    theirs in ``k`` (compiled; what :func:`_place_alone` minimises and :func:`_alone`
+    weighs)."""
+    n = k.size
+    cost = 0.0
+    if i > 0:
+        before = u[i - 2] if i >= 2 else 0.0
+        e = _pair_error1(k[i - 1], c, v[i - 1], v[i], before, u[i - 1], tick_s, M, B, fcp, fcn, bkp, bkn)
+        cost += e * e
+    if i + 1 < n:
+        prior = u[i - 1] if i >= 1 else 0.0
+        e = _pair_error1(c, k[i + 1], v[i], v[i + 1], prior, u[i], tick_s, M, B, fcp, fcn, bkp, bkn)
+        cost += e * e
+    return cost
 
 
 @njit(cache=True, error_model="numpy")
