@@ -72,12 +72,16 @@ def _normalised(b: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return b, a
 
 
+def _monic(b: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_normalised`, both divided by ``a[0]`` (exact where it is 1, as scipy skips it)."""
+    b, a = _normalised(b, a)
+    return b / a[0], a / a[0]
+
+
 def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
     """``scipy.signal.lfilter_zi(b, a)``: the state of the filter in its step response's steady
     state, shape ``(max(len(a), len(b)) - 1,)``."""
-    b, a = _normalised(b, a)
-    if a[0] != 1.0:
-        b, a = b / a[0], a / a[0]
+    b, a = _monic(b, a)
     n = a.size
     companion = np.zeros((n - 1, n - 1))  # scipy.linalg.companion(a)
     companion[0] = -a[1:] / (1.0 * a[0])
@@ -86,57 +90,54 @@ def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
     return np.linalg.solve(i_minus_a, b[1:] - a[1:] * b[0])
 
 
+@njit(cache=True, inline="always")
+def _step(b, a, z, xn):  # pragma: no cover - compiled
+    """One sample ``xn`` through the filter in direct form II transposed, its state ``z``
+    (``len(b) - 1``, updated in place); the output. ``b`` and ``a`` normalised, equal lengths.
+    scipy's loop (``_lfilter.c``), operation for operation."""
+    order = b.size - 1
+    if order == 0:
+        return xn * b[0]
+    yn = z[0] + b[0] * xn
+    for i in range(order - 1):
+        z[i] = z[i + 1] + xn * b[i + 1] - yn * a[i + 1]
+    z[order - 1] = xn * b[order] - yn * a[order]
+    return yn
+
+
 @njit(cache=True)
 def _filter_columns(b, a, x, z):  # pragma: no cover - compiled
-    """Direct form II transposed over the rows of ``x`` (n, m), each column from its state
-    ``z`` (order, m), which ends as the final state; ``b`` and ``a`` normalised, equal lengths.
-    scipy's loop (``_lfilter.c``), operation for operation."""
+    """:func:`_step` over the rows of ``x`` (n, m), each column from its state ``z`` (order, m),
+    which ends as the final state."""
     n, m = x.shape
-    taps = b.size
     y = np.empty_like(x)
+    state = np.empty(z.shape[0])
     for j in range(m):
+        state[:] = z[:, j]
         for k in range(n):
-            xn = x[k, j]
-            if taps > 1:
-                yn = z[0, j] + b[0] * xn
-                for i in range(taps - 2):
-                    z[i, j] = z[i + 1, j] + xn * b[i + 1] - yn * a[i + 1]
-                z[taps - 2, j] = xn * b[taps - 1] - yn * a[taps - 1]
-            else:
-                yn = xn * b[0]
-            y[k, j] = yn
+            y[k, j] = _step(b, a, state, x[k, j])
+        z[:, j] = state
     return y
 
 
 @njit(cache=True)
 def _filtfilt_columns(b, a, zi, ext, pad):  # pragma: no cover - compiled
-    """:func:`lfilter` forward over each column of ``ext`` (rows, m) from ``zi`` times its first
+    """:func:`_step` forward over each column of ``ext`` (rows, m) from ``zi`` times its first
     sample, then backward over that output from ``zi`` times its last; the backward pass's output
-    in forward order without ``pad`` rows at each end. ``b`` and ``a`` normalised, equal lengths
-    of at least 2: ``filtfilt``'s two passes, operation for operation, in one call."""
+    in forward order without ``pad`` rows at each end: ``filtfilt``'s two passes in one call."""
     rows, m = ext.shape
-    order = b.size - 1
     out = np.empty((rows - 2 * pad, m))
     fwd = np.empty(rows)
-    z = np.empty(order)
+    z = np.empty(zi.size)
     for j in range(m):
-        for i in range(order):
+        for i in range(zi.size):
             z[i] = zi[i] * ext[0, j]
         for k in range(rows):
-            xn = ext[k, j]
-            yn = z[0] + b[0] * xn
-            for i in range(order - 1):
-                z[i] = z[i + 1] + xn * b[i + 1] - yn * a[i + 1]
-            z[order - 1] = xn * b[order] - yn * a[order]
-            fwd[k] = yn
-        for i in range(order):
+            fwd[k] = _step(b, a, z, ext[k, j])
+        for i in range(zi.size):
             z[i] = zi[i] * fwd[rows - 1]
         for k in range(rows - 1, -1, -1):
-            xn = fwd[k]
-            yn = z[0] + b[0] * xn
-            for i in range(order - 1):
-                z[i] = z[i + 1] + xn * b[i + 1] - yn * a[i + 1]
-            z[order - 1] = xn * b[order] - yn * a[order]
+            yn = _step(b, a, z, fwd[k])
             if pad <= k < rows - pad:
                 out[k - pad, j] = yn
     return out
@@ -148,10 +149,9 @@ def filtfilt_padded(b: np.ndarray, a: np.ndarray, zi: np.ndarray, ext: np.ndarra
     (:func:`lfilter_zi`); the filtered signal without the extension, shape ``(rows - 2 pad, m)``.
     Equal, bit for bit, to two :func:`lfilter` calls with ``zi`` scaled by the first and the
     last sample, in one compiled call (the diagnosis filters tens of thousands of commands)."""
-    b, a = _normalised(b, a)
+    b, a = _monic(b, a)
     if b.size < 2:
         raise ValueError("filtfilt_padded needs a filter of order 1 or more")
-    b, a = b / a[0], a / a[0]
     ext = np.ascontiguousarray(ext, dtype=float)
     return _filtfilt_columns(b, a, np.ascontiguousarray(zi, dtype=float), ext, int(pad))
 
@@ -164,8 +164,7 @@ def lfilter(
     Returns the filtered ``x``; with ``zi`` (the initial state, shape ``x``'s with ``axis``
     of length ``max(len(a), len(b)) - 1``) also the final state, as scipy does.
     """
-    b, a = _normalised(b, a)
-    b, a = b / a[0], a / a[0]
+    b, a = _monic(b, a)
     x = np.asarray(x, dtype=float)
     moved = np.moveaxis(x, axis, 0)
     rows = moved.shape[0]
