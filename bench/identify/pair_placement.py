@@ -249,33 +249,17 @@ def _posterior_states(pair, switch, allowed, moved, uniform):  # pragma: no cove
                 total += np.exp(alpha[j - 1, a] - pair[j - 1, a, b] - switch[a, b] - top)
             alpha[j, b] = top + np.log(total) - moved[b]
     state = np.empty(n, dtype=np.int64)
-    weights = np.empty(size)
+    logw = np.empty(size)
     for j in range(n - 1, -1, -1):
-        top = -np.inf
         for a in range(size):
-            w = alpha[j, a] if j == n - 1 else alpha[j, a] - pair[j, a, state[j + 1]] - switch[a, state[j + 1]]
-            weights[a] = w
-            if w > top:
-                top = w
-        if top == -np.inf:  # nothing reaches the state after (cannot happen on an allowed path)
-            state[j] = 0
+            logw[a] = alpha[j, a] if j == n - 1 else alpha[j, a] - pair[j, a, state[j + 1]] - switch[a, state[j + 1]]
+        pick = _pick(logw, uniform[j])
+        if pick < 0:  # nothing reaches the state after (cannot happen on an allowed path)
+            pick = 0
             for a in range(size):
                 if allowed[j, a]:
-                    state[j] = a
+                    pick = a
                     break
-            continue
-        total = 0.0
-        for a in range(size):
-            weights[a] = np.exp(weights[a] - top)
-            total += weights[a]
-        pick, run = size - 1, 0.0
-        for a in range(size):
-            run += weights[a]
-            if uniform[j] * total < run:
-                pick = a
-                break
-        while weights[pick] == 0.0 and pick > 0:  # rounding at the top of the cumulative weight
-            pick -= 1
         state[j] = pick
     return state
 
@@ -353,25 +337,42 @@ def _least(costs):
 
 @njit(cache=True)
 def _drawn(costs, temperature, uniform):
-    """An index drawn with weights ``exp(-(cost - least) / temperature)`` by inverting their
-    cumulative sum at ``uniform`` (NaN weighs nothing); -1 where no cost is finite."""
+    """An index drawn with weights ``exp(-(cost - least) / temperature)`` (NaN weighs nothing) by
+    :func:`_pick`; -1 where no cost is finite."""
     best = np.inf
     for m in range(costs.size):
         if costs[m] < best:
             best = costs[m]
-    if not best < np.inf:
+    logw = np.empty(costs.size)
+    for m in range(costs.size):
+        logw[m] = -(costs[m] - best) / temperature if costs[m] == costs[m] else -np.inf
+    return _pick(logw, uniform) if best < np.inf else -1
+
+
+@njit(cache=True)
+def _pick(logw, uniform):
+    """An index drawn with weights ``exp(logw)`` by inverting their cumulative sum at ``uniform``
+    (in [0, 1)); -1 where every weight is 0 (``logw`` all -inf)."""
+    top = -np.inf
+    for a in range(logw.size):
+        if logw[a] > top:
+            top = logw[a]
+    if top == -np.inf:
         return -1
-    weights = np.empty(costs.size)
+    weights = np.empty(logw.size)
     total = 0.0
-    for m in range(costs.size):
-        weights[m] = np.exp(-(costs[m] - best) / temperature) if costs[m] == costs[m] else 0.0
-        total += weights[m]
-    run = 0.0
-    for m in range(costs.size):
-        run += weights[m]
+    for a in range(logw.size):
+        weights[a] = np.exp(logw[a] - top)
+        total += weights[a]
+    pick, run = logw.size - 1, 0.0
+    for a in range(logw.size):
+        run += weights[a]
         if uniform * total < run:
-            return m
-    return costs.size - 1
+            pick = a
+            break
+    while weights[pick] == 0.0 and pick > 0:  # rounding at the top of the cumulative weight
+        pick -= 1
+    return pick
 
 
 @njit(cache=True, error_model="numpy")
