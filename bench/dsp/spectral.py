@@ -11,13 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 
-def _segments_spectrum(x: np.ndarray, nperseg: int) -> np.ndarray:
-    """The rFFT of each half-overlapping, mean-removed, Hann-windowed segment of ``x`` (1-D)."""
+def _segments_spectrum(x: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """The rFFT of each half-overlapping, mean-removed segment of ``x`` (1-D), times ``window``
+    (its length the segments')."""
+    nperseg = window.size
     step = nperseg - nperseg // 2
     starts = np.arange(0, x.size - nperseg + 1, step)
     segments = x[starts[:, None] + np.arange(nperseg)]
     segments = segments - segments.mean(axis=1, keepdims=True)
-    return np.fft.rfft(segments * hann(nperseg), n=nperseg, axis=1)
+    return np.fft.rfft(segments * window, n=nperseg, axis=1)
 
 
 def hann(n: int) -> np.ndarray:
@@ -38,8 +40,8 @@ def csd(x: np.ndarray, y: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarr
         raise ValueError("csd needs at least one sample")
     window = hann(nperseg)
     scale = 1.0 / (fs * float((window * window).sum()))
-    fx = _segments_spectrum(x, nperseg)
-    fy = fx if y is x else _segments_spectrum(y, nperseg)
+    fx = _segments_spectrum(x, window)
+    fy = fx if y is x else _segments_spectrum(y, window)
     p = np.conjugate(fx) * fy * scale
     if nperseg % 2:
         p[:, 1:] *= 2
