@@ -461,6 +461,23 @@ def equally_weighted(data: Dataset, estimate: MethodEstimate) -> ServoModel | No
         return None
 
 
+def delay_held(data: Dataset, estimate: MethodEstimate, delay_s: float) -> ServoModel | None:
+    """``estimate``'s output-error refinement again with the delay held at ``delay_s`` [s] (>= the
+    log's ``min_delay_s``), the other parameters free, from its own model and with its own
+    weights: where the plant's parameters would go if the delay were that far off. None where
+    the estimate is not an output-error one, the log's instants are known, or the refinement
+    fails."""
+    if not data.timing_uncertain or data.derived or not estimate.estimator.endswith("output-error"):
+        return None
+    chunks, _ = oe_chunks(data, estimate.noise_std, estimate.model)
+    threshold = NOISE_SIGMAS * estimate.noise_std
+    start = replace(estimate.model, delay_s=max(delay_s, data.min_delay_s))
+    try:
+        return refine(start, chunks, _free(data.cat("v"), threshold), min_delay_s=data.min_delay_s).model
+    except IdentificationError:
+        return None
+
+
 def _iv_data(data: Dataset) -> Dataset:
     """``data``, or for long non-periodic logs the window the output-error refinement uses."""
     periodic = data.design is not None and not data.jittered and data.periodic_periods() >= 2
