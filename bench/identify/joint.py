@@ -450,15 +450,9 @@ def equally_weighted(data: Dataset, estimate: MethodEstimate) -> ServoModel | No
     aside apart), from its own model: how far the timing weights (:func:`_sample_weights`) moved
     the model, which the timing figure counts. None where the log's instants are known, the
     estimate is not an output-error one, or the refinement fails."""
-    if not _weighs_timing(data) or data.derived or not estimate.estimator.endswith("output-error"):
+    if not _weighs_timing(data):
         return None
-    chunks, _ = oe_chunks(data, estimate.noise_std)  # no model to weigh by: equal weights
-    threshold = NOISE_SIGMAS * estimate.noise_std
-    try:
-        return refine(estimate.model, chunks, _free(data.cat("v"), threshold), free_delay=True,
-                      min_delay_s=data.min_delay_s).model  # fmt: skip
-    except IdentificationError:
-        return None
+    return _refit(data, estimate, estimate.model, weigh=False, free_delay=True)
 
 
 def delay_held(data: Dataset, estimate: MethodEstimate, delay_s: float) -> ServoModel | None:
@@ -467,13 +461,22 @@ def delay_held(data: Dataset, estimate: MethodEstimate, delay_s: float) -> Servo
     weights: where the plant's parameters would go if the delay were that far off. None where
     the estimate is not an output-error one, the log's instants are known, or the refinement
     fails."""
+    start = replace(estimate.model, delay_s=max(delay_s, data.min_delay_s))
+    return _refit(data, estimate, start, weigh=True, free_delay=False)
+
+
+def _refit(data: Dataset, estimate: MethodEstimate, start: ServoModel, weigh: bool,
+           free_delay: bool) -> ServoModel | None:  # fmt: skip
+    """The output-error refinement of ``estimate`` run again from ``start`` on a log whose instants
+    are uncertain: its samples weighted by their timing under ``estimate``'s model (``weigh``)
+    or equally; None where it does not apply or fails."""
     if not data.timing_uncertain or data.derived or not estimate.estimator.endswith("output-error"):
         return None
-    chunks, _ = oe_chunks(data, estimate.noise_std, estimate.model)
+    chunks, _ = oe_chunks(data, estimate.noise_std, estimate.model if weigh else None)
     threshold = NOISE_SIGMAS * estimate.noise_std
-    start = replace(estimate.model, delay_s=max(delay_s, data.min_delay_s))
     try:
-        return refine(start, chunks, _free(data.cat("v"), threshold), min_delay_s=data.min_delay_s).model
+        return refine(start, chunks, _free(data.cat("v"), threshold), free_delay=free_delay,
+                      min_delay_s=data.min_delay_s).model  # fmt: skip
     except IdentificationError:
         return None
 
