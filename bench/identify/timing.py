@@ -463,8 +463,8 @@ def delay_held_pct(data: Dataset, estimate: MethodEstimate, delay_moved_s: float
     span = delay_moved_s + min(delay_moved_s, m.delay_s - data.min_delay_s)  # the low end stops at the least delay
     if span <= 0:
         return None
-    scale = 2.0 * delay_moved_s / span
-    return {k: abs(getattr(high, k) - getattr(low, k)) / abs(getattr(m, k)) * 50.0 * scale
+    per_pct = 100.0 * delay_moved_s / span  # [%] of a parameter's relative change over the span
+    return {k: abs(getattr(high, k) - getattr(low, k)) / abs(getattr(m, k)) * per_pct
             if getattr(m, k) else 0.0 for k in STD_KEYS}  # fmt: skip
 
 
