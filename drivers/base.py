@@ -126,6 +126,15 @@ class Feedback:
         or the kernel's SYNC timer on SocketCAN). NaN: not narrowed, and a
         real-time runner brackets the whole exchange. Used where the drive
         gives no time stamp of its own (:meth:`Drive.clock_source`).
+    t_act_s : float
+        The instant the command sent with this exchange took force [s, on the
+        clock of ``t_s``], where the transport knows it
+        (:meth:`Drive.reports_action_instant`): the sample's own instant when
+        all went to plan; earlier where the sample returned is a later tick's
+        than the one the command acted from (an EtherCAT DC-synchronous
+        slave whose inputs were read a cycle or more after the SYNC0 event
+        that latched the command: a host that woke late). NaN: not known, the
+        command acts from the sample's instant as :meth:`Drive.exchange` says.
     """
 
     t_s: float
@@ -135,6 +144,7 @@ class Feedback:
     applied: float = math.nan
     t_host_s: float = math.nan
     t_unc_s: float = math.nan
+    t_act_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -527,6 +537,17 @@ class Drive(ABC):
         before its logged instant where the drive has no tick of its own).
         """
         return 0.0
+
+    def reports_action_instant(self) -> bool:
+        """True where each exchange's :attr:`Feedback.t_act_s` says when its command took force.
+
+        A real-time runner then logs it as the column ``t_act`` (the instant
+        each row's command acted from, on the clock of ``t``), and the
+        identification moves each row's action there: a command that acted a
+        tick before its row's sample is not taken to act a tick late. Default
+        False: every command acts from its sample's instant.
+        """
+        return False
 
     def io_threads(self) -> tuple[int, ...]:
         """Native ids of the threads an exchange waits on (a CAN library's receive thread).

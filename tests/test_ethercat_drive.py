@@ -150,8 +150,67 @@ def link_realtime(iface: str, url: str) -> dict:
         out["v"] = [r[0].velocity for r in rows]
         out["x"] = [r[0].position for r in rows]
         out["u"] = [r[1] for r in rows]
+        out["t_act"] = [r[0].t_act_s for r in rows]
+        out["recoveries"] = dict(drive.link_recoveries())
+        out["reports"] = drive.reports_action_instant()
+    return out
+
+
+def link_late_wake(iface: str, url: str) -> dict:
+    """As :func:`link_realtime`, with the host waking 1.5 ms late in the driver's SYNC0 wait at each
+    of the square wave's switches (a busy machine, made to happen where it shows most)."""
+    from servobench.drivers.ethercat import drive as ethercat_drive
+
+    late = {"armed": False, "count": 0}
+
+    class LateTime:  # the driver's time module, its sleep 1.5 ms late when armed
+        def __getattr__(self, name):
+            return getattr(time, name)
+
+        def sleep(self, seconds):
+            if late["armed"]:
+                late["armed"] = False
+                late["count"] += 1
+                seconds += 1.5e-3
+            time.sleep(seconds)
+
+    from servobench.drivers.registry import open_drive
+
+    ethercat_drive.time = LateTime()
+    out: dict = {}
+    with open_drive(url + "&watchdog=0.5") as drive:
+        drive.set_cycle(0.001)
+        drive.enable()
+        u = np.where((np.arange(2000) // 250) % 2 == 0, 0.8, -0.8)
+        rows, start = [], time.monotonic()
+        for k, uk in enumerate(u):
+            time.sleep(max(0.0, start + k * 1e-3 - time.monotonic()))
+            late["armed"] = k > 0 and u[k] != u[k - 1]
+            rows.append(drive.exchange(uk))
+        for key, pick in (("t", lambda r: r[0].t_s), ("v", lambda r: r[0].velocity),
+                          ("x", lambda r: r[0].position), ("u", lambda r: r[1]),
+                          ("t_act", lambda r: r[0].t_act_s)):  # fmt: skip
+            out[key] = [pick(r) for r in rows]
+        out["late"] = late["count"]
         out["recoveries"] = dict(drive.link_recoveries())
     return out
+
+
+def _step_errors(out: dict, acted: bool) -> np.ndarray:
+    """How far each sample is from one step of the offline plant from the sample before, each
+    command held from its row's instant (``acted``: from where the drive said it took force,
+    ``t_act``) to the next command's."""
+    t, v, x, u, t_act = (np.array(out[k], dtype=float) for k in ("t", "v", "x", "u", "t_act"))
+    starts = t_act if acted else t
+    plant = Plant(PARAMS)
+    err = np.empty(len(t) - 1)
+    for k in range(len(t) - 1):
+        plant.reset(v[k], x[k])
+        plant.hold(u[k], starts[k + 1] - t[k])  # (a command acts at or after its row's sample before)
+        if starts[k + 1] < t[k + 1]:
+            plant.hold(u[k + 1], t[k + 1] - starts[k + 1])
+        err[k] = abs(plant.state.v - v[k + 1])
+    return err
 
 
 def link_sidbe_closed(iface: str, url: str) -> dict:
@@ -338,17 +397,34 @@ def test_real_time_slave_samples_at_the_dc_instants_the_log_gets(serve_args, clo
     # on the SYNC0 grid whatever the host's timing: whole cycles, some longer than one
     np.testing.assert_allclose(dt / 1e-3, np.round(dt / 1e-3), atol=1e-6)
     assert np.max(np.abs(v)) > 0.3  # it moves both ways past the friction
-    # one step of the offline plant from each sample, the command held until the next instant
-    plant = Plant(PARAMS)
-    v_next = np.empty(len(t) - 1)
-    for k in range(len(t) - 1):
-        plant.reset(v[k], x[k])
-        plant.hold(u[k], dt[k])
-        v_next[k] = plant.state.v
-    err = np.abs(v_next - v[1:])
+    assert out["reports"]  # a DC-synchronous slave says where each command took force
+    t_act = np.array(out["t_act"], dtype=float)
+    assert np.all(t_act <= t)  # whole cycles before, where the host woke late
+    np.testing.assert_allclose(t - t_act, 1e-3 * np.round((t - t_act) / 1e-3), atol=1e-9)
+    # one step of the offline plant from each sample, each command held from where it took force
+    err = _step_errors(out, acted=True)
     # a frame sent again (wkc error) has latched its command unseen: allow those steps
     bad = int(np.sum(err > 1e-4))
-    assert bad <= 2 * out["recoveries"]["wkc_errors"] + 2, (bad, np.sort(err)[-5:])
+    assert bad <= 2 * out["recoveries"]["wkc_errors"], (bad, np.sort(err)[-5:])
+
+
+def test_a_host_that_wakes_late_has_the_slave_say_where_each_command_took_force() -> None:
+    """The host woke 1.5 ms late at the square wave's switches: the sample it read was the next
+    SYNC0 event's, and the command had acted since the event before. Each such row says so
+    (``t_act`` a cycle before ``t``) and the plant agrees with that, not with the row's instant."""
+    _link_tests()
+    out = run_on_link(__file__, "link_late_wake", PLANT, ["--clock", "real"])
+    t, t_act = np.array(out["t"], dtype=float), np.array(out["t_act"], dtype=float)
+    early = t - t_act
+    assert out["late"] == 7
+    switches = np.flatnonzero(np.diff(np.array(out["u"])) != 0) + 1
+    assert np.count_nonzero(early[switches] > 0.5e-3) >= 5, early[switches]  # (a late wake-up
+    # may still read the event it waited for, where the frame before it was early)
+    np.testing.assert_allclose(early[early > 0], 1e-3 * np.round(early[early > 0] / 1e-3), atol=1e-9)
+    wkc = out["recoveries"]["wkc_errors"]
+    off_as_logged = int(np.sum(_step_errors(out, acted=False) > 1e-4))
+    assert off_as_logged >= 5  # each late row, taken to act from its instant, misses
+    assert int(np.sum(_step_errors(out, acted=True) > 1e-4)) <= 2 * wkc
 
 
 def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
@@ -365,6 +441,7 @@ def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
     assert model["fs"] == 1000.0 and model["loop"] == "open"
     assert "# drive = ethercat://" in out["meta"] and "# pace = real" in out["meta"]
     assert "# drive_clock = 0x10F8 DC system time of each sample" in out["meta"]
+    assert "# late_samples = " in out["meta"]  # the log's t_act says where each command acted
 
 
 def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() -> None:

@@ -11,11 +11,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from servobench.bench.identify.dataset import Dataset, Segment, merge_repeated, merge_unchanged
+from servobench.bench.identify.dataset import (
+    Dataset,
+    Segment,
+    merge_repeated,
+    merge_unchanged,
+    prepare,
+)
 from servobench.bench.identify.delay import effective_command, merged_grid, split_delay
 from servobench.bench.identify.joint import identify_joint
 from servobench.bench.identify.simulation import simulate_velocity
-from servobench.bench.log.io import RunData
+from servobench.bench.log.io import RunData, parse_log_text
 from servobench.bench.model.servo import ServoModel
 
 FS = 1000.0
@@ -151,3 +157,42 @@ def test_a_delay_that_only_zero_crossing_intervals_show_is_read_from_the_simulat
     est = identify_joint(Dataset(tuple(segments), fs))
     assert est.model.delay_s == pytest.approx(1.0e-3, abs=1e-7)
     assert pytest.approx(0.01, rel=1e-6) == est.model.M and est.model.coulomb_neg == pytest.approx(0.4, rel=1e-6)
+
+
+def _late_sample_log(with_act: bool) -> str:
+    """A stamped log of a pair on a 1 ms tick where, at every other switch, the host read the
+    sample a tick after the one its command took force at (an EtherCAT host that woke late): the
+    row's ``t`` is the later tick's, its ``t_act`` (where given) the tick the command acted from,
+    and the next command acts from the tick after the sample."""
+    n = 4000
+    lines = ["# fs = 1000", "# clock_source = drive", "run,t,u,v,x" + (",t_act" if with_act else "")]
+    for run, scale in ((1, 1.0), (2, 0.9)):
+        u = _command(n) * scale
+        late = set((np.flatnonzero(np.diff(u) != 0) + 1)[::2].tolist())
+        acts, samples, tick = np.empty(n, dtype=int), np.empty(n, dtype=int), 0
+        for j in range(n):
+            acts[j], samples[j] = tick, tick + (j in late)
+            tick = samples[j] + 1
+        u_ticks = u[np.searchsorted(acts, np.arange(tick), side="right") - 1]  # in force per tick
+        v = simulate_velocity(ServoModel(**PLANT), u_ticks, 1 / FS)  # (no delay: plain stepping)
+        x = np.concatenate(([0.0], np.cumsum(v[:-1] / FS)))
+        for j in range(n):
+            k = samples[j]
+            act = f",{float(acts[j] / FS)!r}" if with_act else ""
+            lines.append(f"{run},{float(k / FS)!r},{float(u[j])!r},{float(v[k])!r},{float(x[k])!r}{act}")
+    return "\n".join(lines) + "\n"
+
+
+def test_a_command_the_log_says_took_force_before_its_sample_acts_from_there():
+    """``t_act`` (an EtherCAT DC-synchronous slave's, where the host read a later SYNC0 event's
+    sample) moves each such command's action back to where it took force: the model is exact;
+    taken to act from the row's instant, the same log gives M 8 % off."""
+    data = prepare(parse_log_text(_late_sample_log(True)))
+    assert any("took force before their row's sample" in note for note in data.notes)
+    assert np.count_nonzero(np.isclose(data.segments[0].act_offset_s, -1e-3)) > 10
+    m = identify_joint(data).model
+    for got, want in ((m.M, 0.01), (m.B, 1.0), (m.coulomb_pos, 0.5), (m.coulomb_neg, 0.4)):
+        assert got == pytest.approx(want, rel=1e-6)
+    assert abs(m.delay_s) < 1e-8
+    blind = identify_joint(prepare(parse_log_text(_late_sample_log(False)))).model
+    assert abs(blind.M / 0.01 - 1) > 0.02

@@ -48,6 +48,11 @@ from servobench.units import SignalUnits
 JITTER_RTOL = 1e-3
 #: Fewest samples a run must have.
 MIN_SAMPLES = 20
+#: The log column of the instant each row's command took force, where the drive says it
+#: (:meth:`~servobench.drivers.base.Drive.reports_action_instant`), and the share of a cycle
+#: by which it must lie before its row's instant to count as moved.
+ACT_COLUMN = "t_act"
+ACT_TOLERANCE = 1e-3
 #: Fewest sample pairs holding a command change for the pairs to show the drive's delay
 #: (:meth:`Dataset.switch_pairs`); with fewer, the model's simulation shows it.
 MIN_SWITCH_PAIRS = 20
@@ -90,7 +95,10 @@ class Segment:
         Each command's own shift [s] of the instant it acts from, on top of the
         model's action delay (zero mean; see :mod:`~servobench.bench.identify.delay`):
         set where the drive's tick was located on the host's clock and its commands
-        and samples travel in separate requests; None: every command acts the
+        and samples travel in separate requests, or where the drive said a
+        command took force before its row's sample (the log's ``t_act``: an
+        EtherCAT sample read a cycle late, negative offsets of whole cycles
+        on the rows concerned, 0 elsewhere); None: every command acts the
         delay after its row's instant.
     """
 
@@ -353,7 +361,9 @@ def prepare(
         if rate is not None and rate.is_clock:
             rates.append((r.run, rate))
         if mapped:
-            r = replace(r, t=onto_host_seconds(r.t, rate))
+            acted = r.extra.get(ACT_COLUMN)
+            extra = r.extra if acted is None else {**r.extra, ACT_COLUMN: onto_host_seconds(acted, rate)}
+            r = replace(r, t=onto_host_seconds(r.t, rate), extra=extra)
         segment, how = _segment(r, fs, velocity_cutoff_hz, derivative_method, per_interval=mapped)
         segments.append(segment)
         notes.extend(note for note in how if note not in notes)
@@ -443,7 +453,23 @@ def _segment(
     if t_unc is not None:
         t_unc = np.asarray(t_unc, dtype=float)
         t_unc = t_unc if np.any(t_unc > 0) else None
-    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref, t_unc), notes
+    offsets = _act_offsets(r, t)
+    if offsets is not None:
+        early = int(np.count_nonzero(offsets < 0))
+        notes.append(f"{early} commands took force before their row's sample (a later tick's sample "
+                     "read: the host woke late; the log's t_act): each acts from where the drive said")  # fmt: skip
+    return Segment(r.run, t, u, v, fs_hz, dt_s, motion, x, u_exc, x_ref, t_unc, offsets), notes
+
+
+def _act_offsets(r: RunData, t: np.ndarray) -> np.ndarray | None:
+    """Each row's command's shift [s] from its row's instant to where the drive said it took force
+    (the log's ``t_act``); None where the log has none or every command acted at its row's instant."""
+    acted = r.extra.get(ACT_COLUMN)
+    if acted is None:
+        return None
+    offsets = np.asarray(acted, dtype=float) - t
+    offsets = np.where(np.isfinite(offsets), np.minimum(offsets, 0.0), 0.0)
+    return offsets if np.any(offsets < -ACT_TOLERANCE * np.median(np.diff(t))) else None
 
 
 def merge_repeated(r: RunData) -> tuple[RunData, int]:
@@ -502,7 +528,7 @@ def _pick_rows(r: RunData, first: np.ndarray, last: np.ndarray) -> RunData:
     def pick(a, rows):
         return None if a is None else np.asarray(a)[rows]
 
-    extra = {k: pick(a, first) for k, a in r.extra.items()}
+    extra = {k: pick(a, last if k == ACT_COLUMN else first) for k, a in r.extra.items()}
     return replace(
         r, t=np.asarray(r.t)[first], u=pick(r.u, last), v=pick(r.v, first), x=pick(r.x, first),
         u_exc=pick(r.u_exc, last), x_ref=pick(r.x_ref, last), extra=extra,

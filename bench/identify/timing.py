@@ -55,7 +55,7 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
 * The drive's own clock: the model carries the drive's action delay
   (``delay_s``, identified with the plant, its 1 sigma from the same fit) and
   the figure states it beside the tick the stamps show (``drive_tick_s``,
-  ``repeated_samples``, ``skipped_ticks`` from the log's trailer). Each
+  ``repeated_samples``, ``skipped_ticks``, ``late_samples`` from the log's trailer). Each
   parameter's predicted error is the timing's share and the model's own
   statistical 1 sigma (whose fit holds the delay free, so the delay's
   uncertainty is in it) added in quadrature. The delay's own predicted error
@@ -191,6 +191,9 @@ class TimingFigure:
     #: Reads that returned a tick already read, and ticks that passed unread (stamped logs).
     repeated_samples: int = 0
     skipped_ticks: int = 0
+    #: Rows whose command took force before their sample (a later tick's sample read: the host
+    #: woke late; the log's ``t_act`` says where, and the model takes each from there).
+    late_samples: int = 0
     #: The model's own statistical 1 sigma of each parameter [%], folded into the prediction.
     statistical_pct: Mapping[str, float] = field(default_factory=dict)
     #: The drive clock's drift against the host's and its 1 sigma [ppm], read from its stamps
@@ -298,6 +301,7 @@ class TimingFigure:
             drive_drift_std_ppm=_finite(self.drive_drift_std_ppm),
             repeated_samples=int(self.repeated_samples),
             skipped_ticks=int(self.skipped_ticks),
+            late_samples=int(self.late_samples),
             statistical_pct={k: _finite(v) for k, v in self.statistical_pct.items()},
             delay_separable=self.delay_separable,
             accuracy_pct=self.accuracy_pct,
@@ -410,6 +414,7 @@ def timing_figure(
                         drive_tick_s=_number(metadata.get("drive_tick_s")),
                         repeated_samples=_count(metadata.get("repeated_samples")),
                         skipped_ticks=_count(metadata.get("skipped_ticks")),
+                        late_samples=_count(metadata.get("late_samples")),
                         statistical_pct=statistical, drive_drift_ppm=drift,
                         drive_drift_std_ppm=drift_std)  # fmt: skip
 

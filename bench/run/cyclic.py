@@ -25,6 +25,14 @@ once more), the row logs the command that acted and the cycle counts as a
 late command (``late_commands`` in the trailer, ``u_read_back`` naming the
 source). The read-back decides, it is not logged itself: a real drive's
 torque actual is measured, and its noise must not reach ``u``.
+
+A drive that says where each command took force
+(:meth:`~servobench.drivers.base.Drive.reports_action_instant`: an EtherCAT
+DC-synchronous slave) has each row carry it as ``t_act`` (the row's ``t``
+moved back by ``Feedback.t_s - Feedback.t_act_s``): where the host woke a
+cycle or more late and read a later SYNC0 event's sample, the row's command
+acted from the event before, and the identification takes it from there.
+Such rows are counted (``late_samples`` in the trailer).
 """
 
 from __future__ import annotations
@@ -106,6 +114,8 @@ def stream_realtime(
     t_first = math.nan
     held: list[float] | None = None  # the row before, waiting for the drive's read-back
     acted_before = 0.0  # the command that acted over the cycle before that row's
+    acts = drive.reports_action_instant()  # the row's t_act: where its command took force
+    clock.action_instants = acts
     for k in range(n):
         deadline = t0_host + k * dt
         if not paced_by_drive:
@@ -121,10 +131,17 @@ def stream_realtime(
         t = t_abs - t_first
         t_host = end - t0_host
         row = [run.number, t, applied, fb.velocity, fb.position, t_host, t_unc]
+        early = fb.t_s - fb.t_act_s  # > 0: the command acted that long before its sample
+        if acts:
+            row.append(t - early if early > 0 else t)
+            clock.late_samples += early > 0
         read_back = fb.applied
         if held is not None:  # the drive read back the torque that acted over the held row's cycle
             sent = held[2]
-            if read_back == read_back and sent != acted_before and abs(read_back - acted_before) < abs(read_back - sent):
+            # (not where this sample is a later tick's than the one this command acted from: its
+            # read-back is that later tick's, the held row's cycle went unread)
+            if (read_back == read_back and not early > 0 and sent != acted_before
+                    and abs(read_back - acted_before) < abs(read_back - sent)):
                 held[2] = acted_before  # its frame came late: the command before acted once more
                 clock.late_commands += 1
             acted_before = held[2]

@@ -31,7 +31,7 @@ from typing import Any
 from servobench.bench.log.io import LogWriter
 from servobench.bench.run.cyclic import sample_instant, spin_here_s
 from servobench.bench.run.ring_writer import RingLogWriter
-from servobench.bench.run.runner import LOG_COLUMNS, REALTIME_COLUMNS, _trailer, realtime_header
+from servobench.bench.run.runner import LOG_COLUMNS, _trailer, realtime_columns, realtime_header
 from servobench.bench.run.timing_stats import CycleClock, CycleTiming
 from servobench.clock import SPIN_S, sleep_until
 from servobench.drivers.base import Drive, Feedback
@@ -75,13 +75,15 @@ class ReactiveCycle:
         self._stack = contextlib.ExitStack()
         self._clocks: list[CycleClock] = []
         self._by_drive = False
+        self._acts = False  # the rows carry t_act
         self._spin_s = SPIN_S
 
     def __enter__(self) -> ReactiveCycle:
         meta, columns = self.metadata, LOG_COLUMNS
         if self.realtime:
             grant = self._stack.enter_context(realtime_thread(helper_threads=self.drive.io_threads()))
-            meta, columns = realtime_header(self.drive, grant, meta), REALTIME_COLUMNS
+            meta, columns = realtime_header(self.drive, grant, meta), realtime_columns(self.drive)
+            self._acts = self.drive.reports_action_instant()
             self._by_drive = self.drive.clock_source() == "drive"
             self._spin_s = spin_here_s()
         try:
@@ -129,7 +131,13 @@ class ReactiveCycle:
             self.t_first = t_abs
         t = t_abs - self.t_first
         row = (run, t, applied, fb.velocity, fb.position, end - self.t0)
-        if self.realtime:
+        if self._acts:
+            early = fb.t_s - fb.t_act_s
+            self._sink.append(*row, t_unc, t - early if early > 0 else t)
+            self._mark(k, deadline, start, end, t_unc)
+            self._clocks[-1].action_instants = True
+            self._clocks[-1].late_samples += early > 0
+        elif self.realtime:
             self._sink.append(*row, t_unc)
             self._mark(k, deadline, start, end, t_unc)
         else:

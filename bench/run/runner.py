@@ -48,7 +48,11 @@ The trailer carries the cycle's timing (:class:`~servobench.bench.run.timing_sta
 and, in a log whose ``clock_source`` is ``drive``, the drive's tick read from
 its stamps (:class:`~servobench.bench.run.timing_stats.DriveTicks`:
 ``repeated_samples``, ``skipped_ticks``, ``drive_tick_s`` when the stamps show
-a tick, and ``run<n>_repeated_samples``, ``run<n>_skipped_ticks``).
+a tick, and ``run<n>_repeated_samples``, ``run<n>_skipped_ticks``). A drive
+that says where each command took force (an EtherCAT DC-synchronous slave)
+adds the column ``t_act`` [s, the clock of ``t``] and the trailer's
+``late_samples``: rows whose command acted before their sample
+(:mod:`servobench.bench.run.cyclic`).
 
 Lock-step drives streamed fast (``pace="fast"``) keep the exact nominal or
 drive clock, block exchange and no ``t_unc`` column, as fast as before.
@@ -221,7 +225,7 @@ def stream_runs(
     with rt as grant:
         columns = LOG_COLUMNS
         if grant is not None:
-            meta, columns = realtime_header(drive, grant, meta), REALTIME_COLUMNS
+            meta, columns = realtime_header(drive, grant, meta), realtime_columns(drive)
         writer = LogWriter(log_path, meta, columns, flush_every=1)
         sink = RingLogWriter(writer) if realtime else writer
         timing: list[TimingStats] = []
@@ -248,6 +252,12 @@ def stream_runs(
     cycle = CycleTiming.of(clocks, plan.dt) if realtime else None
     source = drive.clock_source() if realtime else ""
     return RunResult(Path(log_path), writer.rows, tuple(timing), True, cycle, source)
+
+
+def realtime_columns(drive: Drive) -> tuple[str, ...]:
+    """A real-time log's columns: :data:`REALTIME_COLUMNS`, and ``t_act`` where the drive says
+    where each command took force (:meth:`~servobench.drivers.base.Drive.reports_action_instant`)."""
+    return (*REALTIME_COLUMNS, "t_act") if drive.reports_action_instant() else REALTIME_COLUMNS
 
 
 def realtime_header(drive: Drive, grant: RealtimeGrant, meta: Mapping[str, object]) -> dict[str, object]:
@@ -395,6 +405,8 @@ def _trailer(
         extra.update(CycleTiming.of(clocks, dt).as_metadata())
         for name, count in drive.cycle_counts().items():
             extra[name] = count
+        if any(c.action_instants for c in clocks):
+            extra["late_samples"] = sum(c.late_samples for c in clocks)
         if any(c.read_back for c in clocks):
             extra["u_read_back"] = "torque actual 0x6077 with the next sample"
             extra["late_commands"] = sum(c.late_commands for c in clocks)

@@ -125,6 +125,10 @@ class CycleClock:
         self.read_back = False
         #: Rows whose read-back showed the command before acting once more (a frame or RPDO late).
         self.late_commands = 0
+        #: The drive said where each command took force (the log's ``t_act``), and how many rows'
+        #: commands took it before their sample (a later tick's sample read: the host woke late).
+        self.action_instants = False
+        self.late_samples = 0
 
     def mark(
         self, k: int, deadline: float, start: float, end: float, t_unc: float, stamp_s: float = math.nan

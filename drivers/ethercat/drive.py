@@ -49,7 +49,12 @@ system time at which the slave sampled its inputs, the timestamp object
 the DC system time of the frame (the reference clock's 0x0910 read in the
 same frame by an FRMW): the SYNC0 event before it for a DC-synchronous
 slave, else the instant the frame passed the slave (when a slave
-synchronous to the SM2 event samples); else the host's clock.
+synchronous to the SM2 event samples); else the host's clock. A
+DC-synchronous slave's feedback also says where its command took force
+(``Feedback.t_act_s``, :meth:`reports_action_instant`): a reading frame
+that passed the slave after the next SYNC0 event (the host woke a cycle or
+more late) returns that event's sample, while the command acted since the
+event before; the runner logs it as ``t_act``.
 ``drive_clock`` is True in all but the last case; the log's ``drive_clock``
 says which. Position and 0x1013 are unwrapped across their 32-bit roll-over.
 
@@ -75,6 +80,7 @@ import math
 import struct
 import time
 from collections.abc import Mapping
+from dataclasses import replace
 
 from servobench.drivers.base import Drive, DriveInfo, Feedback
 from servobench.drivers.canopen.link import CounterUnwrap
@@ -433,19 +439,30 @@ class EthercatDrive(Drive):
     def _exchange(self, u: float) -> Feedback:
         self._set_command(u)
         values = self._frame()
-        if self.bus.dc_synchronous:
-            values = self._sample_at_sync0(values["dc"])
-        return self._feedback(values)
+        if not self.bus.dc_synchronous:
+            return self._feedback(values)
+        values, due = self._sample_at_sync0(values["dc"])
+        fb = self._feedback(values)
+        # the sample is the last SYNC0 event's before the reading frame: where that is after
+        # ``due`` (the host woke a cycle or more late), the command acted that much earlier
+        late_ns = self.bus.last_sync0(values["dc"]) - due
+        return replace(fb, t_act_s=fb.t_s - max(0, late_ns) * 1e-9)
 
-    def _sample_at_sync0(self, sent_dc_ns: int) -> dict[int, int]:
-        """A DC-synchronous slave: the inputs of the SYNC0 event at which the outputs sent take force.
+    def reports_action_instant(self) -> bool:
+        return self.bus is not None and self.bus.dc_synchronous
+
+    def _sample_at_sync0(self, sent_dc_ns: int) -> tuple[dict[int, int], int]:
+        """A DC-synchronous slave: the inputs sampled once the outputs sent took force, and the
+        SYNC0 event [DC ns] at which they did.
 
         The outputs of the frame that passed the slave at ``sent_dc_ns`` take
         force at the next SYNC0 event, where the inputs are sampled; this
         waits for the slave's DC clock to pass that event (it runs at the
         host's rate) and reads them, so ``u_k`` is held from the instant of the
         sample returned, as the exchange contract says. A frame that comes too
-        early (its DC time before the event) is sent again.
+        early (its DC time before the event) is sent again. One that comes a
+        cycle or more late (the host woke late) returns a later event's sample:
+        :meth:`_exchange` then says where the command acted (``Feedback.t_act_s``).
         """
         bus = self.bus
         due, sent_at = bus.next_sync0(sent_dc_ns), time.monotonic_ns()
@@ -456,7 +473,7 @@ class EthercatDrive(Drive):
                 time.sleep(wait_ns * 1e-9 + SYNC0_MARGIN_S)
             values = self._frame()
             if values["dc"] >= due:
-                return values
+                return values, due
             if time.monotonic() > deadline:
                 raise DriveConnectionError(
                     f"{bus.name}: its DC clock did not reach the next SYNC0 event "
