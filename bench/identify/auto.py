@@ -24,6 +24,7 @@ missed cycles and the model error its timing predicts.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from servobench.bench.blas_threads import on_one_blas_thread
@@ -33,6 +34,7 @@ from servobench.bench.identify.drive_grid import (
     NICE_TICKS_S,
     TRIAL_GAIN,
     TRIALS,
+    acts_on_grid,
     by_simulation,
     find_drive_grids,
     find_run_grids,
@@ -108,8 +110,9 @@ def identify(
         except IdentificationError:
             continue
     tried.sort(key=lambda g: -g[3].fit_percent)
-    if trial:  # located again under the models identified on them
+    if trial:  # located again under the models identified on them; kept where their models act on them
         tried[:RELOCATE] = [_relocated(data, *g, method, resonance) for g in tried[:RELOCATE]]
+        tried = [g for g in tried if acts_on_grid(g[0], g[3].model.delay_s, g[3].std.get(DELAY_KEY, math.nan))]
         tried.sort(key=lambda g: -g[3].fit_percent)
     for grid, moved, merged, again in tried[:1]:
         if not trial or refit_kept(result.fit_percent, again.fit_percent):
