@@ -26,7 +26,8 @@ verification fit [%], the identified action delay [ms] +- its 1 sigma beside
 the drive record's mean delay over the commands that changed the value [ms]
 (``mean_change_delay_s``: a repeated command acts alike from either tick, so
 only a change shows its delay) and their difference, the repeated samples
-and skipped ticks the timing figure found, the predicted model error (max over
+and skipped ticks the timing figure found, the rows read a SYNC0 event late
+(EtherCAT, ``late_samples``: their commands act from the log's ``t_act``), the predicted model error (max over
 the parameters, at the figure's stated coverage: ``model_error_bound_pct``, two of
 its 1 sigma, the bound "within accuracy" is judged by) beside the true largest
 error and whether predicted >= true,
@@ -219,6 +220,7 @@ def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra
     row["drive_delay"] = record.get("mean_change_delay_s", record.get("mean_delay_s"))
     row["repeated"] = timing.get("repeated_samples")
     row["skipped"] = timing.get("skipped_ticks")
+    row["late"] = timing.get("late_samples")  # EtherCAT: rows read a SYNC0 event late (t_act)
     # the prediction at the figure's stated coverage (two of its 1 sigma): what "within accuracy"
     # is judged by; at one sigma an honest prediction falls short in a third of the runs
     row["pred"] = timing.get("model_error_bound_pct")
@@ -261,7 +263,7 @@ def _ms(value, fmt: str = ".4f") -> str:
 
 HEAD = (f"{'transport':<10} {'tick ms':>7} {'stamp':>5} {'load':>4} {'M %':>8} {'B %':>8} {'Fc+ %':>8} "
         f"{'Fc- %':>8} {'fit %':>7} {'delay ms +- sd':>17} {'drive ms':>8} {'diff ms':>8} {'rep':>4} "
-        f"{'skip':>5} {'pred2s %':>8} {'true %':>8} {'p>=t':>4}  verdict  {'s':>4} {'lavg':>4}")  # fmt: skip
+        f"{'skip':>5} {'late':>4} {'pred2s %':>8} {'true %':>8} {'p>=t':>4}  verdict  {'s':>4} {'lavg':>4}")  # fmt: skip
 
 
 def print_row(r: dict[str, object], load_name: str) -> None:
@@ -278,7 +280,7 @@ def print_row(r: dict[str, object], load_name: str) -> None:
     print(
         f"{head} {e['M']:>8.4f} {e['B']:>8.4f} {e['coulomb_pos']:>8.4f} {e['coulomb_neg']:>8.4f} "
         f"{r['fit']:>7.3f} {_ms(d):>8} +- {_ms(r['delay_std'], '.4f'):<6} {_ms(dd):>8} {_ms(diff):>8} "
-        f"{r['repeated']!s:>4} {r['skipped']!s:>5} {pred:>8.3g} {r['true']:>8.3g} "
+        f"{r['repeated']!s:>4} {r['skipped']!s:>5} {r['late']!s:>4} {pred:>8.3g} {r['true']:>8.3g} "
         f"{'yes' if covered(r) else 'no':>4}  {verdict:<7}  {r['wall_s']:>4.0f} {r['load']:>4.1f}"
     )
 
@@ -386,6 +388,7 @@ def main() -> None:
                 good += worst <= 0.5
                 print(f"  run {k + 1:>2}: worst parameter error {worst:.3g} % ({name}), predicted {r['pred'] or math.nan:.3g} % (2 sigma), fit {r['fit']:.3f} %, "
                       f"delay {_ms(r['delay'])} ms vs drive {_ms(r['drive_delay'])} ms, "
+                      f"{r['late']} rows read late, "
                       f"{'PASS' if not r['failed'] else 'FAIL(' + ','.join(r['failed']) + ')'} "
                       f"({r['wall_s']:.0f} s, load {r['load']:.1f})")  # fmt: skip
                 sys.stdout.flush()
