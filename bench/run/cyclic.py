@@ -76,6 +76,14 @@ def sample_instant(fb: Feedback, start: float, end: float, by_drive: bool) -> tu
     return 0.5 * (start + end), 0.5 * (end - start)
 
 
+def act_instant(fb: Feedback, t: float) -> float:
+    """Where the command of the exchange whose sample is logged at ``t`` [s] took force, on the
+    clock of ``t``: ``t`` moved back by ``fb.t_s - fb.t_act_s`` where the drive says it acted
+    before its sample (``Feedback.t_act_s``), else ``t``."""
+    early = fb.t_s - fb.t_act_s
+    return t - early if early > 0 else t
+
+
 @dataclass
 class Run:
     """One run being streamed: where its samples go and what watches them."""
@@ -131,16 +139,16 @@ def stream_realtime(
         t = t_abs - t_first
         t_host = end - t0_host
         row = [run.number, t, applied, fb.velocity, fb.position, t_host, t_unc]
-        early = fb.t_s - fb.t_act_s  # > 0: the command acted that long before its sample
+        late = fb.t_s > fb.t_act_s  # the command acted before its sample: a later tick's was read
         if acts:
-            row.append(t - early if early > 0 else t)
-            clock.late_samples += early > 0
+            row.append(act_instant(fb, t))
+            clock.late_samples += late
         read_back = fb.applied
         if held is not None:  # the drive read back the torque that acted over the held row's cycle
             sent = held[2]
             # (not where this sample is a later tick's than the one this command acted from: its
             # read-back is that later tick's, the held row's cycle went unread)
-            if (read_back == read_back and not early > 0 and sent != acted_before
+            if (read_back == read_back and not late and sent != acted_before
                     and abs(read_back - acted_before) < abs(read_back - sent)):
                 held[2] = acted_before  # its frame came late: the command before acted once more
                 clock.late_commands += 1

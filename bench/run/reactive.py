@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from servobench.bench.log.io import LogWriter
-from servobench.bench.run.cyclic import sample_instant, spin_here_s
+from servobench.bench.run.cyclic import act_instant, sample_instant, spin_here_s
 from servobench.bench.run.ring_writer import RingLogWriter
 from servobench.bench.run.runner import LOG_COLUMNS, _trailer, realtime_columns, realtime_header
 from servobench.bench.run.timing_stats import CycleClock, CycleTiming
@@ -132,11 +132,9 @@ class ReactiveCycle:
         t = t_abs - self.t_first
         row = (run, t, applied, fb.velocity, fb.position, end - self.t0)
         if self._acts:
-            early = fb.t_s - fb.t_act_s
-            self._sink.append(*row, t_unc, t - early if early > 0 else t)
+            self._sink.append(*row, t_unc, act_instant(fb, t))
             self._mark(k, deadline, start, end, t_unc)
-            self._clocks[-1].action_instants = True
-            self._clocks[-1].late_samples += early > 0
+            self._clocks[-1].late_samples += fb.t_s > fb.t_act_s
         elif self.realtime:
             self._sink.append(*row, t_unc)
             self._mark(k, deadline, start, end, t_unc)
@@ -149,6 +147,7 @@ class ReactiveCycle:
         i = k % CLOCK_BLOCK
         if i == 0:
             self._clocks.append(CycleClock(CLOCK_BLOCK))
+            self._clocks[-1].action_instants = self._acts
         self._clocks[-1].mark(i, deadline, start, end, t_unc)
 
     def timing(self) -> CycleTiming | None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from servobench.sim_backend.physics.effects.spec import (
     EffectSpec,
@@ -74,43 +73,14 @@ def contribute(p, plant, terms: Terms) -> None:
 
 def _peak(k_lo: float, k_hi: float, count: int, x: np.ndarray, e: np.ndarray) -> float:
     """Spatial frequency [rad/unit] among ``count`` evenly spaced from ``k_lo`` to ``k_hi`` where
-    ``e`` has the most sin/cos power over the positions ``x`` (:func:`_power`)."""
+    ``e`` has the most sin/cos power over the positions ``x``
+    (:func:`~servobench.sim_backend.physics.periodogram.sincos_power`; imported here, so that a
+    plant without effects never loads numba)."""
+    from servobench.sim_backend.physics.periodogram import sincos_power
+
     ks = np.linspace(k_lo, k_hi, count)
-    power = _power(ks, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(e, dtype=float))
+    power = sincos_power(ks, np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(e, dtype=float), PEAK_BLOCK)
     return float(ks[int(np.argmax(power))])
-
-
-@njit(cache=True, nogil=True)
-def _power(ks: np.ndarray, x: np.ndarray, e: np.ndarray) -> np.ndarray:  # pragma: no cover (compiled)
-    """The sin/cos power of ``e`` at each spatial frequency ``ks`` (evenly spaced) over ``x``:
-    ``(sum e sin)^2 / sum sin^2 + (sum e cos)^2 / sum cos^2``.
-
-    Compiled, one pass over the samples per frequency: each sample's ``exp(i k x)`` is carried
-    from one frequency to the next by ``exp(i dk x)`` (one complex product instead of a sine and
-    a cosine) and taken afresh every :data:`PEAK_BLOCK` frequencies, so rounding cannot build
-    up (the powers agree with the direct sums within 2e-14 of the largest, as numpy's block
-    products of exponentials before it did; 17 ms against 53 ms for 2000 frequencies over
-    6000 samples). ``sum sin^2`` and
-    ``sum cos^2`` are ``(n -+ Re sum exp(2 i k x)) / 2``.
-    """
-    n, count = x.size, ks.size
-    dk = ks[1] - ks[0] if count > 1 else 0.0
-    zr, zi = np.empty(n), np.empty(n)
-    sr, si = np.cos(dk * x), np.sin(dk * x)
-    power = np.empty(count)
-    for i in range(count):
-        if i % PEAK_BLOCK == 0:
-            for j in range(n):
-                zr[j], zi[j] = math.cos(ks[i] * x[j]), math.sin(ks[i] * x[j])
-        se_r = se_i = z2 = 0.0
-        for j in range(n):
-            a, b = zr[j], zi[j]
-            se_r += a * e[j]
-            se_i += b * e[j]
-            z2 += a * a - b * b
-            zr[j], zi[j] = a * sr[j] - b * si[j], a * si[j] + b * sr[j]
-        power[i] = se_i * se_i / (0.5 * (n - z2)) + se_r * se_r / (0.5 * (n + z2))
-    return power
 
 
 def screen(ctx: ScreenInput) -> Screening:
