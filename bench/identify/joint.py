@@ -51,6 +51,7 @@ them as far as the plant remembers them (:func:`_sample_weights`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -452,31 +453,34 @@ def equally_weighted(data: Dataset, estimate: MethodEstimate) -> ServoModel | No
     estimate is not an output-error one, or the refinement fails."""
     if not _weighs_timing(data):
         return None
-    return _refit(data, estimate, estimate.model, weigh=False, free_delay=True)
+    refits = _refit(data, estimate, (estimate.model,), weigh=False, free_delay=True)
+    return None if refits is None else refits[0]
 
 
-def delay_held(data: Dataset, estimate: MethodEstimate, delay_s: float) -> ServoModel | None:
-    """``estimate``'s output-error refinement again with the delay held at ``delay_s`` [s] (>= the
-    log's ``min_delay_s``), the other parameters free, from its own model and with its own
-    weights: where the plant's parameters would go if the delay were that far off. None where
-    the estimate is not an output-error one, the log's instants are known, or the refinement
-    fails."""
-    start = replace(estimate.model, delay_s=max(delay_s, data.min_delay_s))
-    return _refit(data, estimate, start, weigh=True, free_delay=False)
+def delay_held(
+    data: Dataset, estimate: MethodEstimate, delays_s: Sequence[float]
+) -> tuple[ServoModel, ...] | None:
+    """``estimate``'s output-error refinement again with the delay held at each of ``delays_s`` [s]
+    (each at least the log's ``min_delay_s``), the other parameters free, from its own model and
+    with its own weights: where the plant's parameters would go if the delay were that far off.
+    None where the estimate is not an output-error one, the log's instants are known, or a
+    refinement fails."""
+    starts = [replace(estimate.model, delay_s=max(d, data.min_delay_s)) for d in delays_s]
+    return _refit(data, estimate, starts, weigh=True, free_delay=False)
 
 
-def _refit(data: Dataset, estimate: MethodEstimate, start: ServoModel, weigh: bool,
-           free_delay: bool) -> ServoModel | None:  # fmt: skip
-    """The output-error refinement of ``estimate`` run again from ``start`` on a log whose instants
-    are uncertain: its samples weighted by their timing under ``estimate``'s model (``weigh``)
-    or equally; None where it does not apply or fails."""
+def _refit(data: Dataset, estimate: MethodEstimate, starts: Sequence[ServoModel], weigh: bool,
+           free_delay: bool) -> tuple[ServoModel, ...] | None:  # fmt: skip
+    """The output-error refinement of ``estimate`` run again from each of ``starts`` on a log whose
+    instants are uncertain, over one set of chunks: its samples weighted by their timing under
+    ``estimate``'s model (``weigh``) or equally; None where it does not apply or a run fails."""
     if not data.timing_uncertain or data.derived or not estimate.estimator.endswith("output-error"):
         return None
     chunks, _ = oe_chunks(data, estimate.noise_std, estimate.model if weigh else None)
-    threshold = NOISE_SIGMAS * estimate.noise_std
+    free = _free(data.cat("v"), NOISE_SIGMAS * estimate.noise_std)
     try:
-        return refine(start, chunks, _free(data.cat("v"), threshold), free_delay=free_delay,
-                      min_delay_s=data.min_delay_s).model  # fmt: skip
+        return tuple(refine(start, chunks, free, free_delay=free_delay, min_delay_s=data.min_delay_s).model
+                     for start in starts)  # fmt: skip
     except IdentificationError:
         return None
 

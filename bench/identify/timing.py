@@ -461,10 +461,10 @@ def delay_held_pct(data: Dataset, estimate: MethodEstimate, delay_moved_s: float
     if not (math.isfinite(delay_moved_s) and delay_moved_s > 0):
         return None
     m = estimate.model
-    low = delay_held(data, estimate, m.delay_s - delay_moved_s)
-    high = delay_held(data, estimate, m.delay_s + delay_moved_s)
-    if low is None or high is None:
+    held = delay_held(data, estimate, (m.delay_s - delay_moved_s, m.delay_s + delay_moved_s))
+    if held is None:
         return None
+    low, high = held
     span = delay_moved_s + min(delay_moved_s, m.delay_s - data.min_delay_s)  # the low end stops at the least delay
     if span <= 0:
         return None
