@@ -65,7 +65,7 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   served Modbus RTU at a 0.25 ms tick without stamps 0.649 +- 0.045 ms
   against 0.25, the reads misplaced on the located grid; ODrive serial at
   1 ms 0.552 +- 0.001 ms against 0.492). Where the pairs placed the reads on
-  a grid the simulation judged (a slow link: brackets of a tick or more), each
+  a grid (the simulation's or the pairs' own), each
   draw places them by a draw from the pairs' posterior
   (:data:`METHOD_POSTERIOR`): a read the pairs decide keeps its tick, one in
   doubt moves as often as its odds say. Placed by the grid alone, each read
