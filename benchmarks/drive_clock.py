@@ -318,6 +318,8 @@ def main() -> None:
                     help="every served drive's clock runs PPM parts per million fast (default 0)")  # fmt: skip
     ap.add_argument("--keep-failed", type=Path, default=None, metavar="DIR",
                     help="copy each failed case's run folder and the served drive's record here")  # fmt: skip
+    ap.add_argument("--keep-all", type=Path, default=None, metavar="DIR",
+                    help="copy every case's run folder and the served drive's record here")  # fmt: skip
     ap.add_argument("--ethercat-runs", type=int, default=None,
                     help="default sidbe runs against the EtherCAT slave without real-time priority "
                     f"(default {ETHERCAT_RUNS} when ethercat is among the transports, else 0)")  # fmt: skip
@@ -367,6 +369,8 @@ def main() -> None:
                                 print_row(r, load_name)
                                 if args.keep_failed and ("error" in r or r["failed"]):
                                     _keep(out, args.keep_failed)
+                                if args.keep_all:
+                                    _keep(out, args.keep_all)
                                 sys.stdout.flush()
                                 ran += 1
                                 passed += "error" not in r and not r["failed"]
