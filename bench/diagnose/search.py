@@ -288,16 +288,12 @@ def _pool(
     level: its guess, 44 % held out, was neither among the best two guesses nor the best three
     scores, and a saturation was named at 41 %; refitted, cogging reaches 1.7 %)."""
     by_quick = sorted(quick, key=lambda n: quick[n].held_out_gap)[:TOP_BY_QUICK]
-    by_score = sorted(screens, key=lambda n: -screens[n].score)[:TOP_BY_SCORE]
+    ranked = sorted(screens, key=lambda n: -screens[n].score)
     pool = [n for n in by_quick if quick[n].held_out_gap < current.gap_held_out]
-    pool += [n for n in by_score if screens[n].score >= MIN_SCORE and n not in pool]
-    rugged = (
-        n
-        for n in sorted(screens, key=lambda n: -screens[n].score)
-        if screens[n].scan and screens[n].score >= MIN_SCORE and n in quick
-        and quick[n].held_out_gap < current.gap_held_out
-    )  # fmt: skip
-    return pool + [n for n in rugged if n not in pool]
+    pool += [n for n in ranked[:TOP_BY_SCORE] if screens[n].score >= MIN_SCORE and n not in pool]
+    pool += [n for n in ranked if screens[n].scan and screens[n].score >= MIN_SCORE and n not in pool
+             and n in quick and quick[n].held_out_gap < current.gap_held_out]  # fmt: skip
+    return pool
 
 
 def _why_not(p: Payoff, against: str) -> str:
