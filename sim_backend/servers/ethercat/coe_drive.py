@@ -36,8 +36,11 @@ EtherCAT changes:
   instant: ``SimulatedDevice.hold_before_s``), and the frames only
   deliver outputs and read the inputs of the last event. The host's timing
   then never reaches the sample instants, which fall on the SYNC0 grid.
-  Events the loop got to late together are merged into the last of them
-  (the same outputs in force, the inputs overwritten);
+  Events the loop got to late together are merged: the outputs last
+  received take force at the first of them, as a drive's SYNC0 interrupt
+  puts them in force, and the inputs are sampled at the last (merged into
+  the last alone, a command that arrived before the first acted only from
+  the last: a cycle after the instant the master's log, ``t_act``, says);
 * the timestamp object 0x10F8 (where served) is the DC system time of the
   sample: in ``real`` the ESC's system time at the frame's arrival or at
   the SYNC0 event (the instant the inputs were sampled; with a drive tick,
@@ -450,14 +453,16 @@ class CoeSlave(Application):
             self._next_sync0 = start
         now = self.esc.system_time_at(clock_ns)
         if now >= self._next_sync0:
-            event = self._next_sync0 + (now - self._next_sync0) // cycle * cycle  # the latest due
+            first = self._next_sync0  # the outputs last received take force here
+            event = first + (now - first) // cycle * cycle  # the latest due: its sample is read
             self._next_sync0 = event + cycle
-            at_ns = self.esc.clock_of_system(event)
-            with self.device.instant(at_ns * 1e-9), self.esc.frame_at(at_ns):
-                if self.esc.al_state is A.OP and self._outputs is not None:
-                    self._cycle(self._outputs)
-                else:
-                    self.refresh_inputs()
+            for due in (first, event) if event > first else (event,):
+                at_ns = self.esc.clock_of_system(due)
+                with self.device.instant(at_ns * 1e-9), self.esc.frame_at(at_ns):
+                    if self.esc.al_state is A.OP and self._outputs is not None:
+                        self._cycle(self._outputs)
+                    else:
+                        self.refresh_inputs()
         # the next event samples the plant as it stands at its instant: nothing integrates past it
         self.device.hold_before_s = self.esc.clock_of_system(self._next_sync0) * 1e-9
 
