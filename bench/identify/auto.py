@@ -132,8 +132,8 @@ def identify(
     if best is not None:
         grid, moved, again, merged = best
 
-        def regrid(d: Dataset) -> Dataset:  # the timing figure's draws, placed as the log was
-            return on_grid(d, grid, placer, pairs=placer is not None)[0]
+        def regrid(d: Dataset) -> Dataset:  # the figure's draws where no pairs placed the reads
+            return on_grid(d, grid)[0]
 
         if placer is not None:
 
