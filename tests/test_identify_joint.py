@@ -247,6 +247,27 @@ def test_a_delay_the_timing_misleads_moves_the_plant_along_the_fits_trade_and_th
     assert worst <= timing.model_error_bound_pct, (worst, timing.model_error_pct)
 
 
+def test_a_delay_between_the_whole_ticks_of_its_grid_is_uncertain_by_its_distance_to_them():
+    """On a located grid where one request carries command and sample, each command acts a whole
+    number of ticks after its sample; a model acting between two holds reads on the wrong tick,
+    which neither the fit's sigma nor the draws see. A fresh-clone suite gave served Modbus RTU at
+    a 0.25 ms tick without stamps, host stalls of 58 ms, the delay 0.413 ms against the record's
+    0.25 with a stated sigma of 0.041 ms (4 sigma off). Its distance to the nearer whole tick count
+    (0.087 ms) now joins the delay's timing share, and a delay short of one tick is its
+    distance to one tick. On a grid's exact model the term is nothing, and the method names it."""
+    from servobench.bench.identify.timing import METHOD_OFF_GRID, off_grid_s
+
+    assert off_grid_s(0.413e-3, 0.25e-3) == pytest.approx(0.087e-3)
+    assert off_grid_s(0.1e-3, 0.25e-3) == pytest.approx(0.15e-3)  # one tick at least
+    assert off_grid_s(2.0e-3, 1e-3) == 0.0
+    stated = math.hypot(0.032e-3, 0.026e-3)  # that run's fit sigma and its draws' share
+    assert abs(0.413e-3 - 0.25e-3) > 3.0 * stated
+    assert abs(0.413e-3 - 0.25e-3) <= 3.0 * math.hypot(stated, off_grid_s(0.413e-3, 0.25e-3))
+    result = _served_plant_within_1_percent("served_modbus_tcp_1ms_tick_stalled_host.csv")
+    assert METHOD_OFF_GRID in result.timing.method
+    assert off_grid_s(result.model.delay_s, 1e-3) <= result.timing.delay_timing_std_s
+
+
 def _served_plant_within_1_percent(name: str):
     """``identify`` on the kept served log ``tests/data/<name>`` (plant M 0.01, B 1, Coulomb
     0.5 / 0.4), checked within 1 % and a fit over 99 %."""

@@ -129,8 +129,11 @@ def identify(
     # the pairs again, CANopen and Modbus TCP at a 1 ms tick predicted 0.16-1.25 % for exact models
     # (the moved brackets shifted the delay 0.01-0.05 ms, which the held delay carried into M)
     placements = None
+    grid_tick_s = None  # the tick of a located grid whose commands act whole ticks after their sample
     if best is not None:
         grid, moved, again, merged = best
+        if grid.lead_s <= 0:
+            grid_tick_s = grid.tick_s
 
         def regrid(d: Dataset) -> Dataset:  # the figure's draws where no pairs placed the reads
             return on_grid(d, grid)[0]
@@ -142,7 +145,7 @@ def identify(
 
         data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
-    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements)
+    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements, grid_tick_s)
     if timing is None:
         return result
     # the delay's stated sigma holds its timing share too (the draws' spread of the delay)
