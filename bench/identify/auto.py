@@ -184,13 +184,17 @@ def _placed_by_pairs(data: Dataset, grid, moved: Dataset, again: IdentificationR
     """``((grid, moved, result, merged), placer)`` with the reads whose bracket holds a tick placed
     by the pairs of the model identified on ``grid`` (one request carries command and sample:
     :func:`~servobench.bench.identify.pair_placement.place_by_pairs`), kept where that verifies
-    better; ``placer``: that model, or None where the placement was not kept."""
+    as well (within :data:`TIE_PERCENT`) or better; ``placer``: that model, or None where the
+    placement was not kept. On a tie the pairs place the reads as the grid does, and the timing
+    figure's draws then come from their posterior: drawn anywhere in its bracket instead, each
+    read of a served Modbus RTU log at 50 Hz (brackets of +-1.3 ms on a 1 ms tick) moved the delay
+    0.22 ms over the draws, and M predicted 1.92 % at two sigma for a model 0.005 % off."""
     moved2, merged2 = on_grid(data, grid, again.model, pairs=True)
     try:
         again2 = identify_data(moved2, method, resonance=resonance)
     except IdentificationError:
         return (grid, moved, again, merged), None
-    if again2.fit_percent > again.fit_percent:
+    if again2.fit_percent > again.fit_percent - TIE_PERCENT:
         return (grid, moved2, again2, merged2), again.model
     return (grid, moved, again, merged), None
 
