@@ -276,7 +276,8 @@ def test_a_delay_between_the_whole_ticks_of_its_grid_is_uncertain_by_its_distanc
     0.25 with a stated sigma of 0.041 ms (4 sigma off). Its distance to the nearer whole tick count
     (0.087 ms) now joins the delay's timing share, and a delay short of one tick is its
     distance to one tick. On a grid's exact model the term is nothing, and the method names it."""
-    from servobench.bench.identify.timing import METHOD_OFF_GRID, off_grid_s
+    from servobench.bench.identify.drive_grid import off_grid_s
+    from servobench.bench.identify.timing import METHOD_OFF_GRID
 
     assert off_grid_s(0.413e-3, 0.25e-3) == pytest.approx(0.087e-3)
     assert off_grid_s(0.1e-3, 0.25e-3) == pytest.approx(0.15e-3)  # one tick at least

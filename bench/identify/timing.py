@@ -53,9 +53,9 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
 * Where the reads were moved onto a located grid on which each command acts a
   whole number of ticks after its sample (one request carrying both), the
   delay's distance to the nearer whole tick count joins its timing share
-  (:func:`off_grid_s`), before the delay is held apart: a model acting
-  between two ticks holds misplaced reads, which neither the fit's sigma nor
-  the draws see.
+  (:func:`~servobench.bench.identify.drive_grid.off_grid_s`), before the
+  delay is held apart: a model acting between two ticks holds misplaced
+  reads, which neither the fit's sigma nor the draws see.
 * A drive time stamp (``clock_source = drive``) has no interval: the
   timing's share is 0, whatever the host's jitter (the instants are exact).
 * The drive's own clock: the model carries the drive's action delay
@@ -101,6 +101,7 @@ from typing import Any
 import numpy as np
 
 from servobench.bench.identify.dataset import Dataset
+from servobench.bench.identify.drive_grid import off_grid_s
 from servobench.bench.identify.drive_rate import quantised_rate_std
 from servobench.bench.identify.estimate import MethodEstimate
 from servobench.bench.model.servo import DELAY_KEY, STD_KEYS
@@ -147,7 +148,7 @@ METHOD_DELAY_HELD = (
     "from its own value"
 )
 #: Added to the method where the model was identified on a located grid it must act on in whole
-#: ticks (:func:`off_grid_s`).
+#: ticks (:func:`~servobench.bench.identify.drive_grid.off_grid_s`).
 METHOD_OFF_GRID = (
     "; and, in quadrature with the delay's timing share, how far the delay lies from the whole "
     "ticks after its sample that the located grid has each command act"
@@ -374,7 +375,7 @@ def timing_figure(
     read the pairs decide keeps its tick, one in doubt moves as often as its odds say.
     ``grid_tick_s``: the reads were moved onto a grid of that tick on which each command acts a
     whole number of ticks after its sample (one request carries both); the delay's departure from
-    that (:func:`off_grid_s`) joins its timing share.
+    that (:func:`~servobench.bench.identify.drive_grid.off_grid_s`) joins its timing share.
 
     None for a log without ``clock_source`` (lock-step streaming, older logs,
     files of other tools): its instants are the nominal grid or the drive's.
@@ -436,19 +437,6 @@ def timing_figure(
                         late_samples=_count(metadata.get("late_samples")),
                         statistical_pct=statistical, drive_drift_ppm=drift,
                         drive_drift_std_ppm=drift_std)  # fmt: skip
-
-
-def off_grid_s(delay_s: float, tick_s: float) -> float:
-    """How far the delay ``delay_s`` [s] lies from a whole number of ticks ``tick_s`` [s], one at
-    least [s]: the model identified on reads moved onto a located grid, one request carrying
-    command and sample, must act there (:func:`~servobench.bench.identify.drive_grid.acts_on_grid`).
-    Where it does not, some reads sit on the wrong tick, and a delay between two whole ticks is
-    uncertain by at least its distance to the nearer one: neither the fit's sigma nor the draws
-    (which place the reads as the log's model did) see it. A fresh-clone suite gave served Modbus
-    RTU at a 0.25 ms tick without stamps, host stalls of 58 ms, 0.413 ms against 0.25 with 0.041 ms
-    stated; 0.087 ms from two ticks."""
-    ticks = max(1.0, float(round(delay_s / tick_s)))
-    return abs(delay_s - ticks * tick_s)
 
 
 def weighting_pct(data: Dataset, estimate: MethodEstimate) -> tuple[dict[str, float], float] | None:
