@@ -46,8 +46,11 @@ class SidbeResult:
     model : Model
         The accepted (or, when the threshold was never met, the best) model: ``model.json``.
     verdict : Verdict
-        PASS when the verification fit reached ``fit_threshold``, else FAIL (the CLI's
-        first line and exit status 3).
+        PASS when the verification fit reached ``fit_threshold`` and the run's timing keeps the
+        model within its stated accuracy; PASS with remarks when the fit reached it but the
+        timing does not (exit status 0: the model fits, its parameters may be off by more than
+        stated; ``model.timing`` says how far and what to change); else FAIL (the CLI's first
+        line and exit status 3).
     log : Path
         ``log.csv``: the round the model was identified from.
     fit_percent : float
@@ -191,7 +194,7 @@ def sidbe(
         raise
     return SidbeResult(
         model=load_model(sr.model_path),
-        verdict=Verdict.of(sr.passed),
+        verdict=sr.verdict,
         log=sr.log_path,
         fit_percent=float(sr.result.fit_percent),
         fit_threshold=float(sr.fit_threshold),
