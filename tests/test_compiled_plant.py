@@ -113,6 +113,44 @@ def test_windows_primed_and_started_in_motion_equal_the_reference(plant):
             close(x_all[p, o : o + n], x0)
 
 
+@pytest.mark.parametrize("plant", ("backlash", "resonance", "stribeck"), ids=str)
+def test_windows_that_carry_on_the_second_body_equal_the_reference(plant):
+    """What the diagnosis does with contiguous windows: each restarts the measured body at the
+    measured state and carries on the play's load and engaged side, or the spring's twist, from
+    where the window before ended (:func:`~servobench.sim_backend.physics.kernels.carry_state`)."""
+    params, runs = case(plant, "two-level")
+    dt = 1.0 / 500.0
+    u = runs[1]
+    new, ref = both(params)
+    pk = new.packed(dt)
+    spans = [(0, 300), (300, 620), (620, 1000)]
+    whole, _, _ = ref.simulate(u[:1000], dt, PlantState())  # the whole span, no restart
+    ref.reset()
+    windows = [(0, s, e - s, s) for s, e in spans]
+    at = [(float(whole[s]), 0.0) for s, _ in spans]  # the measured body's velocity at each start
+    start = np.array([(v, x, v, x, 0.0) for v, x in at])
+    carry = np.array([False, True, True])
+    v_all, x_all, _ = run([pk], [[pk.line(u)]], windows, start, carry)
+    relaxed, _, _ = run([pk], [[pk.line(u)]], windows, start)
+    for w, ((s, e), (v, x)) in enumerate(zip(spans, at, strict=True)):
+        if carry[w]:
+            ref.carry_on(PlantState(v, x))
+        else:
+            ref.reset()
+        ref.prime(u[:s], dt)
+        v0, x0, _ = ref.simulate(u[s:e], dt, PlantState(v, x))
+        close(v_all[0, s:e], v0)
+        close(x_all[0, s:e], x0)
+    if plant == "stribeck":  # one body: nothing to carry, the same as restarting
+        assert np.array_equal(v_all, relaxed)
+        return
+    # the second body carried on: the windows follow the whole run (the measured body restarted
+    # at its own velocity) where restarting relaxed does not
+    carried = np.max(np.abs(v_all[0, 300:1000] - whole[300:1000]))
+    restarted = np.max(np.abs(relaxed[0, 300:1000] - whole[300:1000]))
+    assert carried < 1e-9 * np.max(np.abs(whole)) < restarted, (carried, restarted)
+
+
 @pytest.mark.parametrize(
     "plant", ("backlash", "resonance", ("stribeck", "time_delay"), "quantization"), ids=str
 )

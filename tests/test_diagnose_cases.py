@@ -21,7 +21,7 @@ from servobench.bench.report.diagnose import to_json
 from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
-pytestmark = pytest.mark.slow  # thirteen diagnoses, one after the other
+pytestmark = pytest.mark.slow  # fourteen diagnoses, one after the other
 
 #: ``number: (effect, size, inputs, noise, seed)``, as the benchmark draws them.
 CASES = {
@@ -50,12 +50,13 @@ CASES = {
     # again in the model without that term.
     56: ("backlash", 0.6927095212513469, "sidbe", "coloured", 1206594658),
     188: ("backlash", 2.5130652670773643, "single", "white", 1027945035),
+    # Closed loop hunting in a play, simulated in windows of 0.5 s from the measured state: each
+    # window carries on the play's engaged side and load from the one before (restarted relaxed,
+    # the hidden model itself left a gap of 24.8 % for 0.97 % over the whole run), and the base
+    # fit, which starts without friction, reaches the Coulomb levels (it kept 0.0 / 0.006 for
+    # 0.28 / 0.43: gap 63 % -> 22 %, held to halve; now 39 % -> 3.5 %).
+    164: ("backlash", 2.93533607371622, "closed", "white", 1446883356),
 }
-#: Closed loop hunting in a play: the base model is far off (no Coulomb friction), backlash
-#: screens low, and only a refit of every effect that beats the base finds it. The hidden model
-#: itself leaves a gap of about 25 % here (the hunting is chaotic over the 0.5 s horizon), so
-#: the gap is held to halve, not to shrink three times.
-FAR_OFF = {164: ("backlash", 2.93533607371622, "closed", "white", 1446883356)}
 #: A two-level SIDBE pair through a quantized command: each run's two levels only move, which a
 #: saturation or a dead zone does as well. The report must say the log cannot tell them apart.
 TIED = {82: ("quantization", 2.330902093314011, "sidbe", "coloured", 539334954)}
@@ -66,7 +67,7 @@ def results(tmp_path_factory):
     folder = Path(tmp_path_factory.mktemp("cases"))
 
     def run(number: int) -> dict:
-        effect, size, inputs, noise, seed = {**CASES, **FAR_OFF, **TIED}[number]
+        effect, size, inputs, noise, seed = {**CASES, **TIED}[number]
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         d = diagnose(read_log(write_case_log(case, folder / f"case-{number}.csv", rng)))
@@ -94,13 +95,6 @@ def test_the_stribeck_curve_is_refitted_within_5_percent(results):
     true, got = case.effects["stribeck"], d.effects[0].parameters
     assert got["vs"] == pytest.approx(true["vs"], rel=0.05)
     assert (got["fs_pos"], got["fs_neg"]) == pytest.approx((true["fs"], true["fs"]), rel=0.05)
-
-
-@pytest.mark.parametrize("number", sorted(FAR_OFF))
-def test_a_missing_effect_far_from_the_floor_is_named(results, number):
-    d = results[number]["diagnosis"]
-    assert [e.name for e in d.effects] == [FAR_OFF[number][0]], d.trace.stop
-    assert d.gap_after <= d.gap_before / 2, (d.gap_before, d.gap_after)
 
 
 @pytest.mark.parametrize("number", sorted(TIED))

@@ -62,6 +62,8 @@ SIMPLEX_STEP = 0.05
 SIMPLEX_MAXFEV = 200
 #: ... unless the gradient fit already reached this multiple of the noise floor.
 POLISH_ABOVE = 1.5
+#: The Coulomb levels' least scale in a fit, as a share of the command's spread.
+FORCE_FLOOR_SHARE = 0.05
 #: Residual returned for parameters the simulator rejects.
 PENALTY = 10.0
 #: Multipliers tried for fixed (grid-searched) parameters after the gradient fit.
@@ -136,13 +138,21 @@ class _Layout:
     """Mapping between a candidate and the scaled parameter vector ``z``."""
 
     def __init__(
-        self, cand: Candidate, bounds: Bounds, fixed: Mapping[str, tuple[str, ...]]
+        self,
+        cand: Candidate,
+        bounds: Bounds,
+        fixed: Mapping[str, tuple[str, ...]],
+        force_floor: float = 0.0,
     ) -> None:
         self.cand = cand
         #: (effect, parameter, scale, low, high) of each fitted effect parameter.
         self.slots: list[tuple[str, str, float, float, float]] = []
         b = cand.base
-        fscale = max(abs(b["coulomb_pos"]), abs(b["coulomb_neg"]), 1e-3 * b["B"], 1e-12)
+        # the Coulomb levels' scale: their own size, and never below the log's force floor (a
+        # start without friction would otherwise scale them by 1e-3 B, where a trust region
+        # cannot reach a level of the command's size: a play's closed-loop log kept 0.0 / 0.006
+        # for 0.28 / 0.43, diagnose_cases.py #164)
+        fscale = max(abs(b["coulomb_pos"]), abs(b["coulomb_neg"]), 1e-3 * b["B"], force_floor, 1e-12)
         self.fscale = fscale
         for name, values in cand.effects.items():
             for pname, value in values.items():
@@ -192,11 +202,12 @@ class _Layout:
         return Candidate(base, effects)
 
 
-def _simplex(cand: Candidate, bounds: Bounds, fixed, cost) -> tuple[Candidate, float]:
+def _simplex(cand: Candidate, bounds: Bounds, fixed, error: _TrainingError) -> tuple[Candidate, float]:
     """Nelder-Mead polish in the scaled parameters, for surfaces too rugged for gradients."""
     from scipy.optimize import minimize
 
-    layout = _Layout(cand, bounds, fixed)
+    cost = error.cost
+    layout = _Layout(cand, bounds, fixed, error.force_floor)
     z0, lo, hi = layout.start()
     steps = SIMPLEX_STEP * np.maximum(1.0, np.abs(z0))
     simplex = np.vstack([z0, z0 + np.diag(steps)])
@@ -220,6 +231,9 @@ class _TrainingError:
         self.masks = [~data.held_out[i][s:e] for i, s, e in self.which]
         self.measured = self._training([s.v for s in data.segments])
         self.scale = float(np.std(data.cat("v")))
+        #: The least scale of the Coulomb levels in a fit: :data:`FORCE_FLOOR_SHARE` of the
+        #: command's spread [command units].
+        self.force_floor = FORCE_FLOOR_SHARE * float(np.std(data.cat("u")))
         self.evaluations = 0
 
     def _training(self, per_run: Sequence[np.ndarray]) -> np.ndarray:
@@ -370,7 +384,7 @@ def _gradient_fit(
 
     best, best_cost, solution = start, start_cost, None
     for _ in range(RESTARTS):
-        layout = _Layout(best, bounds, fixed)
+        layout = _Layout(best, bounds, fixed, error.force_floor)
         z0, lo, hi = layout.start()
         problem = _Problem(error, layout, lo, hi)
         sol = least_squares(
@@ -404,7 +418,7 @@ def _covariance(
     """The fitted parameters' covariance at ``best``: from the ``solution`` that found it,
     else from a Jacobian taken there (the same two-point difference)."""
     if solution is None or solution.candidate is not best:
-        layout = _Layout(best, bounds, fixed)
+        layout = _Layout(best, bounds, fixed, error.force_floor)
         z, lo, hi = layout.start()
         problem = _Problem(error, layout, lo, hi)
         residual = problem.fun(z)
@@ -485,7 +499,7 @@ def refit(
     if plain is not None and plain[1] < best_cost:
         best, best_cost, solution = plain
     if rugged and error.gap_percent(best_cost) > POLISH_ABOVE * floor:
-        polished, p_cost = _simplex(best, bounds, fixed, error.cost)
+        polished, p_cost = _simplex(best, bounds, fixed, error)
         if p_cost < (1.0 - RESTART_GAIN) * best_cost:
             best, best_cost, solution = _gradient_fit(
                 error, polished, p_cost, bounds, fixed, grid, max_nfev

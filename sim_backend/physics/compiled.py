@@ -144,6 +144,7 @@ def run(
     lines: Sequence[Sequence[np.ndarray]],
     windows: np.ndarray,
     start: np.ndarray,
+    carry: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every model over every window in one compiled call.
 
@@ -155,6 +156,9 @@ def run(
         Run, first sample (index in the run's line), samples, first output column.
     start : ndarray, shape (W, 5)
         The state at each window's start (motor ``v, x``, load ``v, x``, engaged side).
+    carry : ndarray of bool, shape (W,), optional
+        Windows that continue the one before them and carry on its second body
+        (:func:`.kernels.carry_state`); none by default (each window starts relaxed at ``start``).
 
     Returns
     -------
@@ -207,6 +211,7 @@ def run(
         line_at,
         windows,
         np.ascontiguousarray(start, dtype=float).reshape(-1, 5),
+        np.zeros(windows.shape[0], np.bool_) if carry is None else np.ascontiguousarray(carry, np.bool_),
         out_v,
         out_x,
         final,

@@ -535,8 +535,25 @@ def play_engaged(x, gap):
     return out
 
 
+@njit(cache=True)
+def carry_state(prev, state, kind):
+    """A restart at the measured ``state`` that keeps what no sensor sees from ``prev`` (the state
+    where the window before ended): the second body's offset and relative velocity, and the
+    engaged side of a play. The measured body (a play's motor, a spring's load) takes ``state``;
+    the other follows it by ``prev``'s differences. A rigid model has no second body."""
+    if kind == GAP:
+        state[2] = state[0] + (prev[2] - prev[0])
+        state[3] = state[1] + (prev[3] - prev[1])
+        state[4] = prev[4]
+    elif kind == SPRING:
+        state[0] = state[2] + (prev[0] - prev[2])
+        state[1] = state[3] + (prev[1] - prev[3])
+        state[4] = prev[4]
+
+
 @njit(**_JIT)
-def run_batch(fpar, ipar, segs, table, forces, modes, line, line_at, windows, start, out_v, out_x, final):
+def run_batch(fpar, ipar, segs, table, forces, modes, line, line_at, windows, start, carry, out_v, out_x,
+              final):  # fmt: skip
     """Every model over every window, in one call.
 
     Parameters
@@ -556,6 +573,9 @@ def run_batch(fpar, ipar, segs, table, forces, modes, line, line_at, windows, st
         Per window: run, first sample in its run's line, samples, first output column.
     start : ndarray, shape (W, 5)
         The state at each window's start: motor ``v, x``, load ``v, x``, engaged side.
+    carry : ndarray of bool, shape (W,)
+        Per window: it continues the window before it, whose second body it carries on
+        (:func:`carry_state`; the measured body still starts at ``start``).
     out_v, out_x : ndarray, shape (P, N)
         Velocity [units/s] and position [units] of the measured body at each sample.
     final : ndarray, shape (P, W, 5)
@@ -569,6 +589,8 @@ def run_batch(fpar, ipar, segs, table, forces, modes, line, line_at, windows, st
             state = final[p, w]
             for i in range(5):
                 state[i] = start[w, i]
+            if carry[w] and w > 0:
+                carry_state(final[p, w - 1], state, kind)
             i0 = line_at[p, windows[w, 0]] + windows[w, 1]
             n, o0 = windows[w, 2], windows[w, 3]
             if kind == COULOMB:
