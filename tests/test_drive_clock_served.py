@@ -109,6 +109,14 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
         # the project's CI again 0.413 +- 0.041 ms on a located grid, host stalls of 58 ms: the
         # stated sigma now holds the delay's distance to the grid's whole ticks too (0.087 ms)
         near = max(near, 3.0 * model["std"]["delay_s"])
+    if transport == "serial" and not stamps:
+        # NOT the issue's bound for ODrive serial behind its command's lead (open): the delay is
+        # the mean of the rows' placed delays over the command changes, and the placement the
+        # simulation decides can sit a share of a tick off over many changes (-0.030 +- 0.066 ms
+        # against the record's -0.097 at a 0.25 ms tick, M within 0.016 %); its stated sigma holds
+        # the grid-alone placement's spread. These runs were excused as "told" before, their
+        # figure predicting 1.4-6.5 % for models within 0.1 %: now within accuracy, and judged
+        near = max(near, 3.0 * model["std"]["delay_s"])
     # the record's mean over the commands that changed the value: a repeat acts alike from
     # either tick (the command and the query as two requests: a tick falls between them in some
     # rows), so only a change shows its delay; where every command acts alike, the two means agree

@@ -38,6 +38,7 @@ from servobench.bench.identify.drive_grid import (
     by_simulation,
     find_drive_grids,
     find_run_grids,
+    grid_delay_s,
     on_grid,
     phased_by_placed_pairs,
     refit_kept,
@@ -101,6 +102,7 @@ def identify(
                              TRIAL_GAIN if trial else MIN_GAIN)  # fmt: skip
     grids = grids[: (TRIALS if data.min_delay_s < 0 else len(grids)) if trial else 1]
     logged, regrid = data, None
+    first_model = result.model  # the model the reads are placed by behind a command's lead
     best = None
     tried = []
     for grid in grids:  # the drive's tick located on the host's clock: samples onto it
@@ -127,13 +129,19 @@ def identify(
     # Placed by the grid alone, each read anywhere in its bracket, served Modbus RTU at 50 Hz
     # predicted 0.5-0.8 % for models 0.001-0.03 % off; moved anywhere in its bracket and placed by
     # the pairs again, CANopen and Modbus TCP at a 1 ms tick predicted 0.16-1.25 % for exact models
-    # (the moved brackets shifted the delay 0.01-0.05 ms, which the held delay carried into M)
+    # (the moved brackets shifted the delay 0.01-0.05 ms, which the held delay carried into M).
+    # Behind a command's lead (ODrive serial) the model that placed the reads draws each read in
+    # doubt by its odds under its simulation: placed by the grid alone, ten served logs at ticks
+    # of 0.25-2 ms predicted 0.87-10.7 % at two sigma for models 0.00004-0.18 % off.
     placements = None
     grid_tick_s = None  # the tick of a located grid whose commands act whole ticks after their sample
+    lead_tick_s = None  # the tick of a located grid behind a command's lead
     if best is not None:
         grid, moved, again, merged = best
         if grid.lead_s <= 0:
             grid_tick_s = grid.tick_s
+        else:
+            lead_tick_s = grid.tick_s
 
         def regrid(d: Dataset) -> Dataset:  # the figure's draws where no pairs placed the reads
             return on_grid(d, grid)[0]
@@ -143,9 +151,16 @@ def identify(
             def placements(d: Dataset, rng) -> Dataset:
                 return on_grid(d, grid, placer, pairs=True, rng=rng)[0]
 
+        elif grid.lead_s > 0:  # behind a command's lead: each read in doubt drawn by its odds
+
+            def placements(d: Dataset, rng) -> Dataset:
+                return on_grid(d, grid, first_model, rng=rng)[0]
+
         data, result = moved, replace(again, notes=(*again.notes, grid.note(merged)))
     estimate = MethodEstimate(result.model, result.method, result.std, result.estimator, result.noise_std)
-    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements, grid_tick_s)
+    placed_delay = None if lead_tick_s is None else (lambda d: grid_delay_s(d, grid))
+    timing = timing_figure(log.metadata, data, estimate, regrid, logged, placements, grid_tick_s, lead_tick_s,
+                           placed_delay)  # fmt: skip
     if timing is None:
         return result
     # the delay's stated sigma holds its timing share too (the draws' spread of the delay)
