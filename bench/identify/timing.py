@@ -400,7 +400,7 @@ def timing_figure(
     anew by a draw from the posterior of the pairs that placed them
     (:func:`~servobench.bench.identify.pair_placement.place_by_pairs` with a generator): a
     read the pairs decide keeps its tick, one in doubt moves as often as its odds say; behind a
-    command's lead (``data.min_delay_s < 0``), by each read's odds under the model's simulation.
+    command's lead (``lead_tick_s`` given), by each read's odds under the model's simulation.
     ``lead_tick_s``: the reads were moved onto a grid of that tick behind a command's lead; the
     delay, the mean of the rows' placed delays over the command changes, is known to one change's
     tick (:func:`lead_resolution_s`), which joins its timing share. ``placed_delay``: the mean
@@ -427,7 +427,7 @@ def timing_figure(
         scatter = instant_scatter_s(data, m)
         if placements is not None and logged is not None:
             timing, delay_moved = perturbed_spread_pct(logged, estimate, placements=placements)
-            method = METHOD_LEAD_POSTERIOR if data.min_delay_s < 0 else METHOD_POSTERIOR
+            method = METHOD_POSTERIOR if lead_tick_s is None else METHOD_LEAD_POSTERIOR
         elif regrid is not None and logged is not None:
             timing, delay_moved = perturbed_spread_pct(logged, estimate, regrid=regrid)
             method = METHOD_GRID
@@ -454,7 +454,7 @@ def timing_figure(
         # while the actions stay where they were: the draws hold the timing's whole effect, and
         # the delay held apart, every action moved with it, no placement does (it predicted 3.5 %
         # of M for a model 0.0001 % off)
-        split = placements is not None and data.min_delay_s < 0
+        split = placements is not None and lead_tick_s is not None
         held = None if split else delay_held_pct(data, estimate, delay_moved)
         if held is not None:
             timing = {k: math.hypot(timing[k], held[k]) for k in STD_KEYS}
