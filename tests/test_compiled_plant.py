@@ -83,6 +83,15 @@ def test_the_compiled_simulation_equals_the_reference(plant, inputs):
         assert new._hidden[4] == ref._hidden[4]
 
 
+def _three_windows(plant):
+    """A two-level run of ``plant`` cut into three windows: the command, the step, the reference
+    model, the compiled model's numbers and the windows' spans."""
+    params, runs = case(plant, "two-level")
+    dt = 1.0 / 500.0
+    new, ref = both(params)
+    return runs[1], dt, ref, new.packed(dt), [(0, 300), (300, 620), (620, 1000)]
+
+
 @pytest.mark.parametrize(
     "plant",
     ("backlash", "stribeck", "time_delay", "resonance", ("cogging", "position_friction")),
@@ -91,12 +100,7 @@ def test_the_compiled_simulation_equals_the_reference(plant, inputs):
 def test_windows_primed_and_started_in_motion_equal_the_reference(plant):
     """What the diagnosis does: each window primed with the commands before it and started from
     a measured state, all windows in one call."""
-    params, runs = case(plant, "two-level")
-    dt = 1.0 / 500.0
-    u = runs[1]
-    new, ref = both(params)
-    pk = new.packed(dt)
-    spans = [(0, 300), (300, 620), (620, 1000)]
+    u, dt, ref, pk, spans = _three_windows(plant)
     starts = [(0.0, 0.0), (0.8, 0.05), (-0.4, -0.02)]
     windows, col = [], 0
     for s, e in spans:
@@ -118,12 +122,7 @@ def test_windows_that_carry_on_the_second_body_equal_the_reference(plant):
     """What the diagnosis does with contiguous windows: each restarts the measured body at the
     measured state and carries on the play's load and engaged side, or the spring's twist, from
     where the window before ended (:func:`~servobench.sim_backend.physics.kernels.carry_state`)."""
-    params, runs = case(plant, "two-level")
-    dt = 1.0 / 500.0
-    u = runs[1]
-    new, ref = both(params)
-    pk = new.packed(dt)
-    spans = [(0, 300), (300, 620), (620, 1000)]
+    u, dt, ref, pk, spans = _three_windows(plant)
     whole, _, _ = ref.simulate(u[:1000], dt, PlantState())  # the whole span, no restart
     ref.reset()
     windows = [(0, s, e - s, s) for s, e in spans]
