@@ -102,7 +102,9 @@ def identify(
                              TRIAL_GAIN if trial else MIN_GAIN)  # fmt: skip
     grids = grids[: (TRIALS if data.min_delay_s < 0 else len(grids)) if trial else 1]
     logged, regrid = data, None
-    first_model = result.model  # the model the reads are placed by behind a command's lead
+    # behind a command's lead the timing figure's draws decide the reads in doubt by this model's
+    # odds: the one the grids' first placement decides them by
+    first_model = result.model
     best = None
     tried = []
     for grid in grids:  # the drive's tick located on the host's clock: samples onto it
