@@ -274,12 +274,23 @@ def _drawn(doubt: np.ndarray, v: np.ndarray, v_k: np.ndarray, v_alt: np.ndarray,
     Placed by the grid alone, each read anywhere in its bracket, served ODrive serial logs (a
     command sent ahead of its query) predicted 0.76-10.7 % at two sigma for models
     0.00004-0.19 % off."""
-    clear = ~doubt
-    scale = 1.4826 * float(np.median(np.abs(v_k - v)[clear])) if clear.any() else 0.0
-    scale = max(scale, 1e-12 * float(np.max(np.abs(v), initial=1.0)))
-    with np.errstate(over="ignore"):
-        odds = np.exp(np.clip(((v_alt - v) ** 2 - (v_k - v) ** 2) / (2.0 * scale * scale), -700.0, 700.0))
-    return doubt & (rng.random(v.size) < 1.0 / (1.0 + odds))
+    scale = _robust_scale((v_k - v)[~doubt], v)
+    other = _other_side((v_alt - v) ** 2 - (v_k - v) ** 2, scale)
+    return doubt & (rng.random(v.size) < other)
+
+
+def _robust_scale(residual: np.ndarray, v: np.ndarray) -> float:
+    """The residuals' robust scale (the normal-consistent median of their size), at least a
+    rounding of the velocity ``v``'s largest value (residuals that are all zero)."""
+    scale = 1.4826 * float(np.median(np.abs(residual))) if residual.size else 0.0
+    return max(scale, 1e-12 * float(np.max(np.abs(v), initial=1.0)))
+
+
+def _other_side(cost_gap, scale: float):
+    """The probability that the other side is right, from the gap of its squared residuals over
+    the side's own (``cost_gap``), the residuals normal of ``scale``."""
+    z = np.clip(np.asarray(cost_gap, dtype=float) / (2.0 * scale * scale), -700.0, 700.0)
+    return 1.0 / (1.0 + np.exp(z))
 
 
 #: A read in doubt is decided by the simulation where its two candidate ticks' velocities differ
@@ -330,8 +341,7 @@ def _decide_actions(segment: Segment, grid: DriveGrid, model, k: np.ndarray, ka:
     at = grid.instant(k)
     if rng is not None:
         sim, _ = _velocity_at(at, at, u, np.maximum.accumulate(grid.instant(ka)), model, float(v[0]))
-        scale = 1.4826 * float(np.median(np.abs(sim - v)))
-        scale = max(scale, 1e-12 * float(np.max(np.abs(v), initial=1.0)))
+        scale = _robust_scale(sim - v, v)
     for r in doubtful:
         after = changes[changes > r]
         window = slice(r, int(after[0]) + 1 if after.size else v.size)
@@ -342,8 +352,7 @@ def _decide_actions(segment: Segment, grid: DriveGrid, model, k: np.ndarray, ka:
             sim, _ = _velocity_at(at, at, u, np.maximum.accumulate(grid.instant(trial)), model, float(v[0]))
             costs.append(float(np.sum((sim[window] - v[window]) ** 2)))
         if rng is not None:
-            odds = math.exp(min(max((costs[1] - costs[0]) / (2.0 * scale * scale), -700.0), 700.0))
-            if rng.random() < 1.0 / (1.0 + odds):
+            if rng.random() < _other_side(costs[1] - costs[0], scale):
                 ka[r] = alt[r]
         elif costs[1] < costs[0]:
             ka[r] = alt[r]
