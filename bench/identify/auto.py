@@ -133,7 +133,7 @@ def identify(
     # the pairs again, CANopen and Modbus TCP at a 1 ms tick predicted 0.16-1.25 % for exact models
     # (the moved brackets shifted the delay 0.01-0.05 ms, which the held delay carried into M).
     # Behind a command's lead (ODrive serial) the model that placed the reads draws each read in
-    # doubt by its odds under its simulation: placed by the grid alone, ten served logs at ticks
+    # doubt by its odds under its simulation: placed by the grid alone, seven served logs at ticks
     # of 0.25-2 ms predicted 0.87-10.7 % at two sigma for models 0.00004-0.18 % off.
     placements = None
     grid_tick_s = None  # the tick of a located grid whose commands act whole ticks after their sample

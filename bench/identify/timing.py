@@ -56,7 +56,7 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   hold the timing's whole effect, and the delay is the mean of the rows'
   placed delays, which the few reads in doubt move while the actions stay;
   held apart, every action moved with it, it predicted 0.87-10.7 % at two
-  sigma for ten served logs 0.00004-0.18 % off, now 0.12-0.43 %.
+  sigma for seven served logs 0.00004-0.18 % off, now 0.12-0.43 %.
 * Where the reads were moved onto a located grid on which each command acts a
   whole number of ticks after its sample (one request carrying both), the
   delay's distance to the nearer whole tick count joins its timing share
