@@ -16,7 +16,7 @@ the gradient fit from the start itself is kept where it ends lower. Only trainin
 enter the cost; held-out samples judge the result.
 
 The Jacobian is ``least_squares``'s own two-point finite difference (same steps, same
-columns), its columns simulated in one compiled call (:func:`.simulate.simulate_many`)
+columns), its columns simulated in one compiled call (:func:`.simulate.simulate_flat`)
 instead of one simulation per column.
 
 Every fitted parameter gets a 1-sigma (:mod:`.sigma`): the HAC covariance of the Jacobian and
@@ -40,7 +40,7 @@ from servobench.bench.diagnose.simulate import (
     Window,
     gap_percent,
     simulate,
-    simulate_many,
+    simulate_flat,
     thinned,
     windows,
 )
@@ -229,6 +229,7 @@ class _TrainingError:
         self.data = data
         self.which = training_windows(data)
         self.masks = [~data.held_out[i][s:e] for i, s, e in self.which]
+        self._flat_mask = np.concatenate(self.masks) if self.masks else np.zeros(0, dtype=bool)
         self.measured = self._training([s.v for s in data.segments])
         self.scale = float(np.std(data.cat("v")))
         #: The least scale of the Coulomb levels in a fit: :data:`FORCE_FLOOR_SHARE` of the
@@ -246,11 +247,11 @@ class _TrainingError:
         """:meth:`residual` of each candidate, simulated in one batch."""
         self.evaluations += len(cands)
         out = []
-        for v in simulate_many(self.data, cands, self.which):
+        for v in simulate_flat(self.data, cands, self.which):
             if isinstance(v, UsageError):
                 out.append(np.full(self.measured.size, PENALTY))
                 continue
-            r = (self._training(v) - self.measured) / self.scale
+            r = (v[self._flat_mask] - self.measured) / self.scale
             out.append(np.where(np.isfinite(r), r, PENALTY))
         return out
 

@@ -109,6 +109,28 @@ def simulate_many(
     """:func:`simulate` of each candidate, the compiled ones in one call; the error instead
     of the velocity for parameters the simulator rejects."""
     which = windows(data) if which is None else list(which)
+    out: list = []
+    for flat in simulate_flat(data, cands, which, added):
+        if isinstance(flat, UsageError):
+            out.append(flat)
+            continue
+        per_run = [np.full(len(r), np.nan) for r in data.segments]
+        col = 0
+        for i, s, e in which:
+            per_run[i][s:e] = flat[col : col + e - s]
+            col += e - s
+        out.append(per_run)
+    return out
+
+
+def simulate_flat(
+    data: DiagnosisData,
+    cands: Sequence[Candidate],
+    which: Sequence[Window],
+    added: Sequence[np.ndarray] | None = None,
+) -> list[np.ndarray | UsageError]:
+    """:func:`simulate_many`'s velocities as one array per candidate: the windows ``which``, each
+    after the one before it (what a fit compares, without the runs' arrays around them)."""
     dt = data.dt_s
     sigma = data.sigma_v
     u_runs = [r.u if added is None else r.u + added[i] for i, r in enumerate(data.segments)]
@@ -135,7 +157,8 @@ def simulate_many(
             continue
         if pk is None:
             try:
-                out[c] = _reference(data, model, which, u_runs, start, carry)
+                per_run = _reference(data, model, which, u_runs, start, carry)
+                out[c] = np.concatenate([per_run[i][s:e] for i, s, e in which])
             except UsageError as err:
                 out[c] = err
             continue
@@ -148,10 +171,7 @@ def simulate_many(
     if packs:
         v, _, _ = run(packs, lines, np.array(rows, dtype=np.int64).reshape(-1, 4), np.array(start), carry)
         for p, c in enumerate(batch):
-            per_run = [np.full(len(r), np.nan) for r in data.segments]
-            for i, s, n, o in rows:
-                per_run[i][s : s + n] = v[p, o : o + n]
-            out[c] = per_run
+            out[c] = v[p]
     return out
 
 
