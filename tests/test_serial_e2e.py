@@ -17,7 +17,7 @@ import pytest
 
 from servobench.bench.log.io import read_log
 from servobench.bench.run.runner import stream_runs
-from servobench.bench.testing.served import ServedSim, at_drive_priority
+from servobench.bench.testing.served import PATIENT_KEYS, ServedSim, at_drive_priority
 from servobench.drivers.registry import open_drive
 from servobench.drivers.serial.ascii_line import MalformedReplyError
 from servobench.drivers.serial.dialect import DIALECT_DIR, CommandRejectedError, load_dialect
@@ -83,7 +83,10 @@ def test_square_wave_matches_the_plant(cycle_s):
 def test_a_lock_step_drive_streamed_in_real_time_keeps_its_own_clock(tmp_path):
     fs = 200.0
     u = square(60, 10, 0.8)
-    with served() as url, open_drive(url) as drive:
+    # the host waits up to 2 s for an answer, as every served real-time run does (PATIENT_KEYS): a
+    # fresh-clone suite's served drive, sharing the loaded host's cores, once left 'c 0 0.8 / f 0'
+    # unanswered for the default 0.1 s; a real drive has its own processor
+    with served() as url, open_drive(url + PATIENT_KEYS["serial"]) as drive:
         assert drive.log_metadata()["drive_clock"].startswith("feedback query count")
         stream_runs(drive, [(1, u)], fs, tmp_path / "log.csv", pace="real")
     log = read_log(tmp_path / "log.csv")
