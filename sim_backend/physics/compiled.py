@@ -76,6 +76,14 @@ def pack_coulomb(params, dt_s: float) -> Packed:
     )  # fmt: skip
 
 
+def coupling_kind(coupling) -> int:
+    """The integrator :mod:`.kernels` runs for a model's coupling (its ``terms.coupling``): one
+    body without one, a play or a spring."""
+    if coupling is None:
+        return k.RIGID
+    return k.GAP if coupling.kind == "gap" else k.SPRING
+
+
 def pack(model, dt_s: float) -> Packed | None:
     """``model`` (a prepared :class:`~.rich_plant.RichModel`) over steps of ``dt_s``, or ``None``
     when one of its terms is not data."""
@@ -104,7 +112,7 @@ def pack(model, dt_s: float) -> Packed | None:
         model.params.M, model.B_pos, model.B_neg, dt_s,
     )  # fmt: skip
     segs = model.rows(dt_s)
-    kind = k.RIGID if c is None else k.GAP if c.kind == "gap" else k.SPRING
+    kind = coupling_kind(c)
     force_rows = np.array([(f.amp, f.k, f.phase) for f in forces], dtype=float).reshape(-1, 3)
     ipar = _ipar(kind, exc is not None, at is not None, len(segs), table.size, len(force_rows))
     owner, modes = None, np.zeros((0, 6 * k.MODE_COLS), complex)

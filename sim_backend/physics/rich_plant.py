@@ -34,12 +34,12 @@ import numpy as np
 
 from servobench.errors import UsageError
 from servobench.sim_backend.physics.bodies import Propagator, consts, slider
-from servobench.sim_backend.physics.compiled import Packed, pack, run
+from servobench.sim_backend.physics.compiled import Packed, coupling_kind, pack, run
 from servobench.sim_backend.physics.coulomb import PlantParams, PlantState
 from servobench.sim_backend.physics.coupling import CouplingMixin
 from servobench.sim_backend.physics.effects import collect_terms
 from servobench.sim_backend.physics.effects.spec import Terms
-from servobench.sim_backend.physics.kernels import GAP, PAIRS, RIGID, SEG_COLS, SPRING, carry_state
+from servobench.sim_backend.physics.kernels import PAIRS, SEG_COLS, carry_state
 
 #: Sub-steps per interval for terms that are not exact under constant force.
 DEFAULT_SUBSTEPS = 2
@@ -146,10 +146,8 @@ class RichModel(CouplingMixin):
         """Restart the measured body at ``state``, carrying on the second body from where the last
         :meth:`simulate` left it (its offset and relative velocity, the engaged side of a play):
         :func:`.kernels.carry_state`, what no sensor sees kept across a restart."""
-        c = self.terms.coupling
-        kind = GAP if c is not None and c.kind == "gap" else SPRING if c is not None else RIGID
         start = np.array([state.v, state.x, state.v, state.x, 0.0])
-        carry_state(np.array(self._hidden, dtype=float), start, kind)
+        carry_state(np.array(self._hidden, dtype=float), start, coupling_kind(self.terms.coupling))
         vm, xm, vl, xl, side = start.tolist()
         self._hidden = (vm, xm, vl, xl, int(side))
         self._last = PlantState(state.v, state.x)  # :meth:`_sync` keeps what was carried
