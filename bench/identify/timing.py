@@ -520,7 +520,8 @@ def placed_delay_spread_s(logged: Dataset, estimate: MethodEstimate, placed_dela
     found = []
     for _ in range(draws):
         with contextlib.suppress(IdentificationError):
-            found.append(placed_delay(_moved_instants(logged, estimate, rng, math.nan, True, True)) - delay_s)
+            moved = _moved_instants(logged, estimate, rng, math.nan, split=False, anywhere=True)
+            found.append(placed_delay(moved) - delay_s)
     return float(np.sqrt(np.mean(np.square(found)))) if found else math.inf
 
 
