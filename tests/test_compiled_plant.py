@@ -317,3 +317,30 @@ def test_the_compiled_variable_interval_integrator_equals_its_reference_bit_for_
         assert np.array_equal(got, want), (i, float(np.max(np.abs(got - want))))
         moved += bool(np.any(want != 0.0))
     assert moved > 100  # the cases move the axis
+
+
+def test_an_excess_past_its_cut_leaves_the_coulomb_level_as_it_is():
+    """:func:`~.kernels.excess_cut`: past the cut the kernels skip the excess's ``exp``; the
+    level it would have been added to rounds to itself there, for levels and excesses over
+    twelve decades, and a Stribeck plant driven far past its cut still gives the reference's
+    numbers bit for bit."""
+    from servobench.sim_backend.physics import kernels
+
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        fcp, fcn = 10.0 ** rng.uniform(-4, 4, 2)
+        pos, neg = 10.0 ** rng.uniform(-4, 4, 2) * rng.uniform(0, 3, 2)
+        cut = kernels.excess_cut(pos, neg, fcp, fcn)
+        for z2 in (cut, np.nextafter(cut, np.inf), cut * 1.5 + 1):
+            assert fcp + pos * np.exp(-z2) == fcp and -fcn - neg * np.exp(-z2) == -fcn
+    assert kernels.excess_cut(1.0, 1.0, 0.0, 0.4) == np.inf  # no level to hide it in
+    params, runs = case("stribeck", "square")
+    new, ref = both(params)
+    inv = 1.0 / params.effects["stribeck"]["vs"]
+    cut = kernels.excess_cut(*(params.effects["stribeck"]["fs"],) * 2, params.coulomb_pos,
+                             params.coulomb_neg)  # fmt: skip
+    for u in runs:
+        v1 = new.simulate(u, 1.0 / 500.0, PlantState())[0]
+        v0 = ref.simulate(u, 1.0 / 500.0, PlantState())[0]
+        assert np.array_equal(v1, v0)
+        assert np.mean((v0 * inv) ** 2 > cut) > 0.2  # most samples skip the exp

@@ -11,6 +11,7 @@ reference step, called back from the compiled loop).
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -101,6 +102,8 @@ def pack(model, dt_s: float) -> Packed | None:
     fpar[k.FCP], fpar[k.FCN], fpar[k.BKP], fpar[k.BKN] = fcp, fcn, bkp, bkn
     if exc is not None:
         fpar[k.EXC_POS], fpar[k.EXC_NEG], fpar[k.EXC_INV] = exc.pos, exc.neg, exc.inv_speed
+        # the excess is skipped where it cannot change the level; a table moves the level
+        fpar[k.EXC_CUT] = math.inf if at is not None else k.excess_cut(exc.pos, exc.neg, fcp, fcn)
     table = np.zeros(0)
     if at is not None:
         fpar[k.AT_X0], fpar[k.AT_SCALE] = at.x0, at.scale
@@ -131,7 +134,14 @@ def pack(model, dt_s: float) -> Packed | None:
 
 #: A spring's systems ``(motor direction, load direction, motor held)`` in
 #: :func:`.kernels.spring_system`'s order.
-SPRING_SYSTEMS = ((1, 1, False), (1, -1, False), (-1, 1, False), (-1, -1, False), (1, 1, True), (1, -1, True))
+SPRING_SYSTEMS = (
+    (1, 1, False),
+    (1, -1, False),
+    (-1, 1, False),
+    (-1, -1, False),
+    (1, 1, True),
+    (1, -1, True),
+)
 
 
 def spring_modes(model) -> np.ndarray:
@@ -219,7 +229,9 @@ def run(
         line_at,
         windows,
         np.ascontiguousarray(start, dtype=float).reshape(-1, 5),
-        np.zeros(windows.shape[0], np.bool_) if carry is None else np.ascontiguousarray(carry, np.bool_),
+        np.zeros(windows.shape[0], np.bool_)
+        if carry is None
+        else np.ascontiguousarray(carry, np.bool_),
         out_v,
         out_x,
         final,

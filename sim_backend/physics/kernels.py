@@ -36,8 +36,8 @@ from numba import njit, objmode
 
 # ------------------------------------------------------------------ the layout of a model
 #: ``fpar`` indices.
-FCP, FCN, BKP, BKN, EXC_POS, EXC_NEG, EXC_INV, AT_X0, AT_SCALE, HALF, RATIO, MASS, B_POS, B_NEG, DT, STIFF, DAMP = range(17)  # fmt: skip
-NF = 17
+FCP, FCN, BKP, BKN, EXC_POS, EXC_NEG, EXC_INV, AT_X0, AT_SCALE, HALF, RATIO, MASS, B_POS, B_NEG, DT, STIFF, DAMP, EXC_CUT = range(18)  # fmt: skip
+NF = 18
 #: ``ipar`` indices.
 KIND, HAS_EXC, HAS_AT, SEG0, SEG1, TAB0, TAB1, FOR0, FOR1, KEY, MODE = range(11)
 NI = 11
@@ -68,8 +68,25 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy", "_nrt": False}
 
 @njit(**_JIT)
 def _excess(speed, direction, fpar):
+    """The excess at ``speed``; 0 past ``fpar[EXC_CUT]`` in ``z**2`` (:func:`excess_cut`),
+    where the Coulomb level it is added to does not change by it."""
     z = speed * fpar[EXC_INV]
+    if z * z > fpar[EXC_CUT]:
+        return 0.0
     return (fpar[EXC_POS] if direction > 0 else fpar[EXC_NEG]) * math.exp(-z * z)
+
+
+def excess_cut(pos: float, neg: float, fcp: float, fcn: float) -> float:
+    """The ``z**2`` past which an excess ``max(pos, neg) exp(-z**2)`` is below ``2**-54`` of
+    the smaller Coulomb level: added to that level, it rounds to the level itself (less than
+    half its last place), so the kernels skip its ``exp`` there and their sums stay the
+    reference's bit for bit. ``inf`` (never skipped) where a level is not positive."""
+    top, floor = max(abs(pos), abs(neg)), min(fcp, fcn)
+    if floor <= 0.0 or not math.isfinite(floor):
+        return math.inf
+    if top == 0.0:
+        return 0.0
+    return max(0.0, math.log(top / floor) + 54.0 * math.log(2.0) + 1.0)  # 1: a margin
 
 
 @njit(**_JIT)
@@ -298,27 +315,49 @@ def spring_system(sm, sl, held):
 
 
 @njit(**_JIT)
-def _propagated(mode, system, t, i, z0, z1, z2, z3, w):
-    """Row ``i`` of :meth:`~.bodies.Propagator.over` ``(E, g)`` of a spring system over ``t``
-    applied to the state ``z`` and the input ``w``: ``sum_j E_ij z_j + g_i w`` in the
-    reference's order (a held motor's system has two states, ``z0, z1``)."""
+def _over(mode, system, t):
+    """The exponentials of a spring system's modes over ``t``: ``exp(lam_q t)`` and
+    ``phi_q = (exp(lam_q t) - 1) / lam_q``, as :meth:`~.bodies.Propagator.over` takes them,
+    once for every row :func:`_propagated` applies (a held motor's system uses two)."""
+    at = MODE_COLS * system
+    n = 2 if system >= 4 else 4
+    e0 = e1 = e2 = e3 = p0 = p1 = p2 = p3 = 0j
+    for q in range(n):
+        lam = mode[at + q]
+        lt = lam * t
+        e = np.exp(lt)
+        phi = t * (1 + lt / 2) if abs(lt) < 1e-8 else (e - 1) / lam
+        if q == 0:
+            e0, p0 = e, phi
+        elif q == 1:
+            e1, p1 = e, phi
+        elif q == 2:
+            e2, p2 = e, phi
+        else:
+            e3, p3 = e, phi
+    return (e0, e1, e2, e3), (p0, p1, p2, p3)
+
+
+@njit(**_JIT)
+def _propagated(mode, system, ex, i, z0, z1, z2, z3, w):
+    """Row ``i`` of :meth:`~.bodies.Propagator.over` ``(E, g)`` of a spring system, its
+    exponentials ``ex`` over the interval from :func:`_over`, applied to the state ``z`` and
+    the input ``w``: ``sum_j E_ij z_j + g_i w`` in the reference's order (a held motor's
+    system has two states, ``z0, z1``)."""
     n = 2 if system >= 4 else 4
     at = MODE_COLS * system
     vi, ib = at + n, at + n + 2 * n * n
+    es, phis = ex
     total = 0.0
     for j in range(n):
         e_ij = 0j
         for q in range(n):
-            lam = mode[at + q]
-            e_ij += (mode[vi + i * n + q] * np.exp(lam * t)) * mode[vi + n * n + q * n + j]
+            e_ij += (mode[vi + i * n + q] * es[q]) * mode[vi + n * n + q * n + j]
         z = z0 if j == 0 else z1 if j == 1 else z2 if j == 2 else z3
         total += e_ij.real * z
     g_i = 0j
     for q in range(n):
-        lam = mode[at + q]
-        lt = lam * t
-        phi = t * (1 + lt / 2) if abs(lt) < 1e-8 else (np.exp(lt) - 1) / lam
-        g_i += mode[vi + i * n + q] * (phi * mode[ib + q])
+        g_i += mode[vi + i * n + q] * (phis[q] * mode[ib + q])
     return total + g_i.real * w
 
 
@@ -329,28 +368,31 @@ def _reverse_compiled(mode, vm, xm, vl, xl, th, h, sm, f, g, fpar, ipar, table):
     sl = 1 if vl >= 0.0 else -1
     t = th * h
     c = spring_system(sm, sl, False)
+    ex = _over(mode, c, t)
     # the motor's own velocity at the crossing is 0: rows 1-3 only
-    n1 = _propagated(mode, c, t, 1, vm, xm, vl, xl, g)
-    n2 = _propagated(mode, c, t, 2, vm, xm, vl, xl, g)
-    n3 = _propagated(mode, c, t, 3, vm, xm, vl, xl, g)
+    n1 = _propagated(mode, c, ex, 1, vm, xm, vl, xl, g)
+    n2 = _propagated(mode, c, ex, 2, vm, xm, vl, xl, g)
+    n3 = _propagated(mode, c, ex, 3, vm, xm, vl, xl, g)
     rest = (1.0 - th) * h
     net = f + kk * (n3 - n1) + cc * n2
     F, held = _friction_force(0.0, net, n1, fpar, ipar, table)
     if held:
         c = spring_system(1, sl, True)
+        ex = _over(mode, c, rest)
         w = kk * n1
         return (
             0.0,
             n1,
-            _propagated(mode, c, rest, 0, n2, n3, 0.0, 0.0, w),
-            _propagated(mode, c, rest, 1, n2, n3, 0.0, 0.0, w),
+            _propagated(mode, c, ex, 0, n2, n3, 0.0, 0.0, w),
+            _propagated(mode, c, ex, 1, n2, n3, 0.0, 0.0, w),
         )
     c = spring_system(1 if net > 0.0 else -1, sl, False)
+    ex = _over(mode, c, rest)
     return (
-        _propagated(mode, c, rest, 0, 0.0, n1, n2, n3, f - F),
-        _propagated(mode, c, rest, 1, 0.0, n1, n2, n3, f - F),
-        _propagated(mode, c, rest, 2, 0.0, n1, n2, n3, f - F),
-        _propagated(mode, c, rest, 3, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, ex, 0, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, ex, 1, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, ex, 2, 0.0, n1, n2, n3, f - F),
+        _propagated(mode, c, ex, 3, 0.0, n1, n2, n3, f - F),
     )
 
 
@@ -431,10 +473,24 @@ def _spring(line, i0, n, state, out_v, out_x, o0, fpar, ipar, segs, table, force
                 th = vm / (vm - n0)
                 if ipar[MODE] >= 0:
                     vm, xm, vl, xl = _reverse_compiled(
-                        modes[ipar[MODE]], vm, xm, vl, xl, th, segs[s, 1], sm, f, g, fpar, ipar, table
+                        modes[ipar[MODE]],
+                        vm,
+                        xm,
+                        vl,
+                        xl,
+                        th,
+                        segs[s, 1],
+                        sm,
+                        f,
+                        g,
+                        fpar,
+                        ipar,
+                        table,
                     )
                 else:
-                    vm, xm, vl, xl = _reverse_py(ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g)
+                    vm, xm, vl, xl = _reverse_py(
+                        ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g
+                    )
             else:
                 vm, xm, vl, xl = n0, n1, n2, n3
     state[0], state[1], state[2], state[3], state[4] = vm, xm, vl, xl, 0.0
