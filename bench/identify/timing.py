@@ -24,10 +24,17 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   measured (the bracket alone predicted 1.1 %). Where each command travels
   ahead of its sample in a request of its own (a command lead: ODrive serial)
   and no tick grid was located, each draw also moves where each command acts,
-  apart from its row's instant, by the same scatter: the drive acts at the
-  tick after the command's arrival and samples at the tick before the query's,
-  so the rows' delays spread (served at a 0.125 ms tick: predicted 0.21 % for
-  a true 0.29 % before, 0.33 % now). The re-run estimator: an output-error model is refined again from itself on each moved copy;
+  apart from its row's instant: the drive acts at the tick after the command's
+  arrival and samples at the tick before the query's, so the rows' delays
+  spread (served at a 0.125 ms tick: predicted 0.21 % for a true 0.29 % before
+  the actions moved). How far the actions stray is read at the command's changes
+  (:func:`~servobench.bench.identify.joint.action_scatter_s`,
+  ``action_scatter_s`` in the figure), each change's residual over the
+  sensitivity of its interval to the action's instant: the scatter read
+  against the acceleration takes an action's error for a sample's and read
+  0.11-0.12 ms where the actions strayed by about 0.06 ms (three served logs
+  at a 0.125 ms tick predicted 0.63-0.69 % at two sigma for errors of
+  0.003-0.07 %, now 0.25-0.26 %). The re-run estimator: an output-error model is refined again from itself on each moved copy;
   any other by the joint estimator's exact pair regression
   (:func:`~servobench.bench.identify.joint.pair_regression`, weighted by the
   timing uncertainty), compared with the same regression on the instants as
@@ -132,6 +139,11 @@ METHOD = (
     "moved at random by the scatter the residuals show (instant_scatter_s, normal), never beyond "
     "its uncertainty t_unc; rms relative change, 1 sigma, with the model's own 1 sigma in quadrature"
 )
+#: Behind a command's lead, each command's action moved by the scatter its changes show.
+METHOD_ACTIONS = (
+    "; behind the command's lead, each command's action moved apart by the scatter the residuals at "
+    "its changes show (action_scatter_s, normal)"
+)
 #: The method where the drive stamps its samples (the instants are exact).
 METHOD_STAMPS = "drive time stamps: exact instants; the model's own 1 sigma"
 #: The delay counts as inseparable from the plant's lag when its 1 sigma exceeds this share of
@@ -218,6 +230,9 @@ class TimingFigure:
     link_max_hz: float = math.nan  #: the rate the link carries, from the log [Hz]
     #: How far the instants stray, 1 sigma each, as the residuals show [s] (NaN: not read).
     instant_scatter_s: float = math.nan
+    #: Behind a command's lead, how far each command's action strays from where the model has
+    #: it, 1 sigma, as the residuals at its changes show [s] (NaN: not read, or no lead).
+    action_scatter_s: float = math.nan
     #: The drive's identified action delay and its statistical 1 sigma [s] (the model's ``delay_s``
     #: and the fit's sigma).
     delay_s: float = 0.0
@@ -331,6 +346,7 @@ class TimingFigure:
             coverage_sigma=COVERAGE,
             model_error_method=self.method,
             instant_scatter_s=_finite(self.instant_scatter_s),
+            action_scatter_s=_finite(self.action_scatter_s),
             delay_s=_finite(self.delay_s),
             delay_std_s=_finite(self.delay_std_s),
             delay_error_s=_finite(self.delay_error_s),
@@ -419,7 +435,7 @@ def timing_figure(
     cycle = {key: _number(metadata.get(key)) for key in CYCLE_KEYS}
     timing = {k: 0.0 for k in STD_KEYS}
     delay_moved = 0.0
-    scatter, method = math.nan, METHOD_STAMPS
+    scatter, action, method = math.nan, math.nan, METHOD_STAMPS
     m = estimate.model
     if data.timing_uncertain and not data.derived:
         from servobench.bench.identify.joint import instant_scatter_s
@@ -432,8 +448,15 @@ def timing_figure(
             timing, delay_moved = perturbed_spread_pct(logged, estimate, regrid=regrid)
             method = METHOD_GRID
         else:
-            timing, delay_moved = perturbed_spread_pct(data, estimate, scatter_s=scatter)
+            if data.min_delay_s < 0:  # a command lead: where each command acts strays on its own
+                from servobench.bench.identify.joint import action_scatter_s
+
+                action = action_scatter_s(data, m)
+            timing, delay_moved = perturbed_spread_pct(data, estimate, scatter_s=scatter,
+                                                       action_scatter_s=action)  # fmt: skip
             method = METHOD if math.isfinite(scatter) else METHOD_BOUND
+            if math.isfinite(action):
+                method += METHOD_ACTIONS
         weighting = weighting_pct(data, estimate)
         if weighting is not None:
             timing = {k: math.hypot(timing[k], weighting[0][k]) for k in STD_KEYS}
@@ -474,7 +497,7 @@ def timing_figure(
     tau = m.M / m.B if m.B > 0 else math.inf
     return TimingFigure(source, cycle, data.fs_hz, error, method=method, time_constant_s=tau,
                         link_max_hz=_number(metadata.get("link_max_rate_hz")),
-                        instant_scatter_s=scatter, delay_s=m.delay_s,
+                        instant_scatter_s=scatter, action_scatter_s=action, delay_s=m.delay_s,
                         delay_std_s=float(estimate.std.get(DELAY_KEY, math.nan)),
                         delay_timing_std_s=delay_moved,
                         drive_tick_s=_number(metadata.get("drive_tick_s")),
@@ -587,6 +610,7 @@ def perturbed_spread_pct(
     scatter_s: float = math.nan,
     regrid: Callable[[Dataset], Dataset] | None = None,
     placements: Callable[[Dataset, np.random.Generator], Dataset] | None = None,
+    action_scatter_s: float = math.nan,
 ) -> tuple[dict[str, float], float]:
     """RMS relative change [%] of each parameter when the instants move within ``t_unc``:
     by normal draws of ``scatter_s`` [s] clipped to ``t +- t_unc``, or uniformly within it
@@ -598,6 +622,9 @@ def perturbed_spread_pct(
     it ended); any other by the joint pair regression, compared with the same
     regression on the instants as logged. ``placements``: each draw is ``placements(data,
     generator)`` (the reads placed anew, their instants as logged) instead of moved instants.
+    ``action_scatter_s``: behind a command's lead, how far each command's action strays apart
+    from its row's instant (:func:`~servobench.bench.identify.joint.action_scatter_s`; NaN:
+    by ``scatter_s`` too).
     """
     from servobench.bench.identify.joint import identify_joint, pair_regression
 
@@ -616,7 +643,8 @@ def perturbed_spread_pct(
             if placements is not None:
                 moved = placements(data, rng)
             else:
-                moved = _moved_instants(data, estimate, rng, scatter_s, split, regrid is not None)
+                moved = _moved_instants(data, estimate, rng, scatter_s, split, regrid is not None,
+                                        action_scatter_s)  # fmt: skip
                 if regrid is not None:
                     moved = regrid(moved)
             m = identify_joint(moved, start=estimate).model if refine else pair_regression(moved, delay, tau)
@@ -634,10 +662,11 @@ def perturbed_spread_pct(
 
 
 def _moved_instants(data: Dataset, estimate: MethodEstimate, rng: np.random.Generator, scatter_s: float,
-                    split: bool, anywhere: bool) -> Dataset:  # fmt: skip
+                    split: bool, anywhere: bool, action_scatter_s: float = math.nan) -> Dataset:  # fmt: skip
     """``data`` with every instant moved as :func:`perturbed_spread_pct` says: anywhere in its
     bracket (``anywhere``: the grid's draws), by a normal draw of ``scatter_s`` within it, or
-    uniformly within it; with a command lead (``split``) each command's action apart as well."""
+    uniformly within it; with a command lead (``split``) each command's action apart as well, by
+    ``action_scatter_s`` where it was read (else ``scatter_s``)."""
     segments = []
     for s in data.segments:
         if s.t_unc is None:
@@ -661,7 +690,8 @@ def _moved_instants(data: Dataset, estimate: MethodEstimate, rng: np.random.Gene
         if split and not anywhere and math.isfinite(scatter_s):
             # the command travels in a request of its own: where it acts strays apart from
             # where its row's sample was taken (each at the drive's tick next to its arrival)
-            own = np.clip(rng.normal(0.0, scatter_s, len(s)), -reach, reach)
+            spread = action_scatter_s if math.isfinite(action_scatter_s) else scatter_s
+            own = np.clip(rng.normal(0.0, spread, len(s)), -reach, reach)
             offsets = own if offsets is None else offsets + own
         segments.append(replace(s, t=t, dt_s=np.maximum(dt, 1e-12), act_offset_s=offsets))
     return replace(data, segments=tuple(segments))
