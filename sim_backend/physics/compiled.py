@@ -134,14 +134,7 @@ def pack(model, dt_s: float) -> Packed | None:
 
 #: A spring's systems ``(motor direction, load direction, motor held)`` in
 #: :func:`.kernels.spring_system`'s order.
-SPRING_SYSTEMS = (
-    (1, 1, False),
-    (1, -1, False),
-    (-1, 1, False),
-    (-1, -1, False),
-    (1, 1, True),
-    (1, -1, True),
-)
+SPRING_SYSTEMS = ((1, 1, False), (1, -1, False), (-1, 1, False), (-1, -1, False), (1, 1, True), (1, -1, True))
 
 
 def spring_modes(model) -> np.ndarray:
@@ -229,9 +222,7 @@ def run(
         line_at,
         windows,
         np.ascontiguousarray(start, dtype=float).reshape(-1, 5),
-        np.zeros(windows.shape[0], np.bool_)
-        if carry is None
-        else np.ascontiguousarray(carry, np.bool_),
+        np.zeros(windows.shape[0], np.bool_) if carry is None else np.ascontiguousarray(carry, np.bool_),
         out_v,
         out_x,
         final,

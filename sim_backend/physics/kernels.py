@@ -473,24 +473,10 @@ def _spring(line, i0, n, state, out_v, out_x, o0, fpar, ipar, segs, table, force
                 th = vm / (vm - n0)
                 if ipar[MODE] >= 0:
                     vm, xm, vl, xl = _reverse_compiled(
-                        modes[ipar[MODE]],
-                        vm,
-                        xm,
-                        vl,
-                        xl,
-                        th,
-                        segs[s, 1],
-                        sm,
-                        f,
-                        g,
-                        fpar,
-                        ipar,
-                        table,
+                        modes[ipar[MODE]], vm, xm, vl, xl, th, segs[s, 1], sm, f, g, fpar, ipar, table
                     )
                 else:
-                    vm, xm, vl, xl = _reverse_py(
-                        ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g
-                    )
+                    vm, xm, vl, xl = _reverse_py(ipar[KEY], vm, xm, vl, xl, th, segs[s, 1], sm, f, g)
             else:
                 vm, xm, vl, xl = n0, n1, n2, n3
     state[0], state[1], state[2], state[3], state[4] = vm, xm, vl, xl, 0.0
