@@ -32,7 +32,7 @@ its instant), and the host's cycle in its trailer (``host_jitter_p50_s``,
   ``action_scatter_s`` in the figure), each change's residual over the
   sensitivity of its interval to the action's instant: the scatter read
   against the acceleration takes an action's error for a sample's and read
-  0.11-0.12 ms where the actions strayed by about 0.06 ms (three served logs
+  0.11-0.12 ms where the changes read 0.056-0.058 ms (three served logs
   at a 0.125 ms tick predicted 0.63-0.69 % at two sigma for errors of
   0.03-0.07 % (the worst parameter), now 0.25-0.26 %). The re-run estimator: an output-error model is refined again from itself on each moved copy;
   any other by the joint estimator's exact pair regression
