@@ -542,12 +542,16 @@ def instant_scatter_s(data: Dataset, model: ServoModel) -> float:
     steep &= np.abs(acc) > 0
     if np.count_nonzero(steep) < 4:
         return math.nan
-    # an interval's error is at most the two half-widths: sqrt(6) sigma_dt (uniform instants),
-    # and a drive that samples at its own last tick adds up to its tick (at most its delay)
-    bound = (math.sqrt(6.0) * pairs.sigma_dt[steep] + max(model.delay_s, 0.0)
-             if pairs.sigma_dt is not None else math.inf)  # fmt: skip
+    bound = _interval_reach(pairs.sigma_dt[steep], model) if pairs.sigma_dt is not None else math.inf
     interval_error = np.clip(e[steep] / acc[steep], -bound, bound)  # never past the brackets
     return float(np.sqrt(np.mean(interval_error**2)) / math.sqrt(2.0))
+
+
+def _interval_reach(sigma_dt, model: ServoModel):
+    """How far an interval's timing can be off [s], given its 1-sigma ``sigma_dt`` [s]: the two
+    half-widths of its brackets, ``sqrt(6) sigma_dt`` (uniform instants), and up to the tick of
+    a drive that samples at its own last tick (at most its delay)."""
+    return math.sqrt(6.0) * sigma_dt + max(model.delay_s, 0.0)
 
 
 #: :func:`action_scatter_s` reads the commands' actions at the changes of at least this share of
@@ -605,7 +609,7 @@ def action_scatter_s(data: Dataset, model: ServoModel) -> float:
                 continue
             error = (v[i + 1] - end(v[i], u[j - 1], u[j], a, h)) / slope
             if sigma is not None:
-                bound = math.sqrt(6.0) * sigma[i] + max(model.delay_s, 0.0)
+                bound = _interval_reach(sigma[i], model)
                 error = min(max(error, -bound), bound)
             errors.append(error)
     if len(errors) < MIN_CHANGES:
