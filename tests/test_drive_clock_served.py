@@ -102,7 +102,9 @@ def link_sidbe_short(iface: str, url: str) -> dict:
              "--out", tmp + "/run", *SHORT],
             capture_output=True, text=True, timeout=600,
         )  # fmt: skip
-    return {"rc": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr[-4000:]}
+        logs = sorted(Path(tmp, "run").glob("log*.csv"))
+        meta = [line for line in logs[0].read_text().splitlines() if line.startswith("#")] if logs else []
+    return {"rc": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr[-4000:], "meta": meta}
 
 
 @pytest.mark.parametrize(("tick", "stamps"), ETHERCAT_CASES,
@@ -122,6 +124,9 @@ def test_default_sidbe_on_an_ethercat_slave_that_ticks(tick, stamps, tmp_path):
     model = json.loads(out["stdout"])
     _judge("ethercat", tick, stamps, model, json.loads(state.read_text())["tick"], 0.0)
     assert model["timing"]["late_samples"] is not None  # the log says where each command acted
+    # with 0x10F8 the stamps; without it (nor 0x1013) the SYNC0 event before each frame
+    clock = "0x10F8 DC system time of each sample" if stamps else "DC system time of each sample (the SYNC0 event"
+    assert any(line.startswith(f"# drive_clock = {clock}") for line in out["meta"]), out["meta"]
 
 
 def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict, drift: float) -> None:

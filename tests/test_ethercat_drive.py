@@ -4,7 +4,8 @@ Each test runs a ``link_*`` function of this file in a child process with a
 private veth link (:mod:`servobench.bench.testing.ethercat_link`): the drive
 through the registry as a user opens it; ``servobench sidbe`` open loop
 within 1 % of the plant and closed loop on a limited-travel axis through the
-drive's own CSP loop; the CiA 402 hold; the SM watchdog armed at open,
+drive's own CSP loop (without the DC time stamp, and with a drive tick inside the
+SYNC0 cycle: ``tests/test_drive_clock_served.py``); the CiA 402 hold; the SM watchdog armed at open,
 stopping the axis when the host dies, disarmed at close; late frames counted
 and bounded. Without pysoem the URL says in one line what to install.
 """
@@ -124,11 +125,6 @@ def link_cycles(iface: str, url: str) -> dict:
 def link_sidbe_open(iface: str, url: str) -> dict:
     """A default ``sidbe`` (1 kHz, paced in real time by the host, 32 s) on the URL as printed."""
     return _sidbe(url, ["--no-plots"])
-
-
-def link_sidbe_short(iface: str, url: str) -> dict:
-    """``sidbe`` at its defaults but for 2 s periods, 3 of them (12 s of streaming)."""
-    return _sidbe(url, ["--no-plots", "--period", "2", "--periods", "3"])
 
 
 def link_realtime(iface: str, url: str) -> dict:
@@ -442,20 +438,6 @@ def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
     assert "# drive = ethercat://" in out["meta"] and "# pace = real" in out["meta"]
     assert "# drive_clock = 0x10F8 DC system time of each sample" in out["meta"]
     assert "# late_samples = " in out["meta"]  # the log's t_act says where each command acted
-
-
-def test_sidbe_on_a_real_time_slave_without_its_time_stamp_within_one_percent() -> None:
-    """No 0x10F8 nor 0x1013: the SYNC0 event before each frame is the drive clock (12 s run)."""
-    _link_tests()
-    out = run_on_link(__file__, "link_sidbe_short", PLANT, ["--clock", "real", "--no-timestamp"])
-    assert out["rc"] == 0, out["stderr"]
-    model = json.loads(out["stdout"])
-    note = f"model {model.get('pole')}, {model.get('dc_gain')}; stderr: {out['stderr'][-500:]}"
-    assert model["pole"] == pytest.approx(-10.0, rel=0.01), note
-    assert model["dc_gain"] == pytest.approx(1.0, rel=0.01), note
-    assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.01), note
-    assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.01), note
-    assert "# drive_clock = DC system time of each sample (the SYNC0 event" in out["meta"]
 
 
 def test_closed_loop_sidbe_on_a_limited_travel_axis() -> None:
