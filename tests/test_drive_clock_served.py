@@ -33,15 +33,13 @@ stamps the tick and the repeated reads).
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
 from servobench.bench.testing.served import PATIENT_KEYS, ServedSim
+from servobench.bench.testing.sidbe_run import sidbe_json
 
 #: one real-time bench at a time over the workers (conftest.realtime_bench)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("realtime_bench")]
@@ -76,13 +74,9 @@ def _sidbe(transport: str, tick: float, stamps: bool, tmp_path: Path, seed: int,
     if not stamps and transport != "serial":
         args.append("--no-timestamp")
     with ServedSim(transport, PLANT.format(seed=seed), args) as served:
-        proc = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", served.url + PATIENT_KEYS[transport], "--json",
-             "--no-plots", "--out", str(tmp_path / "run"), *SHORT],
-            capture_output=True, text=True, timeout=600,
-        )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr.strip().splitlines()[-1:]
-    return json.loads(proc.stdout), json.loads(state.read_text())["tick"]
+        out = sidbe_json(served.url + PATIENT_KEYS[transport], ["--no-plots", *SHORT])
+    assert out["rc"] == 0, out["stderr"].strip().splitlines()[-1:]
+    return json.loads(out["stdout"]), json.loads(state.read_text())["tick"]
 
 
 @pytest.mark.parametrize(("transport", "tick", "stamps"), CASES,
@@ -96,15 +90,7 @@ def test_default_sidbe_on_a_drive_that_ticks(transport, tick, stamps, tmp_path):
 
 def link_sidbe_short(iface: str, url: str) -> dict:
     """Inside the private link's namespace: the short ``sidbe`` on the slave's URL as printed."""
-    with tempfile.TemporaryDirectory() as tmp:
-        proc = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json", "--no-plots",
-             "--out", tmp + "/run", *SHORT],
-            capture_output=True, text=True, timeout=600,
-        )  # fmt: skip
-        logs = sorted(Path(tmp, "run").glob("log*.csv"))
-        meta = [line for line in logs[0].read_text().splitlines() if line.startswith("#")] if logs else []
-    return {"rc": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr[-4000:], "meta": meta}
+    return sidbe_json(url, ["--no-plots", *SHORT])
 
 
 @pytest.mark.parametrize(("tick", "stamps"), ETHERCAT_CASES,
@@ -126,7 +112,7 @@ def test_default_sidbe_on_an_ethercat_slave_that_ticks(tick, stamps, tmp_path):
     assert model["timing"]["late_samples"] is not None  # the log says where each command acted
     # with 0x10F8 the stamps; without it (nor 0x1013) the SYNC0 event before each frame
     clock = "0x10F8 DC system time of each sample" if stamps else "DC system time of each sample (the SYNC0 event"
-    assert any(line.startswith(f"# drive_clock = {clock}") for line in out["meta"]), out["meta"]
+    assert f"# drive_clock = {clock}" in out["heads"]["log.csv"], out["heads"]
 
 
 def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict, drift: float) -> None:

@@ -16,13 +16,13 @@ import json
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
+from servobench.bench.testing.sidbe_run import sidbe_json
 from servobench.sim_backend.physics.plant import Plant, PlantParams, simulate
 
 pytestmark = pytest.mark.slow  # a default sidbe (32 s at 1 kHz) and a closed-loop one: 2 min
@@ -53,22 +53,8 @@ def _link_tests():
 
 
 def _sidbe(url: str, args: list[str]) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json",
-             "--out", tmp + "/run", *args],
-            capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
-        log_head = ""
-        if out.returncode == 0:
-            with open(tmp + "/run/log.csv") as f:
-                log_head = "".join(line for line in f if line.startswith("#"))
-    return {
-        "rc": out.returncode,
-        "stdout": out.stdout,
-        "stderr": out.stderr[-3000:],
-        "meta": log_head,
-    }
+    out = sidbe_json(url, args, timeout_s=300)
+    return {**out, "meta": out["heads"].get("log.csv", "") if out["rc"] == 0 else ""}
 
 
 # ------------------------------------------------------------ link functions

@@ -14,14 +14,12 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
-import tempfile
 from importlib.resources import files
 
 import pytest
 
 from servobench.bench.testing.ethercat_link import link_unavailable, run_on_link
+from servobench.bench.testing.sidbe_run import sidbe_json
 
 pytestmark = pytest.mark.slow  # served drives and sidbe runs
 
@@ -33,20 +31,7 @@ SHORT = ["--periods", "2", "--period", "2"]
 
 def _sidbe(url: str, args: list[str]) -> dict:
     """``sidbe --json`` into a fresh folder: exit code, the model, stderr, the logs' headers."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json", "--no-plots",
-             "--out", tmp + "/run", *args],
-            capture_output=True, text=True, timeout=300,
-        )  # fmt: skip
-        heads = {}
-        for name in ("log.csv", "hold-trial.csv", "probe.csv"):
-            try:
-                with open(f"{tmp}/run/{name}") as f:
-                    heads[name] = "".join(line for line in f if line.startswith("#"))
-            except FileNotFoundError:
-                pass
-    return {"rc": out.returncode, "stdout": out.stdout, "stderr": out.stderr[-3000:], "heads": heads}
+    return sidbe_json(url, ["--no-plots", *args], timeout_s=300)
 
 
 def _model(out: dict, rel: float) -> dict:
