@@ -53,8 +53,7 @@ def _link_tests():
 
 
 def _sidbe(url: str, args: list[str]) -> dict:
-    out = sidbe_json(url, args, timeout_s=300)
-    return {**out, "meta": out["heads"].get("log.csv", "") if out["rc"] == 0 else ""}
+    return sidbe_json(url, args, timeout_s=300)
 
 
 # ------------------------------------------------------------ link functions
@@ -421,9 +420,10 @@ def test_default_sidbe_through_the_ethercat_drive_within_one_percent() -> None:
     assert model["coulomb_pos"] == pytest.approx(0.5, rel=0.01), note
     assert model["coulomb_neg"] == pytest.approx(0.4, rel=0.01), note
     assert model["fs"] == 1000.0 and model["loop"] == "open"
-    assert "# drive = ethercat://" in out["meta"] and "# pace = real" in out["meta"]
-    assert "# drive_clock = 0x10F8 DC system time of each sample" in out["meta"]
-    assert "# late_samples = " in out["meta"]  # the log's t_act says where each command acted
+    head = out["heads"]["log.csv"]
+    assert "# drive = ethercat://" in head and "# pace = real" in head
+    assert "# drive_clock = 0x10F8 DC system time of each sample" in head
+    assert "# late_samples = " in head  # the log's t_act says where each command acted
 
 
 def test_closed_loop_sidbe_on_a_limited_travel_axis() -> None:
