@@ -416,7 +416,8 @@ def test_the_kernel_sync_is_python_cans_periodic_send():
 # ---------------------------------------------------------- command lead
 class LeadingDrive(SimDrive):
     """Latches the command 1 ms before it samples, as the ODrive ASCII protocol's torque line
-    reaches a free-running drive before the feedback query does."""
+    reaches a free-running drive before the feedback query does. Both at pinned instants of the
+    device's clock, so a loaded host's preemption cannot lengthen the lead past LEAD_S."""
 
     LEAD_S = 1e-3
 
@@ -424,11 +425,14 @@ class LeadingDrive(SimDrive):
         return self.LEAD_S
 
     def _exchange(self, u: float) -> Feedback:
-        self.device.set_command(u)
-        deadline = time.monotonic() + self.LEAD_S
-        while time.monotonic() < deadline:
+        latched = time.monotonic()  # the device's clock
+        with self.device.instant(latched):
+            self.device.set_command(u)
+        sampled = latched + self.LEAD_S
+        while time.monotonic() < sampled:
             pass
-        s = self.device.sample()
+        with self.device.instant(sampled):  # exactly LEAD_S on, however late this thread ran
+            s = self.device.sample()
         return Feedback(s.t_s, s.velocity, s.position)
 
 
@@ -447,6 +451,6 @@ def test_a_command_that_leads_its_sample_is_identified_as_a_negative_delay(tmp_p
     ignored = identify(type(log)(log.runs, {k: v for k, v in log.metadata.items() if k != "command_lead_s"},
                                  log.fs_hz), "joint")  # fmt: skip
     assert worst(ignored.model) > 0.05  # a delay >= 0 cannot take a command that acts early
-    assert worst(moved.model) < 0.015  # the delay free from -command_lead_s on
-    assert moved.model.delay_s == pytest.approx(-LeadingDrive.LEAD_S, abs=0.2e-3)
+    assert worst(moved.model) < 0.005  # the delay free from -command_lead_s on
+    assert moved.model.delay_s == pytest.approx(-LeadingDrive.LEAD_S, abs=0.05e-3)
     assert any("command_lead_s" in note for note in moved.notes)
