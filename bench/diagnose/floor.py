@@ -7,7 +7,15 @@ parts, each found from the log:
 * measured velocity -- ``velocity noise``: white sensor noise from its second
   differences (:func:`~servobench.bench.diagnose.data.noise_std`);
   ``velocity step``: the rounding of a velocity the drive reports in whole
-  steps, ``step / sqrt 12``;
+  steps, ``step / sqrt 12``. A reading in steps whose noise is not small
+  against the step is not the two added: the noise dithers the rounding, and
+  second differences of a reading on a grid (whole steps, a median of whole
+  steps) see both. There the reading is matched by simulation
+  (:func:`quantised_reading`): the final model's velocity plus white noise,
+  rounded to the log's grid, the noise's level the one whose second
+  differences move as often and as far as the log's; the parts are that noise
+  and what the rounding adds to it, their root sum of squares the simulated
+  reading's error;
 * velocity derived from position -- ``position step``: the encoder's step,
   found from the differences of ``x``
   (:func:`~servobench.bench.identify.resolution.grid_step`), its rounding
@@ -55,6 +63,13 @@ TAU_MAX_S = 1.0
 TAU_MIN_SAMPLES = 2
 #: Normal consistency of the median absolute deviation.
 MAD_NORMAL = 1.4826
+#: A quantised reading's second differences are counted in whole steps up to this many times
+#: their robust spread, and at least :data:`D2_CLIP_STEPS` steps (a switch of the command moves
+#: the velocity further, in the log and in its simulation alike; noise does not).
+D2_CLIP_SPREAD = 3.0
+D2_CLIP_STEPS = 3
+#: Bisections of the noise level a quantised reading is matched with (relative 2^-30).
+MATCH_BISECTIONS = 30
 
 
 @dataclass(frozen=True)
@@ -215,13 +230,90 @@ def derived_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[Floo
     return parts
 
 
-def measured_parts(data: DiagnosisData) -> list[FloorPart]:
-    """Parts of a measured velocity: white noise and the rounding of a stepped velocity."""
+def _d2_steps(readings: Sequence[np.ndarray], step: float, clip: float) -> float:
+    """Mean size [steps] of the second differences of readings on a grid of ``step``, each
+    counted up to ``clip`` steps."""
+    d2 = np.concatenate([np.abs(np.round(np.diff(r, 2) / step)) for r in readings])
+    return float(np.mean(np.minimum(d2, clip))) if d2.size else 0.0
+
+
+def quantised_reading(
+    readings: Sequence[np.ndarray], v_model: Sequence[np.ndarray], step: float, seed: int = 0
+) -> tuple[float, float]:
+    """The white noise behind velocity ``readings`` reported in steps of ``step`` [units/s], and
+    the rms error of such a reading, both [units/s], per run arrays of equal lengths.
+
+    The model's velocity ``v_model`` (noise-free) plus white noise of a level ``sigma``, rounded
+    to the readings' grid, is a simulated reading; ``sigma`` is the level whose second
+    differences are as large on average (:func:`_d2_steps`) as the readings' (bisection, the
+    same noise draws at every level). The error is the simulated reading's against
+    ``v_model``. With no noise (a reading that moves only where the motion crosses a step) the
+    error is the rounding's, about ``step / sqrt 12``; with noise large against the step,
+    ``sqrt(sigma^2 + step^2 / 12)``; between, the noise dithers the rounding, and neither
+    second differences alone nor the two added are right.
+    """
+    pairs = []
+    for r, vm in zip(readings, v_model, strict=True):
+        ok = np.isfinite(vm) & np.isfinite(r)
+        if ok.sum() > 2:
+            pairs.append((np.asarray(r, dtype=float)[ok], np.asarray(vm, dtype=float)[ok]))
+    if not pairs or step <= 0:
+        return 0.0, 0.0
+    rng = np.random.default_rng(seed)
+    draws = [rng.standard_normal(vm.size) for _, vm in pairs]
+
+    def simulated(sigma: float) -> list[np.ndarray]:
+        return [_on_grid(vm + sigma * n, step, r) for (r, vm), n in zip(pairs, draws, strict=True)]
+
+    d2 = np.concatenate([np.diff(r, 2) for r, _ in pairs]) / step
+    clip = max(D2_CLIP_STEPS, math.ceil(D2_CLIP_SPREAD * _mad_sigma(d2)))
+
+    def size(readings: list[np.ndarray]) -> float:
+        return _d2_steps(readings, step, clip)
+
+    target = size([r for r, _ in pairs])
+    lo, hi = 0.0, step
+    if size(simulated(lo)) >= target:
+        hi = 0.0
+    else:
+        while size(simulated(hi)) < target and hi < 1e3 * step:
+            lo, hi = hi, 2.0 * hi
+        for _ in range(MATCH_BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if size(simulated(mid)) < target else (lo, mid)
+    sigma = 0.5 * (lo + hi)
+    err = np.concatenate([q - vm for q, (_, vm) in zip(simulated(sigma), pairs, strict=True)])
+    return sigma, float(np.sqrt(np.mean(err * err)))
+
+
+def measured_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[FloorPart]:
+    """Parts of a measured velocity: white noise and the rounding of a stepped velocity (a
+    quantised reading matched by simulation on the final model's velocity ``v_sim``)."""
     spread = float(np.std(data.cat("v")))
     pct = 100.0 / spread if spread > 0 else 0.0
     rounding = step_noise_std(data.v_step)
-    white = math.sqrt(max(0.0, data.sigma_v**2 - rounding**2))
     unit_v = data.units.of("v")
+    if data.v_step > 0:
+        sigma, error = quantised_reading([r.v for r in data.segments], v_sim, data.v_step)
+        if error > 0:
+            beyond = math.sqrt(max(0.0, error**2 - sigma**2))
+            return [
+                FloorPart(
+                    "velocity noise",
+                    pct * sigma,
+                    f"white sensor noise under a reading in steps of {data.v_step:.4g} {unit_v}, "
+                    f"{sigma:.3g} {unit_v} rms: the level at which the final model's velocity, "
+                    "noisy and rounded, moves as the log's second differences do",
+                ),
+                FloorPart(
+                    "velocity step",
+                    pct * beyond,
+                    f"what the rounding to steps of {data.v_step:.4g} {unit_v} adds to that noise "
+                    f"in the simulated reading, whose error is {error:.3g} {unit_v} rms "
+                    f"(undithered, step / sqrt 12 = {rounding:.3g} {unit_v})",
+                ),
+            ]
+    white = math.sqrt(max(0.0, data.sigma_v**2 - rounding**2))
     parts = [
         FloorPart(
             "velocity noise",
@@ -290,7 +382,7 @@ def noise_floor(
     """The noise floor of a final model (``base``, simulated velocity ``v_sim`` per run) with
     ``gap`` [%] whose residual the places predict ``together`` of on held-out samples; see the
     module docstring."""
-    parts = derived_parts(data, v_sim) if data.derived else measured_parts(data)
+    parts = derived_parts(data, v_sim) if data.derived else measured_parts(data, v_sim)
     command = command_part(data, base)
     parts += [command] if command is not None else []
     sensor = math.sqrt(sum(p.percent**2 for p in parts))
