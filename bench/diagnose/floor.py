@@ -308,9 +308,10 @@ def measured_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[Flo
                 FloorPart(
                     "velocity step",
                     pct * beyond,
-                    f"what the rounding to steps of {data.v_step:.4g} {unit_v} adds to that noise "
-                    f"in the simulated reading, whose error is {error:.3g} {unit_v} rms "
-                    f"(undithered, step / sqrt 12 = {rounding:.3g} {unit_v})",
+                    f"the rounding of a velocity reported in steps of {data.v_step:.4g} {unit_v}: "
+                    f"what it adds to that noise in the simulated reading, whose error is "
+                    f"{error:.3g} {unit_v} rms (undithered, step / sqrt 12 = {rounding:.3g} "
+                    f"{unit_v})",
                 ),
             ]
     white = math.sqrt(max(0.0, data.sigma_v**2 - rounding**2))
