@@ -13,7 +13,10 @@ busy with other work the threads spin waiting for one another:
   default threads, 0.21 s and 0.32 s with one (same model).
 
 A bench that identifies several axes at once runs one process per axis (the
-fleet) instead.
+fleet) instead. The command line goes further: its processes load OpenBLAS with
+one thread (``OPENBLAS_NUM_THREADS=1`` unless the environment sets it,
+:data:`servobench.bench.cli.BLAS_THREADS`), as the threads numpy's and scipy's
+builds start when they load cost a process 0.15-0.2 s of CPU.
 
 :func:`one_blas_thread` limits the BLAS libraries loaded in this process to one
 thread for the duration of a ``with`` block (``threadpoolctl``) and restores

@@ -1,7 +1,8 @@
 """The session's set-up: peers installed first, a worker per core, the files marked ``slow`` first.
 
 The package's bytecode is cached (``__pycache__``, as Python does by default) even where the
-machine sets ``PYTHONDONTWRITEBYTECODE``: the tests start hundreds of Python processes.
+machine sets ``PYTHONDONTWRITEBYTECODE``: the tests start hundreds of Python processes. They
+load OpenBLAS with one thread, as the CLI's commands do, unless the environment says otherwise.
 
 Before any test runs, the controller makes the peers the selected tests pair
 with present (:mod:`peers`: installed as root, else one line and a non-zero
@@ -39,6 +40,8 @@ from collections.abc import Iterator
 import peers
 import psutil
 import pytest
+
+from servobench.bench.cli import BLAS_THREADS
 
 #: Share of all cores busy [%], measured over :data:`IDLE_PROBE_S` as the suite starts, below
 #: which the machine counts as idle and ``-n auto`` starts one worker more than it has cores.
@@ -92,6 +95,11 @@ def pytest_configure(config: pytest.Config) -> None:
         # the suite's CPU). Set before the workers start, so they and their children inherit it.
         os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
         sys.dont_write_bytecode = False
+        # the workers, the served drives and every other Python child load OpenBLAS with one
+        # thread, as the CLI's commands do (bench.cli.BLAS_THREADS): the threads two OpenBLAS
+        # builds start at load cost each process 0.15-0.2 s of CPU, and the suite starts hundreds
+        for name, value in BLAS_THREADS.items():
+            os.environ.setdefault(name, value)
         subprocess.run([sys.executable, "-c", WARM_KERNELS], check=True, timeout=600)
 
 

@@ -73,3 +73,28 @@ def test_identification_runs_on_one_blas_thread(monkeypatch):
         after = _blas_threads()
     assert result.model.M > 0 and seen and all(set(s) == {1} for s in seen)
     assert max(after) == 2
+
+
+
+def test_a_command_loads_openblas_with_one_thread_unless_the_user_set_it():
+    """Numpy's and scipy's OpenBLAS threads cost a process 0.15-0.2 s of CPU as they start; a
+    command's solves run on one thread anyway. The user's own setting is kept."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import contextlib, io\n"
+        "from servobench.bench.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    main(['list', 'effects'])\n"
+        "import scipy.linalg\n"
+        "from threadpoolctl import threadpool_info\n"
+        "print(max(p['num_threads'] for p in threadpool_info() if p['user_api'] == 'blas'))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    for setting, expected in ((None, 1), ("2", 2)):
+        e = dict(env, **({"OPENBLAS_NUM_THREADS": setting} if setting else {}))
+        out = subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert int(out.stdout.strip().splitlines()[-1]) == expected
