@@ -198,7 +198,7 @@ def _diagnose(
     start = initial_base(data)
     base = fit_base(data, start)
     signatures = compute_signatures(data, base.v_sim)
-    steps, trace = search(data, base, noise_floor_percent(data), allowed, say)
+    steps, trace = search(data, base, noise_floor_percent(data, base.v_sim), allowed, say)
     say("judging the final model against the noise floor")
     last = steps[-1].fit
     verdict = judge(data, last.candidate, last.v_sim, last.gap)

@@ -41,6 +41,12 @@ EFFECT = EffectSpec(
 )
 
 
+#: Steps beyond the best the screening offers the quick simulation, each at least :data:`APART`
+#: (relative) from the best and from one another.
+ALTERNATIVES = 4
+APART = 0.1
+
+
 def quantize(u: np.ndarray, step: float) -> np.ndarray:
     return step * np.round(u / step)
 
@@ -58,10 +64,21 @@ def screen(ctx: ScreenInput) -> Screening:
         fits = [(*input_fit(ctx, lambda u, q=q: quantize(u, q))[::-1], q) for q in steps]
         return sorted(fits, key=lambda f: f[0])
 
-    # Coarse, then fine around the three best: the error is jagged in the step.
+    # Coarse, then fine around the best few apart from one another: the error is jagged in the
+    # step, and a simulation in closed loop moves a few per cent away from the true step.
     coarse = best_of(top * np.geomspace(0.01, 0.6, 100))
-    fine = [f for c in coarse[:3] for f in best_of(c[2] * np.linspace(0.985, 1.015, 15))]
-    sse, coef, q = min(coarse[:1] + fine, key=lambda f: f[0])
+    centres: list[float] = []
+    for _, _, step in coarse:
+        if all(abs(step / c - 1.0) > APART for c in centres):
+            centres.append(float(step))
+        if len(centres) == 1 + ALTERNATIVES:
+            break
+    refined = [min(best_of(c * np.linspace(0.985, 1.015, 15)) + [f for f in coarse if f[2] == c],
+                   key=lambda f: f[0]) for c in centres]  # fmt: skip
+    sse, coef, q = min(refined, key=lambda f: f[0])
+    # The equation error differentiates a noisy velocity and ranks steps loosely: the best of
+    # each other neighbourhood goes to the quick simulation as well.
+    others = [float(f[2]) for f in refined if f[2] != q]
     evidence = (
         f"the force residual follows the rounding error of the command in steps "
         f"(equation error {100 * (1 - sse / sse0):.0f}% lower)"
@@ -70,5 +87,6 @@ def screen(ctx: ScreenInput) -> Screening:
     n = int(ctx.moving.sum())
     bounds = {"step": (0.5 * q, 2.0 * q)}
     return Screening(
-        explained(sse0, sse, 1, n), {"step": float(q)}, bounds, evidence, fixed=("step",), base=base
+        explained(sse0, sse, 1, n), {"step": float(q)}, bounds, evidence, fixed=("step",), base=base,
+        alternatives=tuple({"step": other} for other in others),
     )
