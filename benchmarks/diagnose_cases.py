@@ -128,6 +128,7 @@ def run_case(case: Case, folder: str) -> dict:
             "before": float("nan"),
             "after": float("nan"),
             "floor": float("nan"),
+            "upper": float("nan"),
             "truth": truth,
             "invisible": False,
             "rivals": [],
@@ -140,6 +141,7 @@ def run_case(case: Case, folder: str) -> dict:
         "before": d.gap_before,
         "after": d.gap_after,
         "floor": d.verdict.floor.percent,
+        "upper": d.verdict.floor.upper_percent,
         "truth": truth,
         "invisible": d.gap_before <= VERDICT_FACTOR * truth,
         "rivals": list(d.effects[0].rivals) if d.effects else [],
@@ -210,17 +212,23 @@ def breakdown(results: list[dict]) -> None:
 
 
 def floors(results: list[dict]) -> None:
-    """The stated noise floor against the true one (the hidden model's own gap), per noise."""
+    """The stated noise floor against the true one (the hidden model's own gap), per noise, and
+    how often the true floor lies within the stated floor's bar: from the floor (within 10 %
+    below it) up to its upper bound (within 10 % above)."""
     print()
     print(f"{'stated floor / true':20s}{'cases':>6s}{'p5':>6s}{'p25':>6s}{'median':>7s}{'p75':>6s}"
-          f"{'p95':>6s}{'< 0.5':>7s}{'> 2':>5s}")  # fmt: skip
+          f"{'p95':>6s}{'< 0.5':>7s}{'> 2':>5s}  true within the bar")  # fmt: skip
     for noise in NOISES:
-        q = np.array([r["floor"] / r["truth"] for r in results
-                      if r["case"].noise == noise and r["truth"] > 0 and np.isfinite(r["floor"])])  # fmt: skip
+        rows = [r for r in results if r["case"].noise == noise and r["truth"] > 0 and np.isfinite(r["floor"])]
+        q = np.array([r["floor"] / r["truth"] for r in rows])
         if q.size:
             p = np.percentile(q, [5, 25, 50, 75, 95])
             cells = "".join(f"{x:6.2f}" for x in p[:2]) + f"{p[2]:7.2f}" + "".join(f"{x:6.2f}" for x in p[3:])
-            print(f"{noise + ' noise':20s}{q.size:6d}{cells}{int(np.sum(q < 0.5)):7d}{int(np.sum(q > 2)):5d}")
+            below = sum(r["truth"] < 0.9 * r["floor"] for r in rows)
+            above = sum(r["truth"] > 1.1 * r["upper"] for r in rows)
+            bar = f"{len(rows) - below - above} ({below} below, {above} above)"
+            print(f"{noise + ' noise':20s}{q.size:6d}{cells}{int(np.sum(q < 0.5)):7d}{int(np.sum(q > 2)):5d}"
+                  f"  {bar}")  # fmt: skip
 
 
 def verdict_line(name: str, value: float, target: float, at_least: bool, text: str) -> None:

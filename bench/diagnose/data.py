@@ -27,7 +27,6 @@ still that of the comparison above, over all samples.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -201,15 +200,6 @@ def velocity_step(prepared: Dataset) -> float:
     return signal_step(np.concatenate([s.v for s in prepared.segments]))
 
 
-def noise_floor_percent(data: DiagnosisData, v_model: Sequence[np.ndarray] | None = None) -> float:
-    """Gap [%] that the velocity sensor's noise alone leaves: white noise from second
-    differences; a velocity read in steps, the reading's error matched by simulation on the
-    model's velocity ``v_model`` per run (:func:`~servobench.bench.diagnose.floor.quantised_reading`)."""
-    spread = float(np.std(data.cat("v")))
-    if data.v_step > 0 and v_model is not None:
-        from servobench.bench.diagnose.floor import quantised_reading
-
-        _, error = quantised_reading([r.v for r in data.segments], v_model, data.v_step)
-        if error > 0:
-            return 100.0 * error / spread
-    return 100.0 * data.sigma_v / spread
+def noise_floor_percent(data: DiagnosisData) -> float:
+    """Gap [%] that white velocity-sensor noise alone leaves."""
+    return 100.0 * data.sigma_v / float(np.std(data.cat("v")))

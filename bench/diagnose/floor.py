@@ -39,6 +39,13 @@ of the two raises the floor where it exceeds the measurement floor (coloured
 noise); a residual the signals do predict keeps the measurement floor, so a
 structure is not mistaken for noise. :attr:`NoiseFloor.source` says which, with
 every part and its value.
+
+The floor's error bar is one-sided: the measurement floor is a lower bound
+where the noise is coloured (second differences see low-passed noise only in
+part), and the held-out residual's unpredictable part (or the period scatter,
+the smaller) an upper one, tight where the log's signals predict the
+structure. :attr:`NoiseFloor.upper_percent` is that bound where it lies above
+the floor: the noise can be up to there, and a gap within it may be noise.
 """
 
 from __future__ import annotations
@@ -49,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent
 from servobench.bench.identify.derivative import differentiate_position, settle_samples
 from servobench.bench.identify.resolution import grid_step, step_noise_std
 
@@ -98,6 +105,9 @@ class NoiseFloor:
         Period-to-period scatter of the velocity.
     unpredictable_percent : float
         The final residual's part no signal predicts on held-out samples.
+    upper_percent : float
+        The most the noise can be: the smaller of ``unpredictable_percent`` and
+        ``repeat_percent``, and at least ``percent``.
     source : str
         Where ``percent`` comes from, with every part and its value, in words.
     parts : tuple of FloorPart
@@ -109,6 +119,11 @@ class NoiseFloor:
     unpredictable_percent: float
     source: str
     parts: tuple[FloorPart, ...] = ()
+
+    @property
+    def upper_percent(self) -> float:
+        bound = min([self.unpredictable_percent] + ([self.repeat_percent] if self.repeat_percent is not None else []))
+        return max(self.percent, bound)
 
 
 # ------------------------------------------------------------------ the filter's gains
@@ -286,6 +301,19 @@ def quantised_reading(
     return sigma, float(np.sqrt(np.mean(err * err)))
 
 
+def sensor_floor_percent(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> float:
+    """Gap [%] that the velocity sensor's noise alone leaves, the search's floor: white noise
+    from second differences (:func:`~servobench.bench.diagnose.data.noise_floor_percent`); a
+    velocity read in steps, the reading's error matched on the model's velocity ``v_model`` per
+    run (:func:`quantised_reading`)."""
+    if data.v_step > 0 and not data.derived:
+        _, error = quantised_reading([r.v for r in data.segments], v_model, data.v_step)
+        spread = float(np.std(data.cat("v")))
+        if error > 0 and spread > 0:
+            return 100.0 * error / spread
+    return noise_floor_percent(data)
+
+
 def measured_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[FloorPart]:
     """Parts of a measured velocity: white noise and the rounding of a stepped velocity (a
     quantised reading matched by simulation on the final model's velocity ``v_sim``)."""
@@ -413,4 +441,9 @@ def noise_floor(
             f"counted: the log's signals predict {100 * together:.0f}% of the residual on "
             "held-out samples (a structure, not noise)"
         )
+        if unpredictable > COLOURED * sensor:
+            source += (
+                "; it bounds the noise from above: coloured noise, which second differences "
+                f"see only in part, can be up to {unpredictable:.3g}%"
+            )
     return NoiseFloor(floor, sensor, repeat, unpredictable, source, tuple(parts))

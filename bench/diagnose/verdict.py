@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData
-from servobench.bench.diagnose.floor import NoiseFloor, noise_floor
+from servobench.bench.diagnose.floor import COLOURED, NoiseFloor, noise_floor
 from servobench.bench.diagnose.simulate import Candidate
 
 #: ``explained`` when the final gap is at most this multiple of the noise floor ...
@@ -312,11 +312,13 @@ def judge(
     explained = gap <= EXACT_GAP_PERCENT or gap <= VERDICT_FACTOR * floor.percent
     signature = ""
     if not explained:
-        f = floor.percent
+        f, up = floor.percent, floor.upper_percent
         ratio = f"{gap / f:.3g} times" if f > 0 else "far above"
+        upto = (f" (coloured noise could reach {up:.3g}%: {gap / up:.3g} times that)"
+                if up > COLOURED * f else "")  # fmt: skip
         signature = (
             f"the final model leaves a velocity gap of {gap:.3g}%, {ratio} the noise floor of "
-            f"{f:.3g}%; {_where(places)}; {spectrum}"
+            f"{f:.3g}%{upto}; {_where(places)}; {spectrum}"
         )
     verdict = "explained" if explained else "unexplained"
     return Verdict(verdict, gap, floor, places, spectrum, signature)

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 from servobench.bench.blas_threads import on_one_blas_thread
 from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
-from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent, prepare
+from servobench.bench.diagnose.data import DiagnosisData, prepare
 from servobench.bench.diagnose.families import Family, offset_family
+from servobench.bench.diagnose.floor import sensor_floor_percent
 from servobench.bench.diagnose.screening import COMPANIONS
 from servobench.bench.diagnose.search import SearchTrace, Step, search
 from servobench.bench.diagnose.signatures import Signatures, compute_signatures
@@ -198,7 +199,7 @@ def _diagnose(
     start = initial_base(data)
     base = fit_base(data, start)
     signatures = compute_signatures(data, base.v_sim)
-    steps, trace = search(data, base, noise_floor_percent(data, base.v_sim), allowed, say)
+    steps, trace = search(data, base, sensor_floor_percent(data, base.v_sim), allowed, say)
     say("judging the final model against the noise floor")
     last = steps[-1].fit
     verdict = judge(data, last.candidate, last.v_sim, last.gap)

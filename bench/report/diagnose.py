@@ -180,6 +180,7 @@ def to_json(d: Diagnosis) -> dict:
             "sensor_percent": v.floor.sensor_percent,
             "repeat_percent": v.floor.repeat_percent,
             "unpredictable_percent": v.floor.unpredictable_percent,
+            "upper_percent": v.floor.upper_percent,
             "floor_from": v.floor.source,
             "parts": [p.as_dict() for p in v.floor.parts],
         },
