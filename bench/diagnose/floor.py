@@ -5,7 +5,10 @@ gap itself. The *measurement floor* is the root sum of squares of independent
 parts, each found from the log:
 
 * measured velocity -- ``velocity noise``: white sensor noise from its second
-  differences (:func:`~servobench.bench.diagnose.data.noise_std`);
+  differences (:func:`~servobench.bench.diagnose.data.noise_std`), or from
+  those of its residual against the final model where that is smaller (a fast
+  plant's transients, a mode's ringing, move the velocity's own second
+  differences for many samples after each switch);
   ``velocity step``: the rounding of a velocity the drive reports in whole
   steps, ``step / sqrt 12``. A reading in steps whose noise is not small
   against the step is not the two added: the noise dithers the rounding, and
@@ -58,6 +61,7 @@ import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData, noise_floor_percent
 from servobench.bench.identify.derivative import differentiate_position, settle_samples
+from servobench.bench.identify.motion import second_difference_sigma
 from servobench.bench.identify.resolution import grid_step, step_noise_std
 
 #: A residual whose places together predict less than this share is noise-like ...
@@ -314,6 +318,21 @@ def sensor_floor_percent(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> 
     return noise_floor_percent(data)
 
 
+def _residual_noise(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> float | None:
+    """White noise [units/s] from the second differences of the measured velocity's residual
+    against the model's ``v_model`` (where all three samples are simulated), robustly; None
+    where too few. A fast plant's transients after each switch move the velocity's own second
+    differences for many samples, too many for their median to leave out; the residual's
+    carry only what the model misses."""
+    d2 = []
+    for r, vm in zip(data.segments, v_model, strict=True):
+        e = np.asarray(r.v, dtype=float) - np.asarray(vm, dtype=float)
+        d = np.diff(e, 2)
+        d2.append(d[np.isfinite(d)])
+    d2 = np.concatenate(d2) if d2 else np.empty(0)
+    return second_difference_sigma(d2) if d2.size >= 100 else None
+
+
 def measured_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[FloorPart]:
     """Parts of a measured velocity: white noise and the rounding of a stepped velocity (a
     quantised reading matched by simulation on the final model's velocity ``v_sim``)."""
@@ -343,12 +362,15 @@ def measured_parts(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> list[Flo
                 ),
             ]
     white = math.sqrt(max(0.0, data.sigma_v**2 - rounding**2))
+    residual = _residual_noise(data, v_sim)
+    of = "the measured velocity"
+    if residual is not None and residual < white:
+        white, of = residual, "the measured velocity's residual against the final model"
     parts = [
         FloorPart(
             "velocity noise",
             pct * white,
-            f"white sensor noise from the second differences of the measured velocity, "
-            f"{white:.3g} {unit_v} rms",
+            f"white sensor noise from the second differences of {of}, {white:.3g} {unit_v} rms",
         )
     ]
     if data.v_step > 0:
