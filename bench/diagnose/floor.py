@@ -307,14 +307,19 @@ def quantised_reading(
 
 def sensor_floor_percent(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> float:
     """Gap [%] that the velocity sensor's noise alone leaves, the search's floor: white noise
-    from second differences (:func:`~servobench.bench.diagnose.data.noise_floor_percent`); a
-    velocity read in steps, the reading's error matched on the model's velocity ``v_model`` per
-    run (:func:`quantised_reading`)."""
+    from second differences (:func:`~servobench.bench.diagnose.data.noise_floor_percent`), or
+    from those of the residual against the model's velocity ``v_model`` per run where smaller
+    (:func:`_residual_noise`); a velocity read in steps, the reading's error matched on
+    ``v_model`` (:func:`quantised_reading`). Measured as the verdict's measurement parts are."""
+    spread = float(np.std(data.cat("v")))
     if data.v_step > 0 and not data.derived:
         _, error = quantised_reading([r.v for r in data.segments], v_model, data.v_step)
-        spread = float(np.std(data.cat("v")))
         if error > 0 and spread > 0:
             return 100.0 * error / spread
+    if not data.derived and spread > 0:
+        residual = _residual_noise(data, v_model)
+        if residual is not None:
+            return min(noise_floor_percent(data), 100.0 * residual / spread)
     return noise_floor_percent(data)
 
 
