@@ -310,17 +310,11 @@ def sensor_floor_percent(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> 
     from second differences (:func:`~servobench.bench.diagnose.data.noise_floor_percent`), or
     from those of the residual against the model's velocity ``v_model`` per run where smaller
     (:func:`_residual_noise`); a velocity read in steps, the reading's error matched on
-    ``v_model`` (:func:`quantised_reading`). Measured as the verdict's measurement parts are."""
-    spread = float(np.std(data.cat("v")))
-    if data.v_step > 0 and not data.derived:
-        _, error = quantised_reading([r.v for r in data.segments], v_model, data.v_step)
-        if error > 0 and spread > 0:
-            return 100.0 * error / spread
-    if not data.derived and spread > 0:
-        residual = _residual_noise(data, v_model)
-        if residual is not None:
-            return min(noise_floor_percent(data), 100.0 * residual / spread)
-    return noise_floor_percent(data)
+    ``v_model`` (:func:`quantised_reading`): the root sum of squares of :func:`measured_parts`.
+    A velocity derived from position has no sensor noise of its own (0)."""
+    if data.derived:
+        return noise_floor_percent(data)
+    return math.sqrt(sum(p.percent**2 for p in measured_parts(data, v_model)))
 
 
 def _residual_noise(data: DiagnosisData, v_model: Sequence[np.ndarray]) -> float | None:
