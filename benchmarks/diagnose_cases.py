@@ -48,13 +48,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from servobench.bench.diagnose.data import prepare  # noqa: E402
-from servobench.bench.diagnose.refit import evaluate  # noqa: E402
-from servobench.bench.diagnose.simulate import Candidate  # noqa: E402
 from servobench.bench.diagnose.verdict import VERDICT_FACTOR  # noqa: E402
 from servobench.bench.diagnose.workflow import diagnose  # noqa: E402
 from servobench.bench.log.io import read_log  # noqa: E402
-from servobench.bench.testing.hidden_effects import write_case_log  # noqa: E402
+from servobench.bench.testing.hidden_effects import true_floor, write_case_log  # noqa: E402
 from servobench.bench.testing.sized_cases import NOISES, sized_case  # noqa: E402
 from servobench.sim_backend.physics import effects as library  # noqa: E402
 
@@ -103,14 +100,6 @@ def draw(cases: int, seed: int) -> list[Case]:
             )
         )
     return out
-
-
-def true_floor(log, hidden) -> float:
-    """The gap [%] the hidden model itself leaves on ``log``: the true noise floor."""
-    p = hidden.params
-    base = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
-    truth = Candidate(base, {k: dict(v) for k, v in hidden.effects.items()})
-    return evaluate(prepare(log), truth).gap
 
 
 def run_case(case: Case, folder: str) -> dict:

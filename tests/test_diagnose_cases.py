@@ -18,7 +18,7 @@ import pytest
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.log.io import read_log
 from servobench.bench.report.diagnose import to_json
-from servobench.bench.testing.hidden_effects import CaseResults, write_case_log
+from servobench.bench.testing.hidden_effects import CaseResults, true_floor, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
 pytestmark = pytest.mark.slow  # fourteen diagnoses, one after the other
@@ -129,22 +129,10 @@ def test_effects_the_log_cannot_tell_apart_are_reported_as_rivals(results, numbe
     assert to_json(d)["effects"][0]["rivals"] == list(first.rivals)
 
 
-def _true_floor(result: dict) -> float:
-    """The gap [%] the hidden model itself leaves on the case's log."""
-    from servobench.bench.diagnose.data import prepare
-    from servobench.bench.diagnose.refit import evaluate
-    from servobench.bench.diagnose.simulate import Candidate
-
-    case = result["case"]
-    p = case.params
-    base = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
-    return evaluate(prepare(result["log"]), Candidate(base, {k: dict(v) for k, v in case.effects.items()})).gap
-
-
 @pytest.mark.parametrize("number", sorted(COLOURED))
 def test_coloured_noise_under_a_structured_residual_is_within_the_floors_bar(results, number):
     d = results[number]["diagnosis"]
-    floor, true = d.verdict.floor, _true_floor(results[number])
+    floor, true = d.verdict.floor, true_floor(results[number]["log"], results[number]["case"])
     assert true > 2 * floor.percent  # second differences see the low-passed noise only in part
     assert floor.percent <= true <= 1.1 * floor.upper_percent, floor.source
     assert "coloured noise, which second differences see only in part" in floor.source
@@ -160,4 +148,4 @@ def test_the_stated_floor_is_the_gap_the_hidden_model_leaves(results, number):
     1.5 times the true floor at the median of the benchmark's quantised cases; and the mode's
     ringing counted as noise)."""
     d = results[number]["diagnosis"]
-    assert d.verdict.floor.percent == pytest.approx(_true_floor(results[number]), rel=0.1), d.verdict.floor.source
+    assert d.verdict.floor.percent == pytest.approx(true_floor(results[number]["log"], results[number]["case"]), rel=0.1), d.verdict.floor.source

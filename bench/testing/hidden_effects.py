@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from servobench.bench.log.io import LogWriter
+from servobench.bench.log.io import ExperimentLog, LogWriter
 from servobench.sim_backend.physics.effects import collect_terms, position_friction
 from servobench.sim_backend.physics.plant import Plant, PlantParams, PlantState
 from servobench.sim_backend.physics.rich_plant import RichModel
@@ -400,6 +400,19 @@ def write_case_log(case: HiddenCase, path: str | Path, rng: np.random.Generator)
             t = np.arange(u.size) / CASE_FS_HZ
             writer.append_block(np.full(u.size, number), t, u, v, x)
     return path
+
+
+def true_floor(log: ExperimentLog, case: HiddenCase) -> float:
+    """The gap [%] the case's hidden model itself leaves on its ``log`` (its noise, simulated back
+    with the plant's own parameters by the diagnosis's simulator): the true noise floor a
+    diagnosis's stated one is judged against."""
+    from servobench.bench.diagnose.data import prepare
+    from servobench.bench.diagnose.refit import evaluate
+    from servobench.bench.diagnose.simulate import Candidate
+
+    p = case.params
+    base = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
+    return evaluate(prepare(log), Candidate(base, {k: dict(v) for k, v in case.effects.items()})).gap
 
 
 class CaseResults(dict):
