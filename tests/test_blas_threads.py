@@ -3,6 +3,10 @@ user's setting back, also where the blocks nest."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
@@ -75,14 +79,9 @@ def test_identification_runs_on_one_blas_thread(monkeypatch):
     assert max(after) == 2
 
 
-
 def test_a_command_loads_openblas_with_one_thread_unless_the_user_set_it():
     """Numpy's and scipy's OpenBLAS threads cost a process 0.15-0.2 s of CPU as they start; a
     command's solves run on one thread anyway. The user's own setting is kept."""
-    import os
-    import subprocess
-    import sys
-
     code = (
         "import contextlib, io\n"
         "from servobench.bench.cli import main\n"

@@ -131,8 +131,9 @@ def test_effects_the_log_cannot_tell_apart_are_reported_as_rivals(results, numbe
 
 @pytest.mark.parametrize("number", sorted(COLOURED))
 def test_coloured_noise_under_a_structured_residual_is_within_the_floors_bar(results, number):
-    d = results[number]["diagnosis"]
-    floor, true = d.verdict.floor, true_floor(results[number]["log"], results[number]["case"])
+    r = results[number]
+    d = r["diagnosis"]
+    floor, true = d.verdict.floor, true_floor(r["log"], r["case"])
     assert true > 2 * floor.percent  # second differences see the low-passed noise only in part
     assert floor.percent <= true <= 1.1 * floor.upper_percent, floor.source
     assert "coloured noise, which second differences see only in part" in floor.source
@@ -147,5 +148,6 @@ def test_the_stated_floor_is_the_gap_the_hidden_model_leaves(results, number):
     itself leaves on the log (before, the noise and the rounding were added as if independent:
     1.5 times the true floor at the median of the benchmark's quantised cases; and the mode's
     ringing counted as noise)."""
-    d = results[number]["diagnosis"]
-    assert d.verdict.floor.percent == pytest.approx(true_floor(results[number]["log"], results[number]["case"]), rel=0.1), d.verdict.floor.source
+    r = results[number]
+    floor = r["diagnosis"].verdict.floor
+    assert floor.percent == pytest.approx(true_floor(r["log"], r["case"]), rel=0.1), floor.source
