@@ -125,7 +125,8 @@ class QuickScore:
     ``starts`` holds the best candidate built on the screening's main guess; the main guess
     on the other base too when the two bases are far apart (:func:`unsettled`: the quick
     simulation cannot tell which basin the refit will reach); and, when the screening offered
-    alternatives, the best of those (rugged surfaces: each is refitted).
+    alternatives or restarts (starts with a base of their own), the best of those (rugged
+    surfaces: each is refitted).
     """
 
     name: str
@@ -166,6 +167,7 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
             }
             trials.append((b, dict(s.guess), "joint"))
     trials += [(dict(current.base), dict(g), "alternative") for g in s.alternatives]
+    trials += [(dict(b), dict(g), "alternative") for b, g in s.restarts]
     which = held_out_windows(data)
     best: dict[str, tuple[float, Candidate]] = {}
     for base, guess, kind in trials:

@@ -303,6 +303,11 @@ class Screening:
         reversal, a period): scanned coarsely before the gradient refit.
     alternatives : tuple of mappings
         Further starting guesses, judged by a quick simulation like ``guess``.
+    restarts : tuple of (base, guess) pairs
+        Further starts that move the base as well (``M, B, coulomb_pos, coulomb_neg`` with
+        the term's parameters): where the current base has absorbed the term (a Coulomb level
+        fitted at the breakaway of an axis that mostly sticks), no guess on that base reaches
+        the term's basin. Judged by the quick simulation with the alternatives.
     """
 
     score: float
@@ -313,6 +318,7 @@ class Screening:
     base: Mapping[str, float] | None = None
     scan: tuple[str, ...] = ()
     alternatives: tuple[Mapping[str, float], ...] = ()
+    restarts: tuple[tuple[Mapping[str, float], Mapping[str, float]], ...] = ()
 
 
 def regress(columns: list[np.ndarray], target: np.ndarray) -> tuple[np.ndarray, float]:

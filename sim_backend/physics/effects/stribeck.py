@@ -76,6 +76,42 @@ def _spread(coef0: np.ndarray, scale: float) -> tuple[dict[str, float], ...]:
     )
 
 
+#: Breakaway restarts: the current base's Coulomb level taken as the static level, the
+#: Coulomb level divided by each of these ...
+BREAKAWAY_LEVELS = (2.0, 3.0, 4.5)
+#: ... the Stribeck velocity at each of these shares of the top speed (99th percentile) ...
+BREAKAWAY_SPEEDS = (0.25, 0.5)
+#: ... and a viscous coefficient whose force at the top speed is this share of the command's
+#: amplitude above the new Coulomb level.
+BREAKAWAY_VISCOUS = 0.5
+
+
+def _breakaway(ctx: ScreenInput) -> tuple[tuple[dict[str, float], dict[str, float]], ...]:
+    """Starts for an axis that mostly sticks: a base fitted on it puts its Coulomb level at the
+    breakaway and its viscous coefficient near zero (what little motion there is stays below
+    the Stribeck velocity), and no Stribeck curve over that level moves it at all. Each start
+    keeps that level as the static one, lowers the Coulomb levels under it, and gives the
+    motion a viscous coefficient that bounds its speed near the speed seen."""
+    base = {k: float(ctx.base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+    static = max(base["coulomb_pos"], base["coulomb_neg"])
+    top = float(np.percentile(np.abs(ctx.cat("v")), 99))
+    amplitude = float(np.max(np.abs(ctx.cat("u"))))
+    if not (static > 0 and top > 0 and amplitude > static and base["M"] > 0):
+        return ()
+    out = []
+    for level in BREAKAWAY_LEVELS:
+        coulomb = static / level
+        viscous = BREAKAWAY_VISCOUS * (amplitude - coulomb) / top
+        start = {
+            **base,
+            "B": viscous,
+            "coulomb_pos": base["coulomb_pos"] / level,
+            "coulomb_neg": base["coulomb_neg"] / level,
+        }
+        out += [(start, {"fs": static, "vs": share * top}) for share in BREAKAWAY_SPEEDS]
+    return tuple(out)
+
+
 def bounded_fit(
     columns: list[np.ndarray], y: np.ndarray, lower: np.ndarray, upper: np.ndarray
 ) -> tuple[np.ndarray, float]:
@@ -129,6 +165,7 @@ def screen(ctx: ScreenInput) -> Screening:
             bounds,
             "no friction excess at low speed",
             alternatives=_spread(coef0, scale),
+            restarts=_breakaway(ctx),
         )
     sse, vs, coef = best
     fcp, fcn = max(coef[2], 0.0), max(coef[3], 0.0)
@@ -142,7 +179,13 @@ def screen(ctx: ScreenInput) -> Screening:
     base = {"M": coef[0], "B": coef[1], "coulomb_pos": fcp, "coulomb_neg": fcn}
     score = explained(sse0, sse, 2, y.size)
     return Screening(
-        score, {"fs": fs, "vs": vs}, bounds, evidence, base=base, alternatives=_spread(coef0, scale)
+        score,
+        {"fs": fs, "vs": vs},
+        bounds,
+        evidence,
+        base=base,
+        alternatives=_spread(coef0, scale),
+        restarts=_breakaway(ctx),
     )
 
 
