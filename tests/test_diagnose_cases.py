@@ -17,7 +17,7 @@ import pytest
 
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.log.io import read_log
-from servobench.bench.report.diagnose import to_json
+from servobench.bench.report.diagnose import summary_lines, to_json
 from servobench.bench.testing.hidden_effects import CaseResults, true_floor, write_case_log
 from servobench.bench.testing.sized_cases import sized_case
 
@@ -75,6 +75,10 @@ CASES = {
 #: levels under it reach the curve's basin (the training data do not place it further: the
 #: hidden model's own training gap is no lower than the refit's).
 BREAKAWAY = {157: ("stribeck", 2.968598356790718, "single", "quantised", 871854249)}
+#: A Stribeck curve whose static level the command barely reaches: the velocity never leaves a step
+#: of its reading. The best base in motion creeps (B 65 where the axis stands: gap 328 %), and a
+#: dead zone was named for stopping the creep; a base held at rest leaves the noise floor.
+AT_REST = {61: ("stribeck", 2.617495926584324, "single", "quantised", 267276528)}
 #: A two-level SIDBE pair through a quantized command: each run's two levels only move, which a
 #: saturation or a dead zone does as well. The report must say the log cannot tell them apart.
 TIED = {82: ("quantization", 2.330902093314011, "sidbe", "coloured", 539334954)}
@@ -93,7 +97,7 @@ def results(tmp_path_factory):
     folder = Path(tmp_path_factory.mktemp("cases"))
 
     def run(number: int) -> dict:
-        effect, size, inputs, noise, seed = {**CASES, **TIED, **COLOURED, **BREAKAWAY}[number]
+        effect, size, inputs, noise, seed = {**CASES, **TIED, **COLOURED, **BREAKAWAY, **AT_REST}[number]
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         log = read_log(write_case_log(case, folder / f"case-{number}.csv", rng))
@@ -129,6 +133,20 @@ def test_a_stribeck_curve_over_an_axis_that_mostly_sticks_is_named(results, numb
     assert [e.name for e in d.effects] == ["stribeck"], d.trace.stop
     held = [s.fit.gap_held_out for s in d.steps]
     assert held[-1] <= held[0] / 2, held
+
+
+@pytest.mark.parametrize("number", sorted(AT_REST))
+def test_an_axis_that_does_not_move_names_nothing_and_says_why(results, number):
+    d = results[number]["diagnosis"]
+    assert d.effects == (), [e.name for e in d.effects]
+    assert d.verdict.gap_percent <= 1.25 * d.verdict.floor.percent, d.verdict
+    note = [n for n in d.notes if n.startswith("the axis does not move")]
+    assert len(note) == 1 and "excite with a larger command" in note[0], d.notes
+    base = d.steps[-1].fit.candidate.base
+    top = max(float(np.max(np.abs(r.u))) for r in d.data.segments)
+    assert base["coulomb_pos"] == base["coulomb_neg"] == top
+    shown = [line for line in summary_lines(d) if line.startswith("final base: ")]
+    assert shown[0].endswith("(no 1-sigma: the log does not determine them)"), shown
 
 
 @pytest.mark.parametrize("number", sorted(TIED))

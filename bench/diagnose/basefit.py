@@ -13,6 +13,14 @@ an axis whose friction weakens with speed (a strong Stribeck curve) has a
 negative, or vanishing, ``B``: that is the effect's signature, not a reason to
 stop. The start then takes a small positive ``B`` and says why
 (:attr:`BaseStart.note`); the search looks for the effect.
+
+An axis that barely moves (a command under its breakaway, a velocity that
+never leaves a step or two of its reading) gives a base fit that creeps where
+the axis stands, and every effect that stops the creep would be named for
+it. :func:`at_rest` holds such a base at rest instead, its Coulomb levels at
+the largest command, when that fits the training samples better and leaves
+the held-out gap within the search's stop of the noise floor: the log then
+shows nothing a model could add, and says so.
 """
 
 from __future__ import annotations
@@ -22,8 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData
-from servobench.bench.diagnose.refit import FitResult, refit
+from servobench.bench.diagnose.floor import sensor_floor_percent
+from servobench.bench.diagnose.refit import FitResult, evaluate, refit
 from servobench.bench.diagnose.screening import screen_input
+from servobench.bench.diagnose.search import FLOOR_FACTOR
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.bench.identify.auto import identify_data
 from servobench.errors import IdentificationError
@@ -124,3 +134,25 @@ def fit_base(data: DiagnosisData, start: BaseStart | None = None) -> FitResult:
     """The base model refitted on simulation error (training samples)."""
     start = initial_base(data) if start is None else start
     return refit(data, Candidate(start.base), bounds={})
+
+
+def at_rest(data: DiagnosisData, fit: FitResult) -> tuple[FitResult, str] | None:
+    """The base ``fit`` held at rest (both Coulomb levels at the largest command [command
+    units]) with a note saying why, where that fits the training samples better than ``fit``
+    and its held-out gap is within :data:`~.search.FLOOR_FACTOR` of the noise floor; else None.
+    Its ``M`` and ``B`` are the fit's, undetermined by a log at rest (no sigma)."""
+    top = max(float(np.max(np.abs(r.u))) for r in data.segments)
+    held = evaluate(data, Candidate({**fit.candidate.base, "coulomb_pos": top, "coulomb_neg": top}))
+    if not held.gap_train < fit.gap_train:
+        return None
+    floor = sensor_floor_percent(data, held.v_sim)
+    if not held.gap_held_out <= FLOOR_FACTOR * floor:
+        return None
+    note = (
+        f"the axis does not move beyond what the sensor's noise shows: a base model held at rest "
+        f"(Coulomb levels at the largest command, {top:.3g}) leaves {held.gap_train:.3g}% on the "
+        f"training samples against {fit.gap_train:.3g}% for the best one in motion, and the "
+        f"noise floor is {floor:.3g}%. M and B are not determined and no effect can be named: "
+        "excite with a larger command, above the breakaway"
+    )
+    return held, note

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from servobench.bench.blas_threads import on_one_blas_thread
-from servobench.bench.diagnose.basefit import BaseStart, fit_base, initial_base
+from servobench.bench.diagnose.basefit import BaseStart, at_rest, fit_base, initial_base
 from servobench.bench.diagnose.data import DiagnosisData, prepare
 from servobench.bench.diagnose.families import Family, offset_family
 from servobench.bench.diagnose.floor import sensor_floor_percent
@@ -198,6 +198,9 @@ def _diagnose(
     say("fitting the base model")
     start = initial_base(data)
     base = fit_base(data, start)
+    rest = at_rest(data, base)
+    if rest is not None:
+        base, rest_note = rest
     signatures = compute_signatures(data, base.v_sim)
     steps, trace = search(data, base, sensor_floor_percent(data, base.v_sim), allowed, say)
     say("judging the final model against the noise floor")
@@ -218,6 +221,7 @@ def _diagnose(
     shown = {k: v for k, v in final.effects.items() if k in names}
     family = offset_family(base_net, shown, data.units.of("u"))
     notes = tuple(data.notes) + ((start.note,) if start.note else ())
+    notes += (rest_note,) if rest is not None else ()
     notes += tuple(rival_note(e) for e in named if e.rivals)
     return Diagnosis(
         tuple(named),

@@ -244,10 +244,11 @@ def summary_lines(d: Diagnosis) -> list[str]:
         lines.append(f"{i}. {e.name} ({_params_text(d, e.name, e.parameters, '=', std)})")
         lines.append(f"   {e.evidence}")
     b = _base_json(d.base)
+    sigma = any(std.get(k) is not None for k in _BASE_SHOWN)
     lines.append(
         "final base: "
         + ", ".join(f"{k}={_pm(float(b[k]), std.get(k))}" for k in _BASE_SHOWN)
-        + " (1-sigma)"
+        + (" (1-sigma)" if sigma else " (no 1-sigma: the log does not determine them)")
     )
     lines += [f"note: {f.sentence}" for f in d.families]
     lines += [f"note: {n}" for n in notes(d)]
