@@ -8,6 +8,8 @@ plain first-order recursion over the pieces of each interval.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -78,6 +80,25 @@ def test_effective_command_on_one_interval_is_the_merged_grids(cycles):
             pieces = effective_command(u, 1e-3, cycles * 1e-3, tau, before, offsets_s=np.zeros(u.size))
             assert fast.shape == (u.size - 1,)
             assert np.max(np.abs(fast - pieces)) < 1e-11
+
+
+@pytest.mark.parametrize("cycles", [-0.3, 0.37, 1.6])
+def test_effective_command_without_viscous_friction_is_the_duration_weighted_mean(cycles):
+    """An infinite time constant (``B = 0``: a diagnosis's base with the viscous term gone): the
+    weights' limit, each piece by its duration, on both paths, without a warning."""
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=50)
+    m, f = split_delay(cycles * 1e-3, 1e-3)
+    padded = np.concatenate(([0.3], u))
+    k = np.arange(u.size - 1)
+    before = padded[np.clip(k - m - 1, -1, u.size - 1) + 1]
+    now = padded[np.clip(k - m, -1, u.size - 1) + 1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fast = effective_command(u, 1e-3, cycles * 1e-3, np.inf, 0.3)
+        pieces = effective_command(u, 1e-3, cycles * 1e-3, np.inf, 0.3, offsets_s=np.zeros(u.size))
+    assert np.max(np.abs(fast - (f * before + (1 - f) * now))) < 1e-12
+    assert np.max(np.abs(pieces - fast)) < 1e-12
 
 
 @pytest.mark.parametrize("delay_samples", [0.0, 0.37, 1.0, 1.6])

@@ -146,6 +146,10 @@ def effective_command(
     w = np.exp(-(t_end_k - grid[1:]) / tau_s) - np.exp(-(t_end_k - grid[:-1]) / tau_s)
     num = np.add.reduceat(w * u_m[:-1], rows[:-1])
     den = np.add.reduceat(w, rows[:-1])
+    if not np.all(den > 0):  # a time constant so long the weights round to 0 (B = 0): their
+        # limit, the pieces weighted by their durations
+        num_t, den_t = np.add.reduceat(dt_m * u_m[:-1], rows[:-1]), np.add.reduceat(dt_m, rows[:-1])
+        num, den = np.where(den > 0, num, num_t), np.where(den > 0, den, den_t)
     out = np.where(den > 0, num / np.where(den > 0, den, 1.0), u_m[rows[:-1]])
     return out
 
@@ -166,6 +170,8 @@ def _effective_regular(u: np.ndarray, dt_s: float, delay_s: float, tau_s: float,
     before = padded[np.clip(k - m - 1, -1, n - 1) + 1]
     late = np.exp(-(1.0 - f) * dt_s / tau_s)
     w_before, w_now = late - np.exp(-dt_s / tau_s), 1.0 - late
+    if not w_before + w_now > 0.0:  # a time constant so long the weights round to 0 (B = 0)
+        w_before, w_now = f, 1.0 - f  # their limit
     return (w_before * before + w_now * now) / (w_before + w_now)
 
 
