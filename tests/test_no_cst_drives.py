@@ -106,6 +106,10 @@ def test_default_sidbe_on_a_no_cst_drive_is_within_1_percent() -> None:
     # for a model within 1 %; its figure was not kept, so it is printed here: open)
     timing = model["timing"]
     assert model["verdict"] == ("pass" if timing["within_accuracy"] else "pass with remarks"), timing
+    # the DC-synchronous slave paces the hold's cycle, one exchange per SYNC0 event: the host
+    # keeps no schedule that could trail it (its deadlines counted from before the enable, every
+    # one of the 32 000 cycles was late, and each beat against SYNC0 waited a whole cycle)
+    assert timing["late_cycles"] == 0, timing
 
 
 def test_neither_cst_nor_a_torque_offset_is_one_line_naming_what_is_missing() -> None:

@@ -28,6 +28,17 @@ lines), rows go through the ring to a writer thread, each sample gets its
 best instant (``# clock_source``) and its uncertainty in the extra last
 column ``t_unc``, and the trailer carries the cycle's timing (and, on a
 drive clock, ``repeated_samples``, ``skipped_ticks``, ``drive_tick_s``). The
+drive that times the cycle itself
+(:meth:`~servobench.drivers.base.Drive.start_cycle_clock`: a DC-synchronous
+EtherCAT slave, SYNC on SocketCAN) paces it, as in open loop; else the
+deadlines ``t0 + k dt`` count from the first cycle after the drive is enabled,
+and start again from the cycle after each non-cyclic step (entering the
+drive's hold, restarting it between runs); a cycle more than a whole period
+late starts at once and the deadlines move on from it, whole periods later: a
+loop never bursts to catch up (a host loop run faster than its period, a move
+faster than planned) and never trails the drive's own cycle for the rest of a
+session (a DC-synchronous exchange, which waits for the drive's next cycle,
+could not catch up). The
 feedback is checked as in open loop
 (:class:`~servobench.bench.run.feedback_check.FeedbackCheck`, with each
 sample's host time): a repeated drive stamp is logged as read.
@@ -216,6 +227,7 @@ class _Cycler:
         self.x_ref = plan.controller.x_ref
         self.limit = MARGIN * plan.room
         self.t0 = time.monotonic()
+        self.paced = False  # the drive times the cycle (start_cycle_clock), no host schedule
         self.k = 0
         self.last: Feedback | None = None
         self.pending: _Row | None = None
@@ -226,14 +238,26 @@ class _Cycler:
         drive, dt = self.drive, self.checked.dt
         drive.set_cycle(dt)
         drive.enable()
+        self.paced = self.realtime and drive.start_cycle_clock(dt)
+        try:
+            self._session(runs, timing)
+        finally:
+            drive.stop_cycle_clock()
+
+    def _session(self, runs: Sequence[tuple[int, np.ndarray]], timing: list[TimingStats]) -> None:
+        """Move to the held position, enter the drive's hold, then each run after a rest."""
+        drive = self.drive
+        self.anchor()
         start = self.cycle(0.0)
         self.move(start.position)
         if self.plan.controller.where == "drive":
             drive.hold_position(self.x_ref)
+            self.anchor()
         done = 0
         for number, u_exc in runs:
             self.rest()
             self.restart_loop()
+            self.anchor()
             u_exc = np.asarray(u_exc, dtype=float)
             host, clock = PeriodStats(), PeriodStats()
             try:
@@ -304,7 +328,8 @@ class _Cycler:
             t = k * self.checked.dt if nominal else t_abs - t0_drive
             if cycle_clock is not None:
                 start, end = self.bracket
-                cycle_clock.mark(k, self.t0 + (self.k - 1) * self.checked.dt, start, end, t_unc, fb.t_s)
+                deadline = start if self.paced else self.t0 + (self.k - 1) * self.checked.dt
+                cycle_clock.mark(k, deadline, start, end, t_unc, fb.t_s)
             self.pending = _Row(number, t, fb.velocity, fb.position, t_host, uk, self.x_ref, acted, t_unc)
             self._guard(fb)
             host.add(t_host)
@@ -324,11 +349,20 @@ class _Cycler:
         return 0.5 * (start + end), 0.5 * (end - start)
 
     # ------------------------------------------------------------------ cycle
+    def anchor(self) -> None:
+        """The next cycle's deadline is now: after a step that is not a cycle (enabling,
+        entering or restarting the drive's hold), the deadlines start again from here."""
+        self.t0 = time.monotonic() - self.k * self.checked.dt
+
     def cycle(self, u_exc: float) -> Feedback:
         """One cycle: the command (the host's loop unless the drive holds), the exchange,
         and the row left pending by the cycle before."""
-        if self.checked.pace == "real":
-            sleep_until(self.t0 + self.k * self.checked.dt)
+        if self.realtime and not self.paced:
+            dt = self.checked.dt
+            behind = time.monotonic() - (self.t0 + self.k * dt)
+            if behind > dt:  # a whole period late or more: start now, the deadlines move on
+                self.t0 += math.floor(behind / dt) * dt
+            sleep_until(self.t0 + self.k * dt)
         self.k += 1
         if not self.drive.holding and self.last is not None:
             u = self.loop.command(u_exc, self.last.position, self.last.velocity)

@@ -54,7 +54,9 @@ DC-synchronous slave's feedback also says where its command took force
 (``Feedback.t_act_s``, :meth:`reports_action_instant`): a reading frame
 that passed the slave after the next SYNC0 event (the host woke a cycle or
 more late) returns that event's sample, while the command acted since the
-event before; the runner logs it as ``t_act``.
+event before; the runner logs it as ``t_act``. Such a slave paces a real-time
+run itself (:meth:`start_cycle_clock`): the host sends each cycle's outputs
+right after reading the last ones, one exchange per SYNC0 event.
 ``drive_clock`` is True in all but the last case; the log's ``drive_clock``
 says which. Position and 0x1013 are unwrapped across their 32-bit roll-over.
 
@@ -449,6 +451,14 @@ class EthercatDrive(Drive):
         return replace(fb, t_act_s=fb.t_s - max(0, late_ns) * 1e-9)
 
     def reports_action_instant(self) -> bool:
+        return self.bus is not None and self.bus.dc_synchronous
+
+    def start_cycle_clock(self, period_s: float) -> bool:
+        """A DC-synchronous slave paces the cycle itself: each exchange waits for its next SYNC0
+        event (:meth:`_sample_at_sync0`), so the host sends the next outputs as soon as it has
+        read the last inputs, one exchange per event, and keeps no schedule of its own (a host
+        schedule beats against the slave's clock: an exchange sent just past an event waits a
+        whole cycle, and one late by more than a cycle never catches up)."""
         return self.bus is not None and self.bus.dc_synchronous
 
     def _sample_at_sync0(self, sent_dc_ns: int) -> tuple[dict[int, int], int]:
