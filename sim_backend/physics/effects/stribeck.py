@@ -82,8 +82,10 @@ BREAKAWAY_LEVELS = (2.0, 3.0, 4.5)
 #: ... the Stribeck velocity at each of these shares of the top speed (99th percentile) ...
 BREAKAWAY_SPEEDS = (0.25, 0.5)
 #: ... and a viscous coefficient whose force at the top speed is this share of the command's
-#: amplitude above the new Coulomb level.
+#: amplitude above the new Coulomb level. Offered only where the base's viscous force at the top
+#: speed is under this share of its Coulomb level (a viscous coefficient near zero).
 BREAKAWAY_VISCOUS = 0.5
+BREAKAWAY_BELOW = 0.1
 
 
 def _breakaway(ctx: ScreenInput) -> tuple[tuple[dict[str, float], dict[str, float]], ...]:
@@ -97,6 +99,8 @@ def _breakaway(ctx: ScreenInput) -> tuple[tuple[dict[str, float], dict[str, floa
     top = float(np.percentile(np.abs(ctx.cat("v")), 99))
     amplitude = float(np.max(np.abs(ctx.cat("u"))))
     if not (static > 0 and top > 0 and amplitude > static and base["M"] > 0):
+        return ()
+    if base["B"] * top >= BREAKAWAY_BELOW * static:  # the base moves with viscous friction
         return ()
     out = []
     for level in BREAKAWAY_LEVELS:
