@@ -10,6 +10,7 @@ at least 3 times the noise floor, and a Stribeck curve be refitted within 5 %.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,7 @@ def test_a_stribeck_curve_over_an_axis_that_mostly_sticks_is_named(results, numb
 @pytest.mark.parametrize("number", sorted(AT_REST))
 def test_an_axis_that_does_not_move_names_nothing_and_says_why(results, number):
     d = results[number]["diagnosis"]
+    lines = summary_lines(d)
     assert d.effects == (), [e.name for e in d.effects]
     assert d.verdict.gap_percent <= 1.25 * d.verdict.floor.percent, d.verdict
     note = [n for n in d.notes if n.startswith("the axis does not move")]
@@ -145,8 +147,30 @@ def test_an_axis_that_does_not_move_names_nothing_and_says_why(results, number):
     base = d.steps[-1].fit.candidate.base
     top = max(float(np.max(np.abs(r.u))) for r in d.data.segments)
     assert base["coulomb_pos"] == base["coulomb_neg"] == top
-    shown = [line for line in summary_lines(d) if line.startswith("final base: ")]
+    shown = [line for line in lines if line.startswith("final base: ")]
     assert shown[0].endswith("(no 1-sigma: the log does not determine them)"), shown
+
+
+def test_a_log_of_sensor_noise_alone_is_held_at_rest(tmp_path):
+    """A command under the breakaway, a velocity read in steps of 0.01 that only the noise
+    moves: the best base in motion creeps no better than an axis at rest (M and B of 1e14 and
+    more), and the log shows nothing to name."""
+    rng = np.random.default_rng(1)
+    t = np.arange(4000) / 1000.0
+    u = 0.3 * np.sign(np.sin(2 * np.pi * t))
+    rows = [f"{run},{t[k]},{scale * u[k]},{0.01 * round(0.4 * rng.normal())}"
+            for run, scale in ((1, 1.0), (2, 0.9)) for k in range(t.size)]  # fmt: skip
+    path = tmp_path / "log.csv"
+    path.write_text("# fs = 1000\nrun,t,u,v\n" + "\n".join(rows) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a model at rest divides by its zero gain nowhere
+        d = diagnose(read_log(path))
+        findings = to_json(d)["findings"]
+    assert d.effects == ()
+    assert [n for n in d.notes if n.startswith("the axis does not move")], d.notes
+    assert any("undetermined" in f for f in map(str, findings)), findings
+    base = d.steps[-1].fit.candidate.base
+    assert base["coulomb_pos"] == base["coulomb_neg"] == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize("number", sorted(TIED))

@@ -18,7 +18,7 @@ An axis that barely moves (a command under its breakaway, a velocity that
 never leaves a step or two of its reading) gives a base fit that creeps where
 the axis stands, and every effect that stops the creep would be named for
 it. :func:`at_rest` holds such a base at rest instead, its Coulomb levels at
-the largest command, when that fits the training samples better and leaves
+the largest command, when the base in motion does not pay against it and leaves
 the held-out gap within the search's stop of the noise floor: the log then
 shows nothing a model could add, and says so.
 """
@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from servobench.bench.diagnose.data import DiagnosisData
+from servobench.bench.diagnose.evidence import MIN_GAIN
 from servobench.bench.diagnose.floor import sensor_floor_percent
 from servobench.bench.diagnose.refit import FitResult, evaluate, refit
 from servobench.bench.diagnose.screening import screen_input
@@ -138,12 +139,13 @@ def fit_base(data: DiagnosisData, start: BaseStart | None = None) -> FitResult:
 
 def at_rest(data: DiagnosisData, fit: FitResult) -> tuple[FitResult, str] | None:
     """The base ``fit`` held at rest (both Coulomb levels at the largest command [command
-    units]) with a note saying why, where that fits the training samples better than ``fit``
-    and its held-out gap is within :data:`~.search.FLOOR_FACTOR` of the noise floor; else None.
+    units]) with a note saying why, where ``fit`` does not pay against it on the training
+    samples (:data:`~.evidence.MIN_GAIN` lower) and its held-out gap is within
+    :data:`~.search.FLOOR_FACTOR` of the noise floor; else None.
     Its ``M`` and ``B`` are the fit's, undetermined by a log at rest (no sigma)."""
     top = max(float(np.max(np.abs(r.u))) for r in data.segments)
     held = evaluate(data, Candidate({**fit.candidate.base, "coulomb_pos": top, "coulomb_neg": top}))
-    if not held.gap_train < fit.gap_train:
+    if fit.gap_train <= (1.0 - MIN_GAIN) * held.gap_train:  # motion the log shows: it pays
         return None
     floor = sensor_floor_percent(data, held.v_sim)
     if not held.gap_held_out <= FLOOR_FACTOR * floor:
@@ -151,7 +153,7 @@ def at_rest(data: DiagnosisData, fit: FitResult) -> tuple[FitResult, str] | None
     note = (
         f"the axis does not move beyond what the sensor's noise shows: a base model held at rest "
         f"(Coulomb levels at the largest command, {top:.3g}) leaves {held.gap_train:.3g}% on the "
-        f"training samples against {fit.gap_train:.3g}% for the best one in motion, and the "
+        f"training samples, the best one in motion {fit.gap_train:.3g}%, and the "
         f"noise floor is {floor:.3g}%. M and B are not determined and no effect can be named: "
         "excite with a larger command, above the breakaway"
     )

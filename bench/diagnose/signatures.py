@@ -33,6 +33,18 @@ REVERSAL_WINDOW_S = 0.05
 MAX_LAG = 50
 
 
+
+def _change(after: float, before: float) -> float:
+    """``after / before - 1``; NaN where ``before`` is 0 or either is not finite."""
+    if not (before != 0 and math.isfinite(before) and math.isfinite(after)):
+        return math.nan
+    return after / before - 1
+
+
+def _pct(change: float) -> str:
+    """A relative change as signed whole per cent, ``undetermined`` where it is NaN."""
+    return f"{100 * change:+.0f}%" if math.isfinite(change) else "undetermined"
+
 @dataclass(frozen=True)
 class Binned:
     """Mean residual per bin of a signal; ``eta2``: share of residual variance it explains."""
@@ -74,9 +86,10 @@ class Signatures:
     linear: tuple[LinearApprox, ...]
 
     def gain_change(self) -> tuple[float, float]:
-        """Relative DC-gain change from the first to the last run: measured, simulated."""
+        """Relative DC-gain change from the first to the last run: measured, simulated (NaN
+        where the first run's gain is 0: a model at rest)."""
         a, b = self.linear[0], self.linear[-1]
-        return b.gain_measured / a.gain_measured - 1, b.gain_simulated / a.gain_simulated - 1
+        return _change(b.gain_measured, a.gain_measured), _change(b.gain_simulated, a.gain_simulated)
 
     def support(self, effect: str) -> str:
         """The step-3 finding that goes with ``effect``'s signature, as a clause ("" if none)."""
@@ -98,8 +111,8 @@ class Signatures:
         if effect in ("deadzone", "saturation") and len(self.linear) >= 2:
             meas, sim = self.gain_change()
             return (
-                f"the linear approximation's gain changes {100 * meas:+.0f}% from run "
-                f"{self.linear[0].run} to run {self.linear[-1].run} (base model {100 * sim:+.0f}%)"
+                f"the linear approximation's gain changes {_pct(meas)} from run "
+                f"{self.linear[0].run} to run {self.linear[-1].run} (base model {_pct(sim)})"
             )
         return ""
 
@@ -136,12 +149,12 @@ class Signatures:
         if len(self.linear) >= 2:
             a, b = self.linear[0], self.linear[-1]
             dg_meas, dg_sim = self.gain_change()
-            dp_meas = b.pole_measured / a.pole_measured - 1
-            dp_sim = b.pole_simulated / a.pole_simulated - 1
+            dp_meas = _change(b.pole_measured, a.pole_measured)
+            dp_sim = _change(b.pole_simulated, a.pole_simulated)
             text = (
                 f"from run {a.run} to run {b.run} the linear approximation's gain changes "
-                f"{100 * dg_meas:+.0f}% (model {100 * dg_sim:+.0f}%) and its pole {100 * dp_meas:+.0f}% "
-                f"(model {100 * dp_sim:+.0f}%)"
+                f"{_pct(dg_meas)} (model {_pct(dg_sim)}) and its pole {_pct(dp_meas)} "
+                f"(model {_pct(dp_sim)})"
             )
             excess = dg_meas - dg_sim
             if excess > 0.05:
