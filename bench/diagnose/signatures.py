@@ -33,7 +33,6 @@ REVERSAL_WINDOW_S = 0.05
 MAX_LAG = 50
 
 
-
 def _change(after: float, before: float) -> float:
     """``after / before - 1``; NaN where ``before`` is 0 or either is not finite."""
     if not (before != 0 and math.isfinite(before) and math.isfinite(after)):
@@ -44,6 +43,7 @@ def _change(after: float, before: float) -> float:
 def _pct(change: float) -> str:
     """A relative change as signed whole per cent, ``undetermined`` where it is NaN."""
     return f"{100 * change:+.0f}%" if math.isfinite(change) else "undetermined"
+
 
 @dataclass(frozen=True)
 class Binned:

@@ -82,9 +82,10 @@ BREAKAWAY_LEVELS = (2.0, 3.0, 4.5)
 #: ... the Stribeck velocity at each of these shares of the top speed (99th percentile) ...
 BREAKAWAY_SPEEDS = (0.25, 0.5)
 #: ... and a viscous coefficient whose force at the top speed is this share of the command's
-#: amplitude above the new Coulomb level. Offered only where the base's viscous force at the top
-#: speed is under this share of its Coulomb level (a viscous coefficient near zero).
+#: amplitude above the new Coulomb level.
 BREAKAWAY_VISCOUS = 0.5
+#: The restarts are offered only where the base's viscous force at the top speed is under this
+#: share of its Coulomb level (a viscous coefficient near zero: their signature).
 BREAKAWAY_BELOW = 0.1
 
 
