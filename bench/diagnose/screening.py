@@ -124,9 +124,10 @@ class QuickScore:
 
     ``starts`` holds the best candidate built on the screening's main guess; the main guess
     on the other base too when the two bases are far apart (:func:`unsettled`: the quick
-    simulation cannot tell which basin the refit will reach); and, when the screening offered
-    alternatives or restarts (starts with a base of their own), the best of those (rugged
-    surfaces: each is refitted).
+    simulation cannot tell which basin the refit will reach); when the screening offered
+    alternatives, the best of those (rugged surfaces: each is refitted); and when it offered
+    restarts (starts with a base of their own), the best of those too, whatever its quick gap
+    (its guess of the term was made on the current base: the refit moves both).
     """
 
     name: str
@@ -155,7 +156,7 @@ def unsettled(a: dict[str, float], b: dict[str, float]) -> bool:
 def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening) -> QuickScore:
     """Simulate the guesses with the current base, and the main guess with the jointly fitted
     base too; keep the best main-guess candidate, the other main one when the bases are far
-    apart, and the best alternative."""
+    apart, the best alternative and the best restart."""
     trials = [(dict(current.base), dict(s.guess), "main")]
     if s.base is not None and all(np.isfinite(list(s.base.values()))):
         b = dict(s.base)
@@ -167,7 +168,7 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
             }
             trials.append((b, dict(s.guess), "joint"))
     trials += [(dict(current.base), dict(g), "alternative") for g in s.alternatives]
-    trials += [(dict(b), dict(g), "alternative") for b, g in s.restarts]
+    trials += [(dict(b), dict(g), "restart") for b, g in s.restarts]
     which = held_out_windows(data)
     best: dict[str, tuple[float, Candidate]] = {}
     for base, guess, kind in trials:
@@ -187,6 +188,6 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
     kept = mains[:1]
     if len(mains) == 2 and unsettled(dict(mains[0][1].base), dict(mains[1][1].base)):
         kept.append(mains[1])
-    kept += [best["alternative"]] if "alternative" in best else []
+    kept += [best[k] for k in ("alternative", "restart") if k in best]
     ranked = sorted(kept, key=lambda item: item[0])
     return QuickScore(name, ranked[0][0], tuple(c for _, c in ranked))

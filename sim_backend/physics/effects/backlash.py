@@ -65,6 +65,44 @@ def engaged(x: np.ndarray, gap: float) -> np.ndarray:
     return play_engaged(np.ascontiguousarray(x, dtype=float), float(gap))
 
 
+#: Restarts along the steady state's line where the command holds one level each way (a square
+#: wave): the current base's Coulomb levels times each of these, its viscous coefficient raised
+#: to keep the steady speed ...
+STEADY_SHARES = (0.2, 0.4, 0.6)
+#: ... where this share of the samples lie within :data:`ONE_LEVEL` of the command's largest
+#: magnitude.
+ONE_LEVEL_SHARE = 0.95
+ONE_LEVEL = 0.02
+
+
+def _steady_line(ctx: ScreenInput, guess: dict[str, float]) -> tuple:
+    """Starts for a command of one level each way: there the steady state fixes only
+    ``coulomb + B v_ss``, a base fitted with the play left out splits it wrongly (its Coulomb
+    level five times the true one, B half), and the play's refit stalls on the way along that
+    line. Each start moves the base along it, with the screening's guess of the play."""
+    u = np.abs(ctx.cat("u"))
+    top = float(np.max(u)) if u.size else 0.0
+    if not (top > 0 and np.mean(u >= (1.0 - ONE_LEVEL) * top) >= ONE_LEVEL_SHARE):
+        return ()
+    base = {k: float(ctx.base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+    coulomb = 0.5 * (base["coulomb_pos"] + base["coulomb_neg"])
+    if not (base["B"] > 0 and 0 < coulomb < top):
+        return ()
+    v_ss = (top - coulomb) / base["B"]
+    return tuple(
+        (
+            {
+                **base,
+                "B": (top - share * coulomb) / v_ss,
+                "coulomb_pos": share * base["coulomb_pos"],
+                "coulomb_neg": share * base["coulomb_neg"],
+            },
+            dict(guess),
+        )
+        for share in STEADY_SHARES
+    )
+
+
 def screen(ctx: ScreenInput) -> Screening:
     m = ctx.moving
     y = target(ctx)
@@ -102,5 +140,12 @@ def screen(ctx: ScreenInput) -> Screening:
         for r in (0.3, 0.5)
     )
     return Screening(
-        score, guess, bounds, evidence, base=base, scan=("gap", "ratio"), alternatives=others
+        score,
+        guess,
+        bounds,
+        evidence,
+        base=base,
+        scan=("gap", "ratio"),
+        alternatives=others,
+        restarts=_steady_line(ctx, guess),
     )
