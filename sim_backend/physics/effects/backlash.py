@@ -23,6 +23,7 @@ from servobench.sim_backend.physics.effects.spec import (
     Terms,
     base_columns,
     base_fit,
+    base_values,
     explained,
     regress,
     target,
@@ -70,12 +71,15 @@ def engaged(x: np.ndarray, gap: float) -> np.ndarray:
 #: to keep the steady speed ...
 STEADY_SHARES = (0.2, 0.4, 0.6)
 #: ... where this share of the samples lie within :data:`ONE_LEVEL` of the command's largest
-#: magnitude.
+#: magnitude ...
 ONE_LEVEL_SHARE = 0.95
+#: ... a band relative to that magnitude.
 ONE_LEVEL = 0.02
 
 
-def _steady_line(ctx: ScreenInput, guess: dict[str, float]) -> tuple:
+def _steady_line(
+    ctx: ScreenInput, guess: dict[str, float]
+) -> tuple[tuple[dict[str, float], dict[str, float]], ...]:
     """Starts for a command of one level each way: there the steady state fixes only
     ``coulomb + B v_ss``, a base fitted with the play left out splits it wrongly (its Coulomb
     level five times the true one, B half), and the play's refit stalls on the way along that
@@ -84,7 +88,7 @@ def _steady_line(ctx: ScreenInput, guess: dict[str, float]) -> tuple:
     top = float(np.max(u)) if u.size else 0.0
     if not (top > 0 and np.mean(u >= (1.0 - ONE_LEVEL) * top) >= ONE_LEVEL_SHARE):
         return ()
-    base = {k: float(ctx.base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+    base = base_values(ctx)
     coulomb = 0.5 * (base["coulomb_pos"] + base["coulomb_neg"])
     if not (base["B"] > 0 and 0 < coulomb < top):
         return ()

@@ -329,6 +329,12 @@ def regress(columns: list[np.ndarray], target: np.ndarray) -> tuple[np.ndarray, 
     return coef, float(resid @ resid)
 
 
+def base_values(ctx: ScreenInput) -> dict[str, float]:
+    """The current base model's ``M, B, coulomb_pos, coulomb_neg`` as floats (a restart's
+    starting point)."""
+    return {k: float(ctx.base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+
+
 def base_columns(ctx: ScreenInput) -> list[np.ndarray]:
     """Inverse-dynamics regressors of the base model on the moving samples: a, v, [v>0], -[v<0]."""
     m = ctx.moving

@@ -21,6 +21,7 @@ from servobench.sim_backend.physics.effects.spec import (
     ScreenInput,
     Terms,
     base_columns,
+    base_values,
     explained,
     target,
 )
@@ -95,7 +96,7 @@ def _breakaway(ctx: ScreenInput) -> tuple[tuple[dict[str, float], dict[str, floa
     the Stribeck velocity), and no Stribeck curve over that level moves it at all. Each start
     keeps that level as the static one, lowers the Coulomb levels under it, and gives the
     motion a viscous coefficient that bounds its speed near the speed seen."""
-    base = {k: float(ctx.base[k]) for k in ("M", "B", "coulomb_pos", "coulomb_neg")}
+    base = base_values(ctx)
     static = max(base["coulomb_pos"], base["coulomb_neg"])
     top = float(np.percentile(np.abs(ctx.cat("v")), 99))
     amplitude = float(np.max(np.abs(ctx.cat("u"))))
