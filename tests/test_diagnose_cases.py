@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from servobench.bench.diagnose.search import FLOOR_FACTOR
 from servobench.bench.diagnose.workflow import diagnose
 from servobench.bench.log.io import read_log
 from servobench.bench.report.diagnose import summary_lines, to_json
@@ -146,7 +147,7 @@ def test_an_axis_that_does_not_move_names_nothing_and_says_why(results, number):
     d = results[number]["diagnosis"]
     lines = summary_lines(d)
     assert d.effects == (), [e.name for e in d.effects]
-    assert d.verdict.gap_percent <= 1.25 * d.verdict.floor.percent, d.verdict
+    assert d.verdict.gap_percent <= FLOOR_FACTOR * d.verdict.floor.percent, d.verdict
     note = [n for n in d.notes if n.startswith("the axis does not move")]
     assert len(note) == 1 and "excite with a larger command" in note[0], d.notes
     base = d.steps[-1].fit.candidate.base

@@ -226,7 +226,7 @@ class _Cycler:
         self.loop = HoldLoop(self.host)
         self.x_ref = plan.controller.x_ref
         self.limit = MARGIN * plan.room
-        self.t0 = time.monotonic()
+        self.t0 = 0.0  # the deadlines' origin: set by anchor() before the first cycle
         self.paced = False  # the drive times the cycle (start_cycle_clock), no host schedule
         self.k = 0
         self.last: Feedback | None = None
