@@ -84,3 +84,21 @@ def test_the_sidbe_methods_sigma_covers_its_friction_leakage(clean_default):
     assert all(c["estimator"] == "sidbe/frf" for c in cases)
     assert all(abs(c["error"]["M"]) > 0.05 * 0.1 for c in cases)  # the bias is there to cover
     assert all(any("friction leaks into the differential FRF" in n for n in c["notes"]) for c in cases)
+
+
+def test_a_parameter_the_residual_does_not_move_leaves_the_others_their_sigma():
+    """A Jacobian column of zeros (a parameter no sample responds to) makes that parameter
+    undetermined (NaN), not every parameter: the others' sigma is the covariance without it."""
+    import numpy as np
+
+    from servobench.bench.identify.covariance import hac_covariance
+
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(400, 3))
+    r = rng.normal(size=400)
+    alone = hac_covariance(J, r)
+    widened = hac_covariance(np.column_stack((J[:, :2], np.zeros(400), J[:, 2:])), r)
+    assert np.all(np.isnan(widened[2])) and np.all(np.isnan(widened[:, 2]))
+    kept = [0, 1, 3]
+    assert np.allclose(widened[np.ix_(kept, kept)], alone, rtol=1e-12, atol=0.0)
+    assert np.all(np.isfinite(alone)) and np.all(np.diag(alone) > 0)

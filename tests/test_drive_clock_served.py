@@ -120,7 +120,9 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
     bound = 0.5 if stamps else 1.0
     fit_floor = 99.0
     errors = {k: 100.0 * (model[k] / v - 1.0) for k, v in TRUE.items()}
-    seen = {"errors": errors, "fit": model["fit_percent"], "timing": model["timing"], "record": record}
+    seen = {"errors": errors, "fit": model["fit_percent"], "timing": model["timing"], "record": record,
+            "std": model["std"], "estimator": model["estimator"], "selection": model.get("selection"),
+            "notes": model.get("notes")}  # fmt: skip
     print("seen:", json.dumps(seen, default=str))  # what a failure shows, whole
     worst = max(abs(e) for e in errors.values())
     # without stamps the host's timing bounds the model (the benchmark holds the bounds on

@@ -168,11 +168,19 @@ def hac_covariance(
     Returns
     -------
     ndarray, shape (p, p)
-        ``(J^T J)^-1 S (J^T J)^-1 n / (n - p)``; NaN where ``J^T J`` is singular.
+        ``(J^T J)^-1 S (J^T J)^-1 n / (n - p)``. A parameter the residual does not move at all
+        (its column zero) is undetermined: its row and column are NaN, the others' covariance
+        stands without it; NaN throughout where ``J^T J`` is singular otherwise.
     """
     J = np.asarray(jac, dtype=float)
     r = np.asarray(r, dtype=float)
     n, p = J.shape
+    moved = np.any(J != 0.0, axis=0)
+    if not moved.all():
+        out = np.full((p, p), np.nan)
+        if moved.any():
+            out[np.ix_(moved, moved)] = hac_covariance(J[:, moved], r, bounds, lags)
+        return out
     if lags is None:
         lags = bandwidth(r, bounds)
     try:
