@@ -180,6 +180,7 @@ def to_json(d: Diagnosis) -> dict:
             "sensor_percent": v.floor.sensor_percent,
             "repeat_percent": v.floor.repeat_percent,
             "unpredictable_percent": v.floor.unpredictable_percent,
+            "rest_percent": v.floor.rest_percent,
             "upper_percent": v.floor.upper_percent,
             "floor_from": v.floor.source,
             "parts": [p.as_dict() for p in v.floor.parts],
@@ -346,7 +347,13 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
             if v.floor.repeat_percent is not None
             else ""
         )
-        + f", unpredictable part of the final residual {v.floor.unpredictable_percent:.3g}%).",
+        + f", unpredictable part of the final residual {v.floor.unpredictable_percent:.3g}%"
+        + (
+            f", residual where the model holds the axis at rest {v.floor.rest_percent:.3g}%"
+            if v.floor.rest_percent is not None
+            else ""
+        )
+        + ").",
         "",
         f"Log: `{Path(d.data.source).name or 'log'}`; velocity "
         f"{'derived from position' if d.data.derived else 'measured'}; comparison: "
