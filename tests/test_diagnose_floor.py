@@ -227,3 +227,24 @@ def test_a_velocity_read_in_steps_is_matched_by_its_noise_and_rounding_together(
     old = math.hypot(1.4826 * np.median(np.abs(np.diff(reading, 2))) / math.sqrt(6), step / math.sqrt(12))
     if 0.2 < noise_in_steps < 0.5:
         assert old > 1.3 * error  # what the floor said before
+
+
+def test_the_rms_sampling_error_counts_the_residuals_correlation():
+    """An rms read from correlated samples rests on fewer independent ones: over 400 AR(1)
+    series (correlation 0.8 from one sample to the next), the rms scatters around its true
+    value by the stated relative error, 1 / sqrt(2 N (1 - rho^2) / (1 + rho^2)), three times
+    the white samples' 1 / sqrt(2 N)."""
+    from scipy.signal import lfilter
+
+    from servobench.bench.diagnose.floor import rms_relative_se
+
+    rng = np.random.default_rng(7)
+    rho, n = 0.8, 2000
+    series = lfilter([1.0], [1.0, -rho], rng.normal(size=(400, n + 200)), axis=1)[:, 200:]
+    true_rms = 1.0 / math.sqrt(1.0 - rho**2)
+    spread = float(np.std(np.sqrt(np.mean(series**2, axis=1)) / true_rms))
+    stated = np.array([rms_relative_se([s]) for s in series[:40]])
+    assert np.median(stated) == pytest.approx(spread, rel=0.2)
+    assert np.median(stated) == pytest.approx(1.0 / math.sqrt(2.0 * n * (1 - rho**2) / (1 + rho**2)), rel=0.15)
+    white = rms_relative_se([rng.normal(size=n)])
+    assert white == pytest.approx(1.0 / math.sqrt(2.0 * n), rel=0.1)

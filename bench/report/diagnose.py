@@ -181,6 +181,7 @@ def to_json(d: Diagnosis) -> dict:
             "repeat_percent": v.floor.repeat_percent,
             "unpredictable_percent": v.floor.unpredictable_percent,
             "rest_percent": v.floor.rest_percent,
+            "lower_percent": v.floor.lower_percent,
             "upper_percent": v.floor.upper_percent,
             "floor_from": v.floor.source,
             "parts": [p.as_dict() for p in v.floor.parts],
