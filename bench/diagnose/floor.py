@@ -63,11 +63,9 @@ where it lies above the floor, widened by two of its own sampling errors
 correlated rests on fewer independent ones): the noise can be up to there, and
 a gap within it may be noise. Without the widening, ten of 112 coloured-noise
 cases of ``diagnose_cases.py`` had their true floor 2-20 % above the bound. In
-closed loop the command carries the noise the loop fed back, so the signals
-predict part of the noise, and the loop's reaction cancels part of it in the
-measured velocity from period to period: there the bound is the final model's
-whole gap (:attr:`NoiseFloor.loop_percent`; time delays in closed loop had
-their true floor 1.5-1.6 times the period scatter).
+closed loop the loop's reaction cancels part of the noise in the measured
+velocity from one period to the next: the period scatter bounds nothing there
+(time delays in closed loop had their true floor 1.5-1.6 times it).
 """
 
 from __future__ import annotations
@@ -144,12 +142,10 @@ class NoiseFloor:
     bound_se : float
         The relative sampling error (1 sigma) of those bounds, each an rms of the log
         (:func:`rms_relative_se`).
-    loop_percent : float or None
-        In closed loop, the final model's whole gap: the bound in place of
-        ``unpredictable_percent`` and ``repeat_percent``, as the loop feeds the noise back
-        into the command the signals are read from (they predict the noise in part) and
-        its reaction cancels part of the noise in the measured velocity from period to
-        period; None in open loop.
+    closed_loop : bool
+        The log is a closed loop's: ``repeat_percent`` bounds nothing there (the loop's
+        reaction cancels part of the noise in the measured velocity from one period to
+        the next).
     lower_percent : float
         The least the noise can be: ``sensor_percent`` where a bound raised the floor, else
         ``percent``.
@@ -170,7 +166,7 @@ class NoiseFloor:
     parts: tuple[FloorPart, ...] = ()
     rest_percent: float | None = None
     bound_se: float = 0.0
-    loop_percent: float | None = None
+    closed_loop: bool = False
 
     @property
     def lower_percent(self) -> float:
@@ -180,11 +176,8 @@ class NoiseFloor:
 
     @property
     def upper_percent(self) -> float:
-        if self.loop_percent is None:
-            bounds = [self.unpredictable_percent, self.repeat_percent, self.rest_percent]
-        else:
-            bounds = [self.loop_percent, self.rest_percent]
-        bound = min(b for b in bounds if b is not None)
+        repeat = None if self.closed_loop else self.repeat_percent
+        bound = min(b for b in (self.unpredictable_percent, repeat, self.rest_percent) if b is not None)
         return max(self.percent, bound * (1.0 + UPPER_SIGMAS * self.bound_se))
 
 
@@ -582,5 +575,5 @@ def noise_floor(
                 f"see only in part, can be up to {unpredictable:.3g}%"
             )
     se = rms_relative_se([r.v - vs for r, vs in zip(data.segments, v_sim, strict=True)])
-    loop = gap if data.prepared.closed_loop else None
-    return NoiseFloor(floor, sensor, repeat, unpredictable, source, tuple(parts), rest, se, loop)
+    return NoiseFloor(floor, sensor, repeat, unpredictable, source, tuple(parts), rest, se,
+                      data.prepared.closed_loop)  # fmt: skip
