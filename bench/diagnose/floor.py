@@ -47,8 +47,8 @@ moves, and at rest no timing of a slip can put a model error into it. A model
 that places the slips of a sticking axis wrongly leaves a residual no signal
 predicts, spikes at each slip; counted as coloured noise, it raised the floor
 of such a log (a Stribeck curve four times the Coulomb level, read in steps)
-to three times the true 10 %, where the residual at rest shows 14 %. :attr:`NoiseFloor.source` says which, with
-every part and its value.
+to three times the true 10 %, where the residual at rest shows 14 %.
+:attr:`NoiseFloor.source` says which, with every part and its value.
 
 The floor's error bar is one-sided: the measurement floor is a lower bound
 where the noise is coloured (second differences see low-passed noise only in
@@ -146,6 +146,9 @@ class NoiseFloor:
         The log is a closed loop's: ``repeat_percent`` bounds nothing there (the loop's
         reaction cancels part of the noise in the measured velocity from one period to
         the next).
+    rest_share : float
+        The share of the samples ``rest_percent`` is read from (its sampling error is
+        ``bound_se / sqrt(rest_share)``).
     lower_percent : float
         The least the noise can be: ``sensor_percent`` where a bound raised the floor, else
         ``percent``.
@@ -167,6 +170,7 @@ class NoiseFloor:
     rest_percent: float | None = None
     bound_se: float = 0.0
     closed_loop: bool = False
+    rest_share: float = 1.0
 
     @property
     def lower_percent(self) -> float:
@@ -177,8 +181,11 @@ class NoiseFloor:
     @property
     def upper_percent(self) -> float:
         repeat = None if self.closed_loop else self.repeat_percent
-        bound = min(b for b in (self.unpredictable_percent, repeat, self.rest_percent) if b is not None)
-        return max(self.percent, bound * (1.0 + UPPER_SIGMAS * self.bound_se))
+        widened = [b * (1.0 + UPPER_SIGMAS * self.bound_se) for b in (self.unpredictable_percent, repeat)
+                   if b is not None]  # fmt: skip
+        if self.rest_percent is not None:
+            widened.append(self.rest_percent * (1.0 + UPPER_SIGMAS * self.bound_se / math.sqrt(self.rest_share)))
+        return max(self.percent, min(widened))
 
 
 # ------------------------------------------------------------------ the filter's gains
@@ -469,12 +476,12 @@ def repeat_percent(data: DiagnosisData) -> float | None:
     return 100.0 * math.sqrt(sq / count) / spread if spread > 0 and count else None
 
 
-def rest_percent(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> float | None:
+def rest_percent(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> tuple[float, float] | None:
     """The final residual's rms [%] over the samples where the model holds the axis at rest (its
-    simulated velocity exactly zero): the noise plus whatever the model misses there, an upper
-    bound of the noise. None for a velocity derived from position (its filter spreads motion into
-    the rest next to it) and where the model rests at fewer than :data:`REST_MIN_SHARE` of the
-    samples or :data:`REST_MIN_SAMPLES`."""
+    simulated velocity exactly zero), and their share of the samples: the noise plus whatever
+    the model misses there, an upper bound of the noise. None for a velocity derived from
+    position (its filter spreads motion into the rest next to it) and where the model rests at
+    fewer than :data:`REST_MIN_SHARE` of the samples or :data:`REST_MIN_SAMPLES`."""
     if data.derived:
         return None
     sq, rest, total = 0.0, 0, 0
@@ -487,7 +494,7 @@ def rest_percent(data: DiagnosisData, v_sim: Sequence[np.ndarray]) -> float | No
     spread = float(np.std(data.cat("v")))
     if spread <= 0 or rest < max(REST_MIN_SAMPLES, REST_MIN_SHARE * total):
         return None
-    return 100.0 * math.sqrt(sq / rest) / spread
+    return 100.0 * math.sqrt(sq / rest) / spread, rest / total
 
 
 def rms_relative_se(residuals: Sequence[np.ndarray]) -> float:
@@ -536,7 +543,7 @@ def noise_floor(
     parts += [command] if command is not None else []
     sensor = math.sqrt(sum(p.percent**2 for p in parts))
     repeat = repeat_percent(data)
-    rest = rest_percent(data, v_sim)
+    rest, rest_share = rest_percent(data, v_sim) or (None, 1.0)
     unpredictable = gap * math.sqrt(max(0.0, 1.0 - together))
     floor = sensor
     source = f"the measurement, {sensor:.3g}% (root sum of squares of: {_listed(parts)})"
@@ -552,7 +559,7 @@ def noise_floor(
         if upper > COLOURED * sensor:
             floor = upper
             source = f"{said}, above the measurement's {sensor:.3g}% ({_listed(parts)})"
-        elif rest is not None and upper == rest < min(unpredictable, math.inf if repeat is None else repeat):
+        elif upper == rest and min(unpredictable, math.inf if repeat is None else repeat) > COLOURED * sensor:
             source += (
                 f"; the residual's part no signal predicts on held-out samples, {unpredictable:.3g}%, "
                 f"is not counted: the residual where the model holds the axis at rest, {rest:.3g}%, "
@@ -576,4 +583,4 @@ def noise_floor(
             )
     se = rms_relative_se([r.v - vs for r, vs in zip(data.segments, v_sim, strict=True)])
     return NoiseFloor(floor, sensor, repeat, unpredictable, source, tuple(parts), rest, se,
-                      data.prepared.closed_loop)  # fmt: skip
+                      data.prepared.closed_loop, rest_share)  # fmt: skip
