@@ -54,6 +54,8 @@ def short(transport: str) -> list[str]:
     """The excitation's options on ``transport``: :data:`SHORT`, its periods twice as long on
     Modbus RTU, whose 50 Hz then still gives each run 200 samples."""
     return ["--periods", "2", "--period", "2"] if transport == "modbus-rtu" else SHORT
+
+
 CASES = [
     (transport, tick, stamps)
     for transport in ("modbus-tcp", "modbus-rtu", "canopen", "serial")
