@@ -169,6 +169,10 @@ def test_a_residual_the_axis_at_rest_does_not_show_is_no_coloured_noise(results,
     assert true <= floor.percent <= 1.5 * true, (floor.percent, true)
     assert floor.source.startswith("the residual where the model holds the axis at rest")
     assert d.verdict.verdict == "unexplained", d.verdict
+    shown = [line for line in summary_lines(d) if line.startswith("noise floor ")]
+    assert shown[0].startswith(f"noise floor {floor.percent:.3g}% (the noise lies between "
+                               f"{floor.lower_percent:.3g}% and {floor.upper_percent:.3g}%; "), shown  # fmt: skip
+    assert floor.lower_percent < floor.percent < floor.upper_percent
 
 
 @pytest.mark.parametrize("number", sorted(BARS))

@@ -235,9 +235,10 @@ def summary_lines(d: Diagnosis) -> list[str]:
     """What ``servobench diagnose`` prints (and the report opens with): the verdict first."""
     v = d.verdict
     lines = [v.headline()]
-    lines.append(
-        f"noise floor {v.floor.percent:.3g}% ({v.floor.source}); comparison: {d.data.comparison}"
-    )
+    f = v.floor
+    bar = (f"the noise lies between {f.lower_percent:.3g}% and {f.upper_percent:.3g}%; "
+           if f"{f.lower_percent:.3g}" != f"{f.upper_percent:.3g}" else "")  # fmt: skip
+    lines.append(f"noise floor {f.percent:.3g}% ({bar}{f.source}); comparison: {d.data.comparison}")
     lines.append(f"velocity gap: {d.gap_before:.3g}% before, {d.gap_after:.3g}% after")
     if not d.effects:
         lines.append(f"no effect named: {d.trace.stop}")
@@ -341,7 +342,8 @@ def write_report(d: Diagnosis, out_dir: str | Path) -> Path:
     v = d.verdict
     lines = ["# servobench diagnose", "", f"**{v.headline()}**", ""]
     lines += [
-        f"Noise floor {v.floor.percent:.3g}%: {v.floor.source} (measurement "
+        f"Noise floor {v.floor.percent:.3g}% (the noise between {v.floor.lower_percent:.3g}% and "
+        f"{v.floor.upper_percent:.3g}%): {v.floor.source} (measurement "
         f"{v.floor.sensor_percent:.3g}%"
         + (
             f", period-to-period scatter {v.floor.repeat_percent:.3g}%"
