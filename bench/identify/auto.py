@@ -275,8 +275,8 @@ def identify_data(
     ver = verify(est.model, data, est.noise_std)
     notes = est.notes
     if ver.set_aside:
-        notes = (*notes, f"{ver.set_aside} samples whose instants the log knows only within more than a "
-                 "quarter cycle (t_unc: the host stalled) left out of the verification fit")  # fmt: skip
+        notes = (*notes, f"{ver.set_aside} samples read in an exchange the host stalled in (t_unc), or that a "
+                 "command sent in one may have moved, left out of the verification fit")  # fmt: skip
     return IdentificationResult(
         model=est.model,
         method=est.method,

@@ -56,6 +56,13 @@ ACT_TOLERANCE = 1e-3
 #: Fewest sample pairs holding a command change for the pairs to show the drive's delay
 #: (:meth:`Dataset.switch_pairs`); with fewer, the model's simulation shows it.
 MIN_SWITCH_PAIRS = 20
+#: A row's bracket (``t_unc``) wider than the log's median by more than this share of the cycle,
+#: and by :data:`STALL_EXCESS_SPREADS` of the brackets' spread, is an exchange the host stalled in
+#: (:meth:`Segment.after_stalled_commands`).
+STALL_EXCESS_SHARE = 0.1
+STALL_EXCESS_SPREADS = 5.0
+#: A command change acts on the samples of this many time constants after it.
+STALL_DECAY_TAUS = 5.0
 #: Initial velocities within this many noise deviations of zero are taken as rest.
 REST_SIGMAS = 3.0
 
@@ -136,6 +143,33 @@ class Segment:
         mean_v = 0.5 * (self.v[1:] + self.v[:-1])
         steps = mean_v / self.fs_hz if self.dt_s is None else mean_v * self.dt_s
         return np.concatenate([[0.0], np.cumsum(steps)])
+
+    def stalled_rows(self, dt_s: float) -> np.ndarray:
+        """The rows of exchanges the host stalled in (bool, shape ``(n,)``): a bracket (``t_unc``)
+        wider than the log's median by more than :data:`STALL_EXCESS_SHARE` of the cycle ``dt_s``
+        [s] and :data:`STALL_EXCESS_SPREADS` of the brackets' spread. None where the log has no
+        ``t_unc``."""
+        if self.t_unc is None or len(self) < 2:
+            return np.zeros(len(self), dtype=bool)
+        unc = np.asarray(self.t_unc, dtype=float)
+        mid = float(np.median(unc))
+        spread = 1.4826 * float(np.median(np.abs(unc - mid)))
+        excess = unc - mid
+        return (excess > STALL_EXCESS_SHARE * dt_s) & (excess > STALL_EXCESS_SPREADS * spread)
+
+    def after_stalled_commands(self, dt_s: float, tau_s: float) -> np.ndarray:
+        """The samples a command change sent in a stalled exchange may have moved (bool, shape
+        ``(n,)``): after each of :meth:`stalled_rows` whose command changed (the request went out
+        somewhere in its bracket, so where the command acted is unknown), every sample up to
+        :data:`STALL_DECAY_TAUS` time constants ``tau_s`` [s] later, the next one at least."""
+        out = np.zeros(len(self), dtype=bool)
+        stalled = self.stalled_rows(dt_s)
+        stalled[1:] &= np.diff(self.u) != 0
+        stalled[0] = False
+        for k in np.flatnonzero(stalled[:-1]):
+            end = int(np.searchsorted(self.t, self.t[k] + STALL_DECAY_TAUS * tau_s, side="right"))
+            out[k + 1 : max(end, k + 2)] = True
+        return out
 
     def head(self, n: int) -> Segment:
         """The first ``n`` samples."""

@@ -734,8 +734,10 @@ def _sample_weights(seg, dt_s: float, timing: _Timing | None) -> float | np.ndar
     (1 where there is no model to weigh them by).
 
     ``E_k`` is what the timing puts into a simulated sample: each interval's error
-    (``sqrt(2)`` times the instants' scatter, never more than the brackets allow) times
-    the model's acceleration at its end, squared, and carried on to the later samples
+    (``sqrt(2)`` times the instants' scatter, never more than the brackets allow; an exchange
+    the host stalled in, :meth:`~servobench.bench.identify.dataset.Segment.stalled_rows`, by its
+    own bracket) times the model's acceleration at its end, squared, with what a command sent in
+    a stalled exchange puts in (:func:`_command_exposure`), and carried on to the later samples
     decayed as the plant forgets it (``exp(-2 B dt / M)`` per interval), so a sample carries the
     timing of every interval before it, not its own alone. Weighting each sample by its
     local acceleration alone misstates that, and equal weights let the transients' timing
@@ -755,13 +757,38 @@ def _sample_weights(seg, dt_s: float, timing: _Timing | None) -> float | np.ndar
     uniform = seg.t_unc / math.sqrt(3.0)  # each instant's sigma within its bracket
     scatter = timing.scatter_s
     sigma_t = np.minimum(scatter, uniform) if math.isfinite(scatter) else uniform
+    sigma_t = np.where(seg.stalled_rows(dt_s), uniform, sigma_t)  # not the scatter of the typical rows
     u_acting = np.concatenate((seg.u[:1], seg.u[:-1]))  # the command acting as each sample is taken
     force = np.where(seg.v > 0, m.coulomb_pos, 0.0) - np.where(seg.v < 0, m.coulomb_neg, 0.0)
     acc = (u_acting - force - m.B * seg.v) / m.M  # at the measured velocity (when ODrive serial logs
     # were weighted too, the model's own trajectory put one at a 0.25 ms tick 1.1 % off, against 0.004 %)
     dt = np.full(len(seg) - 1, dt_s) if seg.dt_s is None else np.asarray(seg.dt_s)
-    exposure = _carried(2.0 * (acc * sigma_t) ** 2, np.exp(-2.0 * m.B * dt / m.M))
+    exposure = 2.0 * (acc * sigma_t) ** 2
+    exposure[1:] += _command_exposure(seg, dt, m)
+    exposure = _carried(exposure, np.exp(-2.0 * m.B * dt / m.M))
     return kept * timing.sigma_v**2 / (timing.sigma_v**2 + exposure)
+
+
+def _command_exposure(seg, dt: np.ndarray, m: ServoModel) -> np.ndarray:
+    """What a command change in an exchange the host stalled in puts into the next sample's
+    simulation, per interval (shape ``(n - 1,)``).
+
+    A row's bracket wider than the log's median (``t_unc`` beyond its median: the host stalled
+    before the request went out or after) leaves its command's instant uncertain by the excess,
+    uniform (``excess / sqrt(3)``, 1 sigma); a typical bracket's offset is the delay's. Its change
+    of acceleration ``du / M`` times that sigma reaches the next sample decayed over the shortest
+    the interval can have been. The row's own sample may be set aside, but its command acts on
+    every later one: a served Modbus RTU log at 50 Hz whose host stalled 69 ms in the exchange of
+    a switch (bracket +-34 ms) left the four samples after it the only weight the output error saw
+    beside its transients', each weighted down by its own timing alone; the refinement bent M
+    46 % off and the delay to 7.9 ms to fit them.
+    """
+    unc = np.asarray(seg.t_unc, dtype=float)
+    excess = np.maximum(unc - float(np.median(unc)), 0.0)[:-1]
+    du = np.diff(seg.u)  # row k's command change against row k-1's, acting over interval k
+    du = np.concatenate(([0.0], du))[:-1]
+    nearest = np.maximum(dt - excess, 0.0)
+    return (du / m.M * excess / math.sqrt(3.0)) ** 2 * np.exp(-2.0 * m.B * nearest / m.M)
 
 
 def _carried(exposure: np.ndarray, decay: np.ndarray) -> np.ndarray:

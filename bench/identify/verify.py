@@ -14,9 +14,13 @@ simulation still runs from the start of each run.
 A sample whose instant the log knows only within more than a quarter of a
 cycle (``t_unc``, a host that stalled mid-exchange) is left out of the score,
 as identification left it out (:data:`~servobench.bench.identify.joint.TIMING_REJECT_SHARE`):
-where it was read is unknown, so no model can be scored on it. They are
-counted (:attr:`Verification.set_aside`); where they would be most of the
-log, every sample is scored.
+where it was read is unknown, so no model can be scored on it. So are the
+samples of any exchange the host stalled in (its bracket well beyond the log's
+usual, :meth:`~servobench.bench.identify.dataset.Segment.stalled_rows`) and
+those a command change sent in one may have moved (where it acted is unknown:
+:meth:`~servobench.bench.identify.dataset.Segment.after_stalled_commands`).
+They are counted (:attr:`Verification.set_aside`); where they would be most
+of the log, every sample is scored.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ class Verification:
     runs: tuple[RunVerification, ...]
     fit_percent: float
     window: tuple[int, int | None] = (0, None)
-    #: Samples left out of the score: their instants known worse than a quarter cycle.
+    #: Samples left out of the score: read in a stalled exchange, or moved by a command sent in one.
     set_aside: int = 0
 
 
@@ -76,7 +80,7 @@ def verify(
     runs = []
     measured, simulated = [], []
     start, stop = window
-    known = _instant_known(data)
+    known = _instant_known(data, model)
     for seg, ok in zip(data.segments, known, strict=True):
         dt = data.dt_s if seg.dt_s is None else seg.dt_s
         v_sim = simulate_run(model, seg.u, dt, initial_velocity(seg, noise_std), period, seg.act_offset_s)
@@ -91,13 +95,18 @@ def verify(
     return Verification(tuple(runs), total, window, aside)
 
 
-def _instant_known(data: Dataset) -> list[np.ndarray]:
-    """Per run, the samples whose instants are known within a quarter cycle (all, where that
-    would leave fewer than half of them, as identification does)."""
+def _instant_known(data: Dataset, model: ServoModel) -> list[np.ndarray]:
+    """Per run, the samples whose instants are known within a quarter cycle, read in no exchange
+    the host stalled in (:meth:`~servobench.bench.identify.dataset.Segment.stalled_rows`), and that
+    no command sent in one may have moved (:meth:`~servobench.bench.identify.dataset.Segment.after_stalled_commands`
+    under ``model``'s time constant); all, where that would leave fewer than half of them, as
+    identification does."""
     from servobench.bench.identify.joint import MIN_KEPT_SHARE, TIMING_REJECT_SHARE
 
+    tau = model.time_constant_s
     known = [np.ones(len(s), dtype=bool) if s.t_unc is None
-             else np.asarray(s.t_unc) / np.sqrt(3.0) <= TIMING_REJECT_SHARE * data.dt_s
+             else (np.asarray(s.t_unc) / np.sqrt(3.0) <= TIMING_REJECT_SHARE * data.dt_s)
+             & ~s.stalled_rows(data.dt_s) & ~s.after_stalled_commands(data.dt_s, tau)
              for s in data.segments]  # fmt: skip
     total = sum(k.size for k in known)
     if sum(np.count_nonzero(k) for k in known) < MIN_KEPT_SHARE * total:
