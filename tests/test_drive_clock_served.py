@@ -16,8 +16,7 @@ inside its cycle: the sample the last tick's before the event, the command
 latched at the event acting from the next tick.
 
 Judged per case, the issue's bounds: M, B and each Coulomb level within
-0.5 % with stamps and 1 % without; fit >= 99 % (98 % where the loaded suite
-stalled the host so that it missed whole cycles without stamps: open); without stamps, a run beyond
+0.5 % with stamps and 1 % without; fit >= 99 %; without stamps, a run beyond
 those bounds passes only where its timing figure says so (not within
 accuracy, the true error within its predicted bound, two of its 1 sigma: a
 loaded suite may starve the host);
@@ -25,8 +24,7 @@ the identified delay within 0.05 ms (or a tenth of the tick) of the mean
 delay the served drive's own record shows over the commands that changed the
 value (or three of its stated sigma where that is wider: Modbus RTU without
 stamps, whose 50 Hz cannot always place its reads on a 0.25 ms tick, open); the run complete; a predicted model error at its stated coverage
-(``model_error_bound_pct``, two sigma; three where the host missed whole cycles without
-stamps: open) that covers the true one; and a timing figure that says what it saw (the delay, and with
+(``model_error_bound_pct``, two sigma) that covers the true one; and a timing figure that says what it saw (the delay, and with
 stamps the tick and the repeated reads).
 """
 
@@ -142,14 +140,12 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
     told = (not stamps and not model["timing"]["within_accuracy"]
             and model["timing"]["model_error_bound_pct"] >= worst)  # fmt: skip
     assert worst <= bound or told, seen
-    # NOT the issue's fit floor where the loaded suite stalled the host, so that it missed whole
-    # cycles, without stamps (open): the fit simulates the logged instants, which a stall moves. A
-    # fresh-clone suite gave ODrive serial at 1 ms, host stalls of 74 ms and 54 missed cycles, a fit
-    # of 98.91 % for a model within 0.11 % (0.81 % predicted); another Modbus TCP at 1 ms, a stall
-    # of 5.4 ms and 3 missed cycles, a fit of 98.43 % for a model within 0.006 % (0.27 % predicted)
+    # the issue's fit floor where the loaded suite stalled the host too: the samples of exchanges
+    # it stalled in, and those a command sent in one may have moved, are left out of the fit (a
+    # fresh-clone suite had given ODrive serial at 1 ms, host stalls of 74 ms, a fit of 98.91 % for
+    # a model within 0.11 %, and Modbus TCP at 1 ms, a 5.4 ms stall, 98.43 % within 0.006 %)
     timing = model["timing"]
-    stalled = not stamps and (timing["jitter_max_s"] > 10.0 / model["fs"] or timing["missed_cycles"] > 0)
-    assert model["fit_percent"] >= (98.0 if stalled else fit_floor) or told, seen
+    assert model["fit_percent"] >= fit_floor or told, seen
     near = max(0.05e-3, tick / 10)  # the issue's bound
     if transport == "modbus-rtu" and not stamps:
         # NOT the issue's bound where no grid is located (open): at the 50 Hz its link carries,
@@ -185,13 +181,10 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
     # (5 missed cycles, 12 reads the drive answered from one tick: misplaced reads the draws of
     # the timing figure do not reproduce). The benchmark judges every case from 0.01 %.
     floor = timing["accuracy_pct"] / 50.0 if not stamps else 0.01
-    # NOT two sigma but three where the host missed whole cycles without stamps (open): a stall
-    # moves commands and reads the draws do not reproduce; a fresh-clone suite gave ODrive serial
-    # at 1 ms, a 28 ms stall and 14 missed cycles, M 0.74 % off with 0.51 % predicted at two sigma
-    # (2.9 of its 1 sigma); sixteen cases of four parameters each, judged at two sigma, leave a
-    # few per cent of honest runs beyond it
-    coverage = 1.5 if stalled else 1.0
-    assert coverage * timing["model_error_bound_pct"] >= worst or worst < floor or told, (
+    # at two sigma where the host stalled too (a fresh-clone suite had given ODrive serial at 1 ms,
+    # a 28 ms stall, M 0.74 % off with 0.51 % predicted, before a command sent in a stalled
+    # exchange weighed the samples after it)
+    assert timing["model_error_bound_pct"] >= worst or worst < floor or told, (
         timing["model_error_pct"], errors)  # fmt: skip
     assert record["drift_ppm"] == pytest.approx(drift)
     if stamps and drift:
