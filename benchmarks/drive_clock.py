@@ -12,7 +12,9 @@ The matrix: Modbus TCP, Modbus RTU and ODrive serial (no time stamp ever) at
 ticks 0.125, 0.25, 0.5, 1 and 2 ms; CANopen and EtherCAT at a 1 ms tick; each
 with its time stamp and without (``--no-timestamp``); on the machine as it is
 ("idle") and with two busy processes, one per core ("busy", the load generator
-of ``benchmarks/realtime.py``). Plant: ``sim://?M=0.01&B=1&fc_pos=0.5&fc_neg=0.4&seed=N``
+of ``benchmarks/realtime.py``); ``--loads stall`` adds a host stopped (SIGSTOP) for
+30-150 ms every 0.5-1.5 s beside them, mid-exchange as the machine pleases (not
+for EtherCAT, whose host runs inside its link's namespace). Plant: ``sim://?M=0.01&B=1&fc_pos=0.5&fc_neg=0.4&seed=N``
 (pole -100), a new seed per run. The host runs ``servobench sidbe --drive URL
 --json --no-plots`` at its defaults (``--quick``: 2 periods of 2 s per run, as
 ``realtime.py --quick``). EtherCAT runs on a private veth link in a network
@@ -48,7 +50,7 @@ parts per million fast against the host's (``serve-sim --drift``), as a real
 drive's crystal does: its ticks slide against the host's cycle along the run.
 
 Run: ``python benchmarks/drive_clock.py [--quick] [--transports modbus-tcp,canopen]
-[--ticks 0.001,0.00025] [--loads idle,busy] [--stamps yes,no] [--repeat N]
+[--ticks 0.001,0.00025] [--loads idle,busy,stall] [--stamps yes,no] [--repeat N]
 [--drift PPM] [--ethercat-runs N]``. The full matrix takes about an hour. ``--ethercat-runs``
 defaults to 10 when ``ethercat`` is among the transports, else 0.
 """
@@ -59,10 +61,13 @@ import argparse
 import json
 import math
 import os
+import random
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -80,6 +85,9 @@ TICKS_S = (0.000125, 0.00025, 0.0005, 0.001, 0.002)
 ONE_MS_ONLY = frozenset({"canopen", "ethercat"})
 QUICK_ARGS = ["--periods", "2", "--period", "2"]  # realtime.py --quick
 SIDBE_TIMEOUT_S = 900.0
+#: Load ``stall``: the host stopped every 0.5-1.5 s for 30-150 ms [s], beside the busy processes.
+STALL_EVERY_S = (0.5, 1.5)
+STALL_FOR_S = (0.03, 0.15)
 ETHERCAT_RUNS = 10
 CHILD_FLAG = "--ethercat-child"
 RESULT_MARK = "DRIVE-CLOCK-RESULT "
@@ -99,21 +107,46 @@ def covered(r: dict) -> bool:
     return pred >= r["true"] or r["true"] < EXACT_PCT
 
 
-def sidbe(url: str, out: Path, extra: list[str]) -> dict[str, object]:
-    """``servobench sidbe --drive url --json --no-plots --out out *extra``: rc, stdout, stderr."""
+def sidbe(url: str, out: Path, extra: list[str], stalls: bool = False) -> dict[str, object]:
+    """``servobench sidbe --drive url --json --no-plots --out out *extra``: rc, stdout, stderr;
+    with ``stalls`` the host process is stopped now and then as it runs (:func:`host_stalls`)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json", "--no-plots",
+         "--out", str(out), *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    stopper = threading.Thread(target=host_stalls, args=(proc,), daemon=True) if stalls else None
+    if stopper is not None:
+        stopper.start()
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "servobench", "sidbe", "--drive", url, "--json", "--no-plots",
-             "--out", str(out), *extra],
-            capture_output=True, text=True, timeout=SIDBE_TIMEOUT_S,
-        )  # fmt: skip
+        stdout, stderr = proc.communicate(timeout=SIDBE_TIMEOUT_S)
     except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
         return {
             "rc": None,
             "stdout": "",
             "stderr": f"sidbe did not end within {SIDBE_TIMEOUT_S:g} s",
         }
-    return {"rc": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr[-4000:]}
+    finally:
+        if stopper is not None:
+            stopper.join()
+    return {"rc": proc.returncode, "stdout": stdout, "stderr": stderr[-4000:]}
+
+
+def host_stalls(proc: subprocess.Popen, seed: int | None = None) -> None:
+    """Until ``proc`` ends: every :data:`STALL_EVERY_S` (uniform) stop it (SIGSTOP) for
+    :data:`STALL_FOR_S` (uniform), then let it go on (SIGCONT): a host the machine stops now
+    and then mid-exchange (load ``stall``), as a loaded suite's workers and a hypervisor do."""
+    rng = random.Random(seed)
+    while proc.poll() is None:
+        time.sleep(rng.uniform(*STALL_EVERY_S))
+        try:
+            proc.send_signal(signal.SIGSTOP)
+            time.sleep(rng.uniform(*STALL_FOR_S))
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
 
 
 def _ethercat_child(spec: dict) -> None:
@@ -171,9 +204,9 @@ def _status(log: str) -> str:
 
 
 def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra: list[str],
-        priority: int | None = DRIVE_PRIORITY, drift_ppm: float = 0.0) -> dict[str, object]:  # fmt: skip
+        priority: int | None = DRIVE_PRIORITY, drift_ppm: float = 0.0, stalls: bool = False) -> dict[str, object]:  # fmt: skip
     """One ``sidbe`` through ``transport`` served at tick ``tick_s`` (its clock ``drift_ppm``
-    fast); its figures and verdict."""
+    fast; the host stopped now and then with ``stalls``); its figures and verdict."""
     stamps = stamps and transport not in NO_STAMP_EVER
     state = out.with_suffix(".state.json")
     serve_args = ["--clock", "real", "--tick", f"{tick_s:g}", "--state-file", str(state)]
@@ -192,7 +225,7 @@ def one(transport: str, tick_s: float, stamps: bool, seed: int, out: Path, extra
             res = sidbe_on_ethercat(sim, serve_args, priority, out, extra)
         else:
             with ServedSim(transport, sim, serve_args, priority=priority) as served:
-                res = sidbe(served.url, out, extra)
+                res = sidbe(served.url, out, extra, stalls)
     except Exception as err:  # the served drive did not start: one line, go on
         res = {"rc": None, "stdout": "", "stderr": f"{type(err).__name__}: {err}"}
     row["wall_s"] = time.monotonic() - t0
@@ -261,14 +294,14 @@ def _ms(value, fmt: str = ".4f") -> str:
     return "-" if value is None or not math.isfinite(value) else format(value * 1e3, fmt)
 
 
-HEAD = (f"{'transport':<10} {'tick ms':>7} {'stamp':>5} {'load':>4} {'M %':>8} {'B %':>8} {'Fc+ %':>8} "
+HEAD = (f"{'transport':<10} {'tick ms':>7} {'stamp':>5} {'load':>5} {'M %':>8} {'B %':>8} {'Fc+ %':>8} "
         f"{'Fc- %':>8} {'fit %':>7} {'delay ms +- sd':>17} {'drive ms':>8} {'diff ms':>8} {'rep':>4} "
         f"{'skip':>5} {'late':>4} {'pred2s %':>8} {'true %':>8} {'p>=t':>4}  verdict  {'s':>4} {'lavg':>4}")  # fmt: skip
 
 
 def print_row(r: dict[str, object], load_name: str) -> None:
     head = (f"{r['transport']:<10} {float(r['tick']) * 1e3:>7g} {'yes' if r['stamps'] else 'no':>5} "
-            f"{load_name:>4}")  # fmt: skip
+            f"{load_name:>5}")  # fmt: skip
     if "error" in r:
         print(f"{head}  FAIL: {str(r['error'])[:140]}  ({r['wall_s']:.0f} s, load {r['load']:.1f})")
         return
@@ -311,7 +344,8 @@ def main() -> None:
     ap.add_argument("--transports", default=",".join(TRANSPORTS))
     ap.add_argument("--ticks", default=",".join(f"{t:g}" for t in TICKS_S),
                     help="drive ticks [s] (canopen and ethercat run at 0.001 only)")  # fmt: skip
-    ap.add_argument("--loads", default="idle,busy", help="idle,busy")
+    ap.add_argument("--loads", default="idle,busy",
+                    help="idle,busy (default), and stall: busy, the host stopped 30-150 ms every 0.5-1.5 s")  # fmt: skip
     ap.add_argument("--stamps", default="yes,no")
     ap.add_argument("--repeat", type=int, default=1, help="runs per case")
     ap.add_argument("--drift", type=float, default=0.0, metavar="PPM",
@@ -330,6 +364,8 @@ def main() -> None:
         ap.error(f"unknown transports {unknown}; choose from {','.join(TRANSPORTS)}")
     ticks = [float(t) for t in _list(args.ticks)]
     loads = _list(args.loads)
+    if "stall" in loads and "ethercat" in transports:
+        print("ethercat: no stall load (its host runs inside the link's namespace): idle and busy only")
     stamps = [s == "yes" for s in _list(args.stamps)]
     extra = QUICK_ARGS if args.quick else []
     ecat_runs = args.ethercat_runs
@@ -352,10 +388,12 @@ def main() -> None:
     seed = 0
     with tempfile.TemporaryDirectory() as tmp:
         for load_name in loads:
-            with busy(load_name == "busy"):
+            with busy(load_name in ("busy", "stall")):
                 for transport in transports:
                     for tick_s in ticks:
                         if transport in ONE_MS_ONLY and not math.isclose(tick_s, 0.001):
+                            continue
+                        if load_name == "stall" and transport == "ethercat":
                             continue
                         for stamp in stamps:
                             if stamp and transport in NO_STAMP_EVER:
@@ -365,7 +403,8 @@ def main() -> None:
                                 out = (
                                     Path(tmp) / f"{transport}-{tick_s:g}-{stamp}-{load_name}-{seed}"
                                 )
-                                r = one(transport, tick_s, stamp, seed, out, extra, drift_ppm=args.drift)
+                                r = one(transport, tick_s, stamp, seed, out, extra, drift_ppm=args.drift,
+                                        stalls=load_name == "stall")  # fmt: skip
                                 print_row(r, load_name)
                                 if args.keep_failed and ("error" in r or r["failed"]):
                                     _keep(out, args.keep_failed)

@@ -46,6 +46,12 @@ from servobench.errors import DriveTimeoutError
 
 #: Cycle period assumed for the SYNC-count clock until the host or 0x1006 tells one [s].
 DEFAULT_CYCLE_S = 1e-3
+#: After the TPDO wait timed out, this much more [s] for the receiving thread to hand over what
+#: is already in the socket: a host stopped past the deadline (a hypervisor's pause, a loaded
+#: machine) wakes both threads at once, and the waiting one may look before the receiver has run.
+#: The drive answered every SYNC meanwhile; without it, a host stopped 30-150 ms (SIGSTOP) now and
+#: then stopped a served CANopen run with "no TPDO within 100 ms" though the TPDOs were there.
+RX_GRACE_S = 0.02
 #: Share of the period after a SYNC within which RPDOs must leave (the synchronous window).
 SYNC_WINDOW_SHARE = 0.5
 #: Bits of the longest CAN frame with stuffing (8 data bytes, 11-bit id).
@@ -169,7 +175,7 @@ class CycleIO:
         sent = self._sent_s = time.monotonic()
         with self.sdo.translated("RPDO + SYNC"):
             self.network.send_messages(self._frames(holding, sync=not self.kernel_sync))
-        if not self._rx_event.wait(timeout_s):
+        if not self._rx_event.wait(timeout_s) and not self._rx_event.wait(RX_GRACE_S):
             raise DriveTimeoutError(
                 f"no TPDO from node {n} within {timeout_s * 1e3:.0f} ms of SYNC"
             )
