@@ -338,7 +338,7 @@ def test_a_switch_sent_in_an_exchange_the_host_stalled_in_bends_no_model():
 
     name = "served_modbus_rtu_025ms_stalled_switch.csv"
     data = prepare(read_log(Path(__file__).parent / "data" / name))
-    exposed = sum(int(s.after_stalled_commands(data.dt_s, 0.01).sum()) for s in data.segments)
+    exposed = sum(int(s.after_stalled_commands(data.dt_s, 0.01, 1.0).sum()) for s in data.segments)
     assert exposed >= 1  # the sample after the stalled switch
     result = _served_plant_within_1_percent(name)
     assert abs(result.model.M / 0.01 - 1.0) <= 0.001, result.model

@@ -61,8 +61,9 @@ MIN_SWITCH_PAIRS = 20
 #: (:meth:`Segment.after_stalled_commands`).
 STALL_EXCESS_SHARE = 0.1
 STALL_EXCESS_SPREADS = 5.0
-#: A command change acts on the samples of this many time constants after it.
-STALL_DECAY_TAUS = 5.0
+#: A command change sent in a stalled exchange sets aside the samples it may have moved by more
+#: than this share of the velocity's rms (:meth:`Segment.after_stalled_commands`).
+STALL_MOVE_SHARE = 1e-3
 #: Initial velocities within this many noise deviations of zero are taken as rest.
 REST_SIGMAS = 3.0
 
@@ -157,17 +158,29 @@ class Segment:
         excess = unc - mid
         return (excess > STALL_EXCESS_SHARE * dt_s) & (excess > STALL_EXCESS_SPREADS * spread)
 
-    def after_stalled_commands(self, dt_s: float, tau_s: float) -> np.ndarray:
+    def after_stalled_commands(self, dt_s: float, mass: float, damping: float) -> np.ndarray:
         """The samples a command change sent in a stalled exchange may have moved (bool, shape
         ``(n,)``): after each of :meth:`stalled_rows` whose command changed (the request went out
-        somewhere in its bracket, so where the command acted is unknown), every sample up to
-        :data:`STALL_DECAY_TAUS` time constants ``tau_s`` [s] later, the next one at least."""
+        somewhere in its bracket, so where the command acted is unknown), every sample while what
+        that can move it, ``min(|du| / B, |du| / M * excess) * exp(-(t - t_k) B / M)`` (a step
+        ``du`` shifted by the bracket's excess over the log's median, for mass ``mass`` and
+        damping ``damping``), exceeds :data:`STALL_MOVE_SHARE` of the velocity's rms; the next
+        sample at least."""
         out = np.zeros(len(self), dtype=bool)
         stalled = self.stalled_rows(dt_s)
-        stalled[1:] &= np.diff(self.u) != 0
-        stalled[0] = False
-        for k in np.flatnonzero(stalled[:-1]):
-            end = int(np.searchsorted(self.t, self.t[k] + STALL_DECAY_TAUS * tau_s, side="right"))
+        if not stalled[1:-1].any() or not (mass > 0 and damping > 0):
+            return out
+        unc = np.asarray(self.t_unc, dtype=float)
+        excess = unc - float(np.median(unc))
+        level = STALL_MOVE_SHARE * float(np.sqrt(np.mean(self.v**2)))
+        tau = mass / damping
+        du = np.abs(np.diff(self.u))  # row k's change against row k-1's
+        for k in np.flatnonzero(stalled[1:-1]) + 1:
+            if du[k - 1] == 0:
+                continue
+            reach = min(du[k - 1] / damping, du[k - 1] / mass * excess[k])
+            span = tau * math.log(reach / level) if level > 0 and reach > level else 0.0
+            end = int(np.searchsorted(self.t, self.t[k] + span, side="right"))
             out[k + 1 : max(end, k + 2)] = True
         return out
 

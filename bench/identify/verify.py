@@ -99,14 +99,13 @@ def _instant_known(data: Dataset, model: ServoModel) -> list[np.ndarray]:
     """Per run, the samples whose instants are known within a quarter cycle, read in no exchange
     the host stalled in (:meth:`~servobench.bench.identify.dataset.Segment.stalled_rows`), and that
     no command sent in one may have moved (:meth:`~servobench.bench.identify.dataset.Segment.after_stalled_commands`
-    under ``model``'s time constant); all, where that would leave fewer than half of them, as
+    under ``model``); all, where that would leave fewer than half of them, as
     identification does."""
     from servobench.bench.identify.joint import MIN_KEPT_SHARE, TIMING_REJECT_SHARE
 
-    tau = model.time_constant_s
     known = [np.ones(len(s), dtype=bool) if s.t_unc is None
              else (np.asarray(s.t_unc) / np.sqrt(3.0) <= TIMING_REJECT_SHARE * data.dt_s)
-             & ~s.stalled_rows(data.dt_s) & ~s.after_stalled_commands(data.dt_s, tau)
+             & ~s.stalled_rows(data.dt_s) & ~s.after_stalled_commands(data.dt_s, model.M, model.B)
              for s in data.segments]  # fmt: skip
     total = sum(k.size for k in known)
     if sum(np.count_nonzero(k) for k in known) < MIN_KEPT_SHARE * total:
