@@ -19,7 +19,7 @@ Judged per case, the issue's bounds: M, B and each Coulomb level within
 0.5 % with stamps and 1 % without; fit >= 99 %; without stamps, a run beyond
 those bounds passes only where its timing figure says so (not within
 accuracy, the true error within its predicted bound, two of its 1 sigma: a
-loaded suite may starve the host);
+loaded suite may starve the host; on Modbus RTU and ODrive serial only, open);
 the identified delay within 0.05 ms (or a tenth of the tick) of the mean
 delay the served drive's own record shows over the commands that changed the
 value (or three of its stated sigma where that is wider: Modbus RTU without
@@ -132,12 +132,17 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
             "notes": model.get("notes")}  # fmt: skip
     print("seen:", json.dumps(seen, default=str))  # what a failure shows, whole
     worst = max(abs(e) for e in errors.values())
-    # without stamps the host's timing bounds the model (the benchmark holds the bounds on
-    # its runs): a run a loaded suite put beyond them must say so, its timing figure not within
-    # accuracy and its error within two of the figure's 1-sigma prediction (Modbus RTU at 1 ms
-    # once gave 3.6 % here; a fresh-clone suite at a load of 3.0, 88 ms host stalls, gave ODrive
-    # serial 2.96 % off with 2.92 % predicted at 1 ms, and 2.97 % with 2.44 % at 0.25 ms)
-    told = (not stamps and not model["timing"]["within_accuracy"]
+    # without stamps on a slow link (Modbus RTU at 50 Hz, ODrive serial at 200 Hz) the host's
+    # timing bounds the model (the benchmark holds the bounds on its runs): a run a loaded
+    # suite put beyond them must say so, its timing figure not within accuracy and its error within
+    # two of the figure's 1-sigma prediction (open: Modbus RTU at 1 ms once gave 3.6 % here; a
+    # fresh-clone suite at a load of 3.0, 88 ms host stalls, gave ODrive serial 2.96 % off with
+    # 2.92 % predicted at 1 ms, and 2.97 % with 2.44 % at 0.25 ms). Modbus TCP, CANopen and
+    # EtherCAT hold the bounds themselves: 40 runs of the Modbus TCP and CANopen cases here beside
+    # busy processes, half of them with the host stopped 30-150 ms now and then, were within
+    # 0.011 % (the drifting clock's 0.010 %), fits 99.996 % or more; the benchmark's EtherCAT
+    # runs without stamps, idle and busy, within 1.2e-5 %
+    told = (transport in ("modbus-rtu", "serial") and not stamps and not model["timing"]["within_accuracy"]
             and model["timing"]["model_error_bound_pct"] >= worst)  # fmt: skip
     assert worst <= bound or told, seen
     # the fit floor where the loaded suite stalled the host too: the samples of exchanges
