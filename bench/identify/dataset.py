@@ -152,11 +152,17 @@ class Segment:
         ``t_unc``."""
         if self.t_unc is None or len(self) < 2:
             return np.zeros(len(self), dtype=bool)
-        unc = np.asarray(self.t_unc, dtype=float)
-        mid = float(np.median(unc))
-        spread = 1.4826 * float(np.median(np.abs(unc - mid)))
-        excess = unc - mid
+        excess = self.bracket_excess_s()
+        spread = 1.4826 * float(np.median(np.abs(excess)))
         return (excess > STALL_EXCESS_SHARE * dt_s) & (excess > STALL_EXCESS_SPREADS * spread)
+
+    def bracket_excess_s(self) -> np.ndarray:
+        """Each row's bracket (``t_unc``) beyond the log's median [s], shape ``(n,)`` (zeros without
+        ``t_unc``): how much longer than usual its exchange took, the host stalled in it."""
+        if self.t_unc is None:
+            return np.zeros(len(self))
+        unc = np.asarray(self.t_unc, dtype=float)
+        return unc - float(np.median(unc))
 
     def after_stalled_commands(self, dt_s: float, mass: float, damping: float) -> np.ndarray:
         """The samples a command change sent in a stalled exchange may have moved (bool, shape
@@ -170,8 +176,7 @@ class Segment:
         stalled = self.stalled_rows(dt_s)
         if not stalled[1:-1].any() or not (mass > 0 and damping > 0):
             return out
-        unc = np.asarray(self.t_unc, dtype=float)
-        excess = unc - float(np.median(unc))
+        excess = self.bracket_excess_s()
         level = STALL_MOVE_SHARE * float(np.sqrt(np.mean(self.v**2)))
         tau = mass / damping
         du = np.abs(np.diff(self.u))  # row k's change against row k-1's

@@ -783,8 +783,7 @@ def _command_exposure(seg, dt: np.ndarray, m: ServoModel) -> np.ndarray:
     beside its transients', each weighted down by its own timing alone; the refinement bent M
     46 % off and the delay to 7.9 ms to fit them.
     """
-    unc = np.asarray(seg.t_unc, dtype=float)
-    excess = np.maximum(unc - float(np.median(unc)), 0.0)[:-1]
+    excess = np.maximum(seg.bracket_excess_s(), 0.0)[:-1]
     du = np.diff(seg.u)  # row k's command change against row k-1's, acting over interval k
     du = np.concatenate(([0.0], du))[:-1]
     nearest = np.maximum(dt - excess, 0.0)
