@@ -58,7 +58,7 @@ ACT_TOLERANCE = 1e-3
 MIN_SWITCH_PAIRS = 20
 #: A row's bracket (``t_unc``) wider than the log's median by more than this share of the cycle,
 #: and by :data:`STALL_EXCESS_SPREADS` of the brackets' spread, is an exchange the host stalled in
-#: (:meth:`Segment.after_stalled_commands`).
+#: (:meth:`Segment.stalled_rows`).
 STALL_EXCESS_SHARE = 0.1
 STALL_EXCESS_SPREADS = 5.0
 #: A command change sent in a stalled exchange sets aside the samples it may have moved by more
@@ -148,7 +148,7 @@ class Segment:
     def stalled_rows(self, dt_s: float) -> np.ndarray:
         """The rows of exchanges the host stalled in (bool, shape ``(n,)``): a bracket (``t_unc``)
         wider than the log's median by more than :data:`STALL_EXCESS_SHARE` of the cycle ``dt_s``
-        [s] and :data:`STALL_EXCESS_SPREADS` of the brackets' spread. None where the log has no
+        [s] and :data:`STALL_EXCESS_SPREADS` of the brackets' spread. No row where the log has no
         ``t_unc``."""
         if self.t_unc is None or len(self) < 2:
             return np.zeros(len(self), dtype=bool)
