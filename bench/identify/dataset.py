@@ -150,11 +150,7 @@ class Segment:
         wider than the log's median by more than :data:`STALL_EXCESS_SHARE` of the cycle ``dt_s``
         [s] and :data:`STALL_EXCESS_SPREADS` of the brackets' spread. No row where the log has no
         ``t_unc``."""
-        if self.t_unc is None or len(self) < 2:
-            return np.zeros(len(self), dtype=bool)
-        excess = self.bracket_excess_s()
-        spread = 1.4826 * float(np.median(np.abs(excess)))
-        return (excess > STALL_EXCESS_SHARE * dt_s) & (excess > STALL_EXCESS_SPREADS * spread)
+        return _stalled(self.bracket_excess_s(), dt_s)
 
     def bracket_excess_s(self) -> np.ndarray:
         """Each row's bracket (``t_unc``) beyond the log's median [s], shape ``(n,)`` (zeros without
@@ -172,11 +168,21 @@ class Segment:
         ``du`` shifted by the bracket's excess over the log's median, for mass ``mass`` and
         damping ``damping``), exceeds :data:`STALL_MOVE_SHARE` of the velocity's rms; the next
         sample at least."""
+        excess = self.bracket_excess_s()
+        return self._after(_stalled(excess, dt_s), excess, mass, damping)
+
+    def stalled_samples(self, dt_s: float, mass: float, damping: float) -> np.ndarray:
+        """:meth:`stalled_rows` or :meth:`after_stalled_commands` (bool, shape ``(n,)``): the
+        samples no grid or fit can be judged on, the brackets read once (a grid search asks this
+        of every trial grid's log)."""
+        excess = self.bracket_excess_s()
+        stalled = _stalled(excess, dt_s)
+        return stalled | self._after(stalled, excess, mass, damping)
+
+    def _after(self, stalled: np.ndarray, excess: np.ndarray, mass: float, damping: float) -> np.ndarray:
         out = np.zeros(len(self), dtype=bool)
-        stalled = self.stalled_rows(dt_s)
         if not stalled[1:-1].any() or not (mass > 0 and damping > 0):
             return out
-        excess = self.bracket_excess_s()
         level = STALL_MOVE_SHARE * float(np.sqrt(np.mean(self.v**2)))
         tau = mass / damping
         du = np.abs(np.diff(self.u))  # row k's change against row k-1's
@@ -205,6 +211,14 @@ class Segment:
             self.run, self.t[:n], self.u[:n], self.v[:n], self.fs_hz, dt, motion, x, u_exc, x_ref,
             t_unc, offsets,
         )  # fmt: skip
+
+
+def _stalled(excess: np.ndarray, dt_s: float) -> np.ndarray:
+    """:meth:`Segment.stalled_rows` from the rows' bracket excess [s]."""
+    if excess.size < 2:
+        return np.zeros(excess.size, dtype=bool)
+    spread = 1.4826 * float(np.median(np.abs(excess)))
+    return (excess > STALL_EXCESS_SHARE * dt_s) & (excess > STALL_EXCESS_SPREADS * spread)
 
 
 def initial_velocity(segment: Segment, noise_std: float, k: int = 0) -> float:

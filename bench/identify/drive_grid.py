@@ -741,7 +741,7 @@ def _simulation_residual(seg: Segment, model, dt_s: float) -> tuple[np.ndarray, 
     sample after it 0.05 off under any grid, and that run's 1 ms grid cut the residual 1.15 times
     where the other run's cut it 3e6 times: no grid was kept, M fit 99.41 %."""
     e = _simulated(seg, model, dt_s) - seg.v
-    keep = ~(seg.stalled_rows(dt_s) | seg.after_stalled_commands(dt_s, model.M, model.B))
+    keep = ~seg.stalled_samples(dt_s, model.M, model.B)
     return seg.t[keep], e[keep]
 
 

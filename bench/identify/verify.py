@@ -105,7 +105,7 @@ def _instant_known(data: Dataset, model: ServoModel) -> list[np.ndarray]:
 
     known = [np.ones(len(s), dtype=bool) if s.t_unc is None
              else (np.asarray(s.t_unc) / np.sqrt(3.0) <= TIMING_REJECT_SHARE * data.dt_s)
-             & ~s.stalled_rows(data.dt_s) & ~s.after_stalled_commands(data.dt_s, model.M, model.B)
+             & ~s.stalled_samples(data.dt_s, model.M, model.B)
              for s in data.segments]  # fmt: skip
     total = sum(k.size for k in known)
     if sum(np.count_nonzero(k) for k in known) < MIN_KEPT_SHARE * total:
