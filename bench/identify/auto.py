@@ -275,8 +275,11 @@ def identify_data(
     ver = verify(est.model, data, est.noise_std)
     notes = est.notes
     if ver.set_aside:
+        # behind a command's lead the output error weighs its samples alike, the stalled left out
+        fits = "output-error and verification fits" if data.min_delay_s < 0 and est.estimator.endswith(
+            "output-error") else "verification fit"
         notes = (*notes, f"{ver.set_aside} samples read in an exchange the host stalled in (t_unc), or that a "
-                 "command sent in one may have moved, left out of the verification fit")  # fmt: skip
+                 f"command sent in one may have moved, left out of the {fits}")  # fmt: skip
     return IdentificationResult(
         model=est.model,
         method=est.method,
