@@ -22,10 +22,9 @@ accuracy, the true error within its predicted bound, two of its 1 sigma: a
 loaded suite may starve the host; on Modbus RTU only, open);
 the identified delay within 0.05 ms (or a tenth of the tick) of the mean
 delay the served drive's own record shows over the commands that changed the
-value (or three of its stated sigma where that is wider, without stamps: Modbus
-RTU, whose 50 Hz cannot always place its reads on a 0.25 ms tick, and ODrive
-serial, whose placed delays over a short run's few command changes can sit a
-share of a tick off; open); the run complete; a predicted model error at its stated coverage
+value (or three of its stated sigma where that is wider: Modbus RTU without
+stamps, whose 50 Hz cannot always place its reads on a 0.25 ms tick, open);
+the run complete; a predicted model error at its stated coverage
 (``model_error_bound_pct``, two sigma) that covers the true one; and a timing figure that says what it saw (the delay, and with
 stamps the tick and the repeated reads).
 """
@@ -145,7 +144,11 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
     # error leaves the samples of stalled exchanges out (a fresh-clone suite at a load of 3.0, 88
     # ms host stalls, had given 2.96 % off at 1 ms and 2.97 % at 0.25 ms): its two cases here, 9
     # runs each beside two busy processes, 4 of them with the host stopped 30-150 ms every
-    # 0.5-1.5 s, and 3 idle: all within 0.16 %, fits 99.9 % or more
+    # 0.5-1.5 s, and 3 idle: all within 0.16 %, fits 99.9 % or more. Its delay is held to the
+    # issue's bound too since reads all in doubt keep the model's residual scale: it had been
+    # 0.081 ms off the record once at 0.25 ms, idle (11 of a run's 21 command changes' reads put
+    # a tick early); after, 18 runs of its two cases (6 idle, 6 beside two busy processes, 6 with
+    # the host stopped as well), each delay within 0.026 ms of the record, each model within 0.8 %
     told = (transport == "modbus-rtu" and not stamps and not model["timing"]["within_accuracy"]
             and model["timing"]["model_error_bound_pct"] >= worst)  # fmt: skip
     assert worst <= bound or told, seen
@@ -164,14 +167,6 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
         # holds the delay's spread over the timing figure's draws (0.15-0.25 ms at this tick);
         # the project's CI again 0.413 +- 0.041 ms on a located grid, host stalls of 58 ms: the
         # stated sigma now holds the delay's distance to the grid's whole ticks too (0.087 ms)
-        near = max(near, 3.0 * model["std"]["delay_s"])
-    if transport == "serial" and not stamps:
-        # NOT the issue's bound for ODrive serial behind its command's lead (open): the delay is
-        # the mean of the rows' placed delays over the command changes (43 in this short run), and
-        # the placement the simulation decides can sit a share of a tick off over many of them
-        # (-0.036 +- 0.068 ms against the record's -0.116 at a 0.25 ms tick, idle, the model within
-        # 0.032 %; the 23 other runs of the two cases were within 0.035 ms); its stated sigma
-        # holds the grid-alone placement's spread
         near = max(near, 3.0 * model["std"]["delay_s"])
     # the record's mean over the commands that changed the value: a repeat acts alike from
     # either tick (the command and the query as two requests: a tick falls between them in some
