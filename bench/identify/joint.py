@@ -722,8 +722,9 @@ def _unstalled(seg, dt_s: float, model: ServoModel | None) -> float | np.ndarray
     Weighted alike, a served ODrive serial log at a 0.25 ms tick, placed on its grid by the true
     model, left every sample within 8e-5 of it at the 99th percentile but for the few after
     two stalled exchanges (0.11 and 0.096 off, one bracket +-2.8 ms): they bent M 0.17 % off and
-    the delay 0.063 ms from the record. Set aside: M within 0.002 %, the delay 0.031 ms off, and
-    the eight other logs of that case within 0.04 % (one had been 0.35 % off).
+    the delay 0.063 ms from the record. Set aside: M within 0.002 %, the delay 0.031 ms off (0.003
+    once its reads kept the model's scale, :func:`.drive_grid._read_scale`), and the eight other
+    logs of that case within 0.05 % (one had been 0.35 % off).
     """
     if seg.t_unc is None or model is None or not (model.M > 0 and model.B > 0):
         return 1.0
