@@ -401,6 +401,32 @@ def test_reads_every_bracket_leaves_in_doubt_keep_their_tick_where_the_motion_ca
     assert result.timing.model_error_bound_pct >= worst
 
 
+def test_a_log_stalled_throughout_keeps_its_samples_in_the_output_error():
+    """Behind a command's lead the samples of stalled exchanges, and those their commands may have
+    moved, are set aside from the output error; where that would leave fewer than half of a run,
+    all are kept, as the timing's set-aside and the verification keep them."""
+    from servobench.bench.identify.dataset import Segment
+    from servobench.bench.identify.joint import MIN_KEPT_SHARE, _unstalled
+    from servobench.bench.model.servo import ServoModel
+
+    n, dt = 400, 5e-3
+    t = np.arange(n) * dt
+    u = np.where((np.arange(n) // 3) % 2 == 0, 1.0, -1.0)  # a switch every third row
+    v = 0.5 * u
+    model = ServoModel(M=0.01, B=1.0, coulomb_pos=0.1, coulomb_neg=0.1)
+    few = np.full(n, 0.1e-3)
+    few[[30, 150]] = 3e-3  # two stalled exchanges, both at a switch
+    seg = Segment(1, t, u, v, 1.0 / dt, np.diff(t), t_unc=few)
+    weight = _unstalled(seg, dt, model)
+    assert 0 < np.count_nonzero(weight == 0.0) < (1 - MIN_KEPT_SHARE) * n  # set aside
+    assert weight[30] == 0.0 and weight[150] == 0.0
+    many = np.full(n, 0.1e-3)
+    many[(np.arange(n) % 3 == 0) & (np.arange(n) % 2 == 0)] = 3e-3  # a stalled switch every sixth row
+    seg = Segment(1, t, u, v, 1.0 / dt, np.diff(t), t_unc=many)
+    assert np.count_nonzero(seg.stalled_samples(dt, model.M, model.B)) > (1 - MIN_KEPT_SHARE) * n
+    assert _unstalled(seg, dt, model) == 1.0  # too many to judge without: all kept
+
+
 def _served_plant_within_1_percent(name: str):
     """``identify`` on the kept served log ``tests/data/<name>`` (plant M 0.01, B 1, Coulomb
     0.5 / 0.4), checked within 1 % and a fit over 99 %."""

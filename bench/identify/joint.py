@@ -724,11 +724,13 @@ def _unstalled(seg, dt_s: float, model: ServoModel | None) -> float | np.ndarray
     two stalled exchanges (0.11 and 0.096 off, one bracket +-2.8 ms): they bent M 0.17 % off and
     the delay 0.063 ms from the record. Set aside: M within 0.002 %, the delay 0.031 ms off (0.003
     once its reads kept the model's scale, :func:`.drive_grid._read_scale`), and the eight other
-    logs of that case within 0.05 % (one had been 0.35 % off).
+    logs of that case within 0.05 % (one had been 0.35 % off). All are kept where that would leave
+    fewer than :data:`MIN_KEPT_SHARE` of them, as the timing's set-aside and the verification do.
     """
     if seg.t_unc is None or model is None or not (model.M > 0 and model.B > 0):
         return 1.0
-    return (~seg.stalled_samples(dt_s, model.M, model.B)).astype(float)
+    kept = ~seg.stalled_samples(dt_s, model.M, model.B)
+    return kept.astype(float) if np.count_nonzero(kept) >= MIN_KEPT_SHARE * kept.size else 1.0
 
 
 @dataclass(frozen=True)
