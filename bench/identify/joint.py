@@ -698,7 +698,7 @@ def oe_chunks(data: Dataset, sigma: float, model: ServoModel | None = None) -> t
         dt = data.dt_s if seg.dt_s is None else seg.dt_s
         weight = _sample_weights(seg, data.dt_s, timing)
         if data.min_delay_s < 0:  # behind a command's lead the samples weigh alike: the stalled set aside
-            weight = weight * _unstalled(seg, data.dt_s, model)
+            weight = _unstalled(seg, data.dt_s, model, weight)
         chunks.append(Chunk(seg.u, seg.v, dt, v0, weight=weight, act_offset_s=seg.act_offset_s))
     return chunks, note
 
@@ -713,9 +713,9 @@ def _weighs_timing(data: Dataset) -> bool:
     return data.timing_uncertain and data.min_delay_s >= 0
 
 
-def _unstalled(seg, dt_s: float, model: ServoModel | None) -> float | np.ndarray:
-    """1 for each sample the output error is judged on, 0 for those of exchanges the host stalled
-    in and those a command sent in one may have moved
+def _unstalled(seg, dt_s: float, model: ServoModel | None, weight: float | np.ndarray = 1.0) -> float | np.ndarray:
+    """The samples' output-error ``weight`` (:func:`_sample_weights`), 0 also for those of
+    exchanges the host stalled in and those a command sent in one may have moved
     (:meth:`~servobench.bench.identify.dataset.Segment.stalled_samples`, under ``model``), where
     the samples are not weighted by their timing (:func:`_weighs_timing`: a command lead).
 
@@ -724,13 +724,15 @@ def _unstalled(seg, dt_s: float, model: ServoModel | None) -> float | np.ndarray
     two stalled exchanges (0.11 and 0.096 off, one bracket +-2.8 ms): they bent M 0.17 % off and
     the delay 0.063 ms from the record. Set aside: M within 0.002 %, the delay 0.031 ms off (0.003
     once its reads kept the model's scale, :func:`.drive_grid._read_scale`), and the eight other
-    logs of that case within 0.05 % (one had been 0.35 % off). All are kept where that would leave
-    fewer than :data:`MIN_KEPT_SHARE` of them, as the timing's set-aside and the verification do.
+    logs of that case within 0.05 % (one had been 0.35 % off). ``weight`` stays as it is where the
+    samples it and this set aside together would leave fewer than :data:`MIN_KEPT_SHARE` of the
+    run: one guard over both, as the verification keeps its samples
+    (:func:`~servobench.bench.identify.verify.verify`).
     """
     if seg.t_unc is None or model is None or not (model.M > 0 and model.B > 0):
-        return 1.0
-    kept = ~seg.stalled_samples(dt_s, model.M, model.B)
-    return kept.astype(float) if np.count_nonzero(kept) >= MIN_KEPT_SHARE * kept.size else 1.0
+        return weight
+    kept = (np.broadcast_to(weight, (len(seg),)) > 0) & ~seg.stalled_samples(dt_s, model.M, model.B)
+    return np.where(kept, weight, 0.0) if np.count_nonzero(kept) >= MIN_KEPT_SHARE * kept.size else weight
 
 
 @dataclass(frozen=True)
