@@ -284,6 +284,11 @@ class Dataset:
         Per run of a stamped log with the host's instants, the drive clock's rate against the
         host's (:mod:`~servobench.bench.identify.drive_rate`); the stamps of the runs whose
         drift is significant were taken onto the host's seconds. Empty otherwise.
+    delay_held_s : float or None
+        The action delay [s] the drive's located tick grid fixes: the reads moved onto it, one
+        request carrying command and sample, each command acts a whole number of its ticks
+        after its sample (:mod:`~servobench.bench.identify.drive_grid`). The joint estimator
+        holds the delay there; None: it identifies the delay.
     """
 
     segments: tuple[Segment, ...]
@@ -295,6 +300,7 @@ class Dataset:
     units: SignalUnits = SignalUnits()
     min_delay_s: float = 0.0
     drive_rates: tuple[tuple[int, DriveRate], ...] = ()
+    delay_held_s: float | None = None
 
     @property
     def drive_drift_ppm(self) -> tuple[float, float]:

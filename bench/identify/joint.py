@@ -146,8 +146,12 @@ def identify_joint(
         return _refine(data, start.model, sigma, NOISE_SIGMAS * sigma, v_all, notes)
 
     fit = _solve(_pairs(data), data, None)
-    delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
-    blind = data.switch_pairs() < MIN_SWITCH_PAIRS
+    if data.delay_held_s is not None:  # the located grid's whole ticks: no scan
+        delay_s, delay_std, blind = data.delay_held_s, 0.0, False
+        fit = _solve(_pairs(delayed(data, delay_s, fit.M / fit.B)), delayed(data, delay_s, fit.M / fit.B), fit)
+    else:
+        delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
+        blind = data.switch_pairs() < MIN_SWITCH_PAIRS
     if blind or (math.isnan(delay_std) and any(s.act_offset_s is not None for s in data.segments)):
         # the pairs cannot tell the delay: no pair holds a command switch (every switch reversed
         # the axis within its interval), so the scan's minimum is the noise's (a jittered serial
@@ -429,7 +433,12 @@ def _refine(
     chunks, note = oe_chunks(data, sigma, model)
     if note:
         notes.append(note)
-    oe = refine(model, chunks, _free(v_all, threshold), free_delay=True, min_delay_s=data.min_delay_s)
+    held = data.delay_held_s
+    if held is not None:
+        model = replace(model, delay_s=held)
+    oe = refine(model, chunks, _free(v_all, threshold), free_delay=held is None, min_delay_s=data.min_delay_s)
+    # a held delay's own sigma is none: what it may be off by is the timing figure's
+    std = oe.std if held is None else {**oe.std, DELAY_KEY: 0.0}
     if oe.colour is not None and oe.colour.coloured:
         notes.append(oe.colour.note("the output-error"))
     estimator = "output-error"
@@ -437,7 +446,7 @@ def _refine(
         estimator = "zoh-iv (excitation as instrument) + output-error"
         note = "closed-loop log: instruments from the excitation u_exc, output error on raw samples"
         notes.append(note)
-    return MethodEstimate(oe.model, "joint", oe.std, estimator, oe.sigma, tuple(notes))
+    return MethodEstimate(oe.model, "joint", std, estimator, oe.sigma, tuple(notes))
 
 
 def _free(v_all: np.ndarray, threshold: float) -> tuple[bool, bool, bool, bool]:
@@ -479,6 +488,7 @@ def _refit(data: Dataset, estimate: MethodEstimate, starts: Sequence[ServoModel]
     chunks, _ = oe_chunks(data, estimate.noise_std, estimate.model if weigh else None)
     free = _free(data.cat("v"), NOISE_SIGMAS * estimate.noise_std)
     try:
+        free_delay = free_delay and data.delay_held_s is None
         return tuple(refine(start, chunks, free, free_delay=free_delay, min_delay_s=data.min_delay_s).model
                      for start in starts)  # fmt: skip
     except IdentificationError:

@@ -403,6 +403,7 @@ def timing_figure(
     grid_tick_s: float | None = None,
     lead_tick_s: float | None = None,
     placed_delay: Callable[[Dataset], float] | None = None,
+    free_delay_s: float | None = None,
 ) -> TimingFigure | None:
     """The timing figure of a real-time log and the model identified from it.
 
@@ -425,6 +426,9 @@ def timing_figure(
     ``grid_tick_s``: the reads were moved onto a grid of that tick on which each command acts a
     whole number of ticks after its sample (one request carries both); the delay's departure from
     that (:func:`~servobench.bench.identify.drive_grid.off_grid_s`) joins its timing share.
+    ``free_delay_s``: there, the estimator held the delay at the grid's whole ticks
+    (:attr:`~servobench.bench.identify.dataset.Dataset.delay_held_s`); the departure of the
+    delay the log gives left free [s] is what joins it.
 
     None for a log without ``clock_source`` (lock-step streaming, older logs,
     files of other tools): its instants are the nominal grid or the drive's.
@@ -463,7 +467,8 @@ def timing_figure(
             delay_moved = math.hypot(delay_moved, weighting[1])
             method += METHOD_WEIGHTING
         if grid_tick_s is not None and grid_tick_s > 0:
-            delay_moved = math.hypot(delay_moved, off_grid_s(m.delay_s, grid_tick_s))
+            free = m.delay_s if free_delay_s is None else free_delay_s
+            delay_moved = math.hypot(delay_moved, off_grid_s(free, grid_tick_s))
             method += METHOD_OFF_GRID
         if lead_tick_s is not None and lead_tick_s > 0:
             delay_moved = math.hypot(delay_moved, lead_resolution_s(data, lead_tick_s))
