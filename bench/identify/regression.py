@@ -458,11 +458,12 @@ def fit_pairs_irregular(
     r = problem.residual(x)
     jac = problem.jacobian(x)
     s2 = float(r @ r) / max(1, r.size - 4)
-    try:
-        cov_p = s2 * np.linalg.inv(jac.T @ jac)
-        # p -> theta through the physical parameters
-        Jt = np.linalg.inv(physical_jacobian(theta, dt)) @ np.diag([M, B, 1.0, 1.0])
-        cov = Jt @ cov_p @ Jt.T
+    try:  # a degenerate problem (a trial grid's draw) leaves no finite covariance: NaN, quietly
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            cov_p = s2 * np.linalg.inv(jac.T @ jac)
+            # p -> theta through the physical parameters
+            Jt = np.linalg.inv(physical_jacobian(theta, dt)) @ np.diag([M, B, 1.0, 1.0])
+            cov = Jt @ cov_p @ Jt.T
     except np.linalg.LinAlgError:
         cov = np.full((4, 4), np.nan)
     return ZohFit(M, B, fp, fn, theta, cov, r, len(pairs))
