@@ -148,7 +148,8 @@ def identify_joint(
     fit = _solve(_pairs(data), data, None)
     if data.delay_held_s is not None:  # the located grid's whole ticks: no scan
         delay_s, delay_std, blind = data.delay_held_s, 0.0, False
-        fit = _solve(_pairs(delayed(data, delay_s, fit.M / fit.B)), delayed(data, delay_s, fit.M / fit.B), fit)
+        held = delayed(data, delay_s, fit.M / fit.B)
+        fit = _solve(_pairs(held), held, fit)
     else:
         delay_s, fit, delay_std = scan_delay(data, fit, data.min_delay_s)
         blind = data.switch_pairs() < MIN_SWITCH_PAIRS

@@ -126,7 +126,8 @@ def place_by_pairs(
         e = _allowed_pair_errors(cand, allowed, v, u_first, u[:-1], tick_s, params)
         if scale is None:
             steps = np.diff(k) > 0
-            kept = e[:, reach, reach][steps & ~wide[1:] & ~wide[:-1]]  # none: no pair a tick apart clear of stalled reads
+            # none where no pair a tick apart stands clear of the stalled reads
+            kept = e[:, reach, reach][steps & ~wide[1:] & ~wide[:-1]]
             scale = 1.4826 * float(np.median(np.abs(kept))) if kept.size else 0.0
             if not scale > 0:
                 return k.copy()
