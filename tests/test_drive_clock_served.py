@@ -21,8 +21,8 @@ the identified delay within 0.05 ms (or a tenth of the tick) of the mean
 delay the served drive's own record shows over the commands that changed the
 value (on Modbus RTU without stamps where no tick grid is located, three of
 its stated sigma where that is wider: its 50 Hz cannot always find a 0.25 ms
-tick in a short run, open); the run complete; a predicted model error at its stated coverage
-(``model_error_bound_pct``, two sigma) that covers the true one; and a timing figure that says what it saw (the delay, and with
+tick in a short run, open); the run complete; a predicted model error at its
+stated coverage (``model_error_bound_pct``, two sigma) that covers the true one; and a timing figure that says what it saw (the delay, and with
 stamps the tick and the repeated reads).
 """
 
@@ -134,10 +134,10 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
     # ms) had passed beyond them where its figure said so (a fresh-clone suite once gave 3.6 % at
     # 1 ms, on earlier code); its two cases here, 76 runs at stop 58's and 59's code (24 idle, 32
     # beside two busy processes, 20 with the host stopped 30-150 ms every 0.5-1.5 s as well), were
-    # all within 0.16 %, fits 99.76 % or more. Modbus TCP, CANopen and EtherCAT: 40 runs of the Modbus TCP
-    # and CANopen cases beside busy processes, half with the host stopped, within 0.011 % (the
-    # drifting clock's 0.010 %), fits 99.996 % or more; the benchmark's EtherCAT runs without
-    # stamps within 1.2e-5 %. ODrive serial (200 Hz) since its output error leaves the samples of
+    # all within 0.16 %, fits 99.76 % or more. Modbus TCP, CANopen and EtherCAT: 40 runs of the
+    # Modbus TCP and CANopen cases beside busy processes, half with the host stopped, within
+    # 0.011 % (the drifting clock's 0.010 %), fits 99.996 % or more; the benchmark's EtherCAT runs
+    # without stamps within 1.2e-5 %. ODrive serial (200 Hz) since its output error leaves the samples of
     # stalled exchanges out and reads all in doubt keep the model's residual scale: 18 runs of its
     # two cases (6 idle, 6 beside two busy processes, 6 with the host stopped as well), each delay
     # within 0.026 ms of the record, each model within 0.8 %
