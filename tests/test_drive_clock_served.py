@@ -130,17 +130,17 @@ def _judge(transport: str, tick: float, stamps: bool, model: dict, record: dict,
             "notes": model.get("notes")}  # fmt: skip
     print("seen:", json.dumps(seen, default=str))  # what a failure shows, whole
     worst = max(abs(e) for e in errors.values())
-    # every transport is held to the bounds. Modbus RTU without stamps (50 Hz, brackets of +-1.3
-    # ms) had passed beyond them where its figure said so (a fresh-clone suite once gave 3.6 % at
-    # 1 ms, on earlier code); its two cases here, 76 runs at stop 58's and 59's code (24 idle, 32
-    # beside two busy processes, 20 with the host stopped 30-150 ms every 0.5-1.5 s as well), were
-    # all within 0.16 %, fits 99.76 % or more. Modbus TCP, CANopen and EtherCAT: 40 runs of the
-    # Modbus TCP and CANopen cases beside busy processes, half with the host stopped, within
-    # 0.011 % (the drifting clock's 0.010 %), fits 99.996 % or more; the benchmark's EtherCAT runs
-    # without stamps within 1.2e-5 %. ODrive serial (200 Hz) since its output error leaves the samples of
-    # stalled exchanges out and reads all in doubt keep the model's residual scale: 18 runs of its
-    # two cases (6 idle, 6 beside two busy processes, 6 with the host stopped as well), each delay
-    # within 0.026 ms of the record, each model within 0.8 %
+    # every transport is held to the bounds. Modbus RTU without stamps (50 Hz, brackets of +-1.3 ms)
+    # had passed beyond them where its figure said so (a fresh-clone suite once gave 3.6 % at 1 ms,
+    # on earlier code); its two cases here, 76 runs at stop 58's and 59's code (24 idle, 32 beside
+    # two busy processes, 20 with the host stopped 30-150 ms every 0.5-1.5 s as well), were all
+    # within 0.16 %, fits 99.76 % or more. Modbus TCP, CANopen and EtherCAT: 40 runs of the Modbus
+    # TCP and CANopen cases beside busy processes, half with the host stopped, within 0.011 % (the
+    # drifting clock's 0.010 %), fits 99.996 % or more; the benchmark's EtherCAT runs without stamps
+    # within 1.2e-5 %. ODrive serial (200 Hz) since its output error leaves the samples of stalled
+    # exchanges out and reads all in doubt keep the model's residual scale: 18 runs of its two cases
+    # (6 idle, 6 beside two busy processes, 6 with the host stopped as well), each delay within
+    # 0.026 ms of the record, each model within 0.8 %
     assert worst <= bound, seen
     # the fit floor where the loaded suite stalled the host too: the samples of exchanges
     # it stalled in, and those a command sent in one may have moved, are left out of the fit (a
