@@ -276,11 +276,16 @@ def test_ctrl_c_in_the_probe_names_the_probe_log(tmp_path, capsys, monkeypatch):
 
 class SyncPaced(SimDrive):
     """A drive whose exchange waits for its own next cycle, as a DC-synchronous EtherCAT slave's
-    does (the outputs take force at the next SYNC0 event, the inputs are read after it), and whose
-    enable takes a while (state changes through the mailbox)."""
+    does (the outputs take force at the next SYNC0 event, the inputs are read after it), whose
+    enable takes a while (state changes through the mailbox), and whose exchange costs the host
+    0.6 ms more in every other block of 500 (a host that gets busy: the answer comes back later
+    in the drive's cycle)."""
 
     ENABLE_S = 0.3
     CYCLE_S = 1e-3
+    BLOCK = 500
+    BUSY_S = 0.6e-3
+    exchanges = 0
 
     def _enable(self) -> None:
         time.sleep(self.ENABLE_S)
@@ -289,12 +294,19 @@ class SyncPaced(SimDrive):
     def _pace(self, cycles: int = 1) -> None:
         now = time.monotonic()
         time.sleep((math.floor(now / self.CYCLE_S) + 1) * self.CYCLE_S - now + 50e-6)
+        self.exchanges += 1
+        if (self.exchanges // self.BLOCK) % 2:
+            end = time.monotonic() + self.BUSY_S
+            while time.monotonic() < end:
+                pass
 
 
 def test_the_closed_loops_deadlines_start_after_the_enable_and_never_trail_the_drive(tmp_path):
     """The deadlines counted from before the enable: behind by its 0.3 s from the first cycle, a
     loop whose every exchange waits for the drive's next cycle never caught up, and the log said
-    every cycle late (a DC-synchronous EtherCAT slave under its own hold: 32 000 of 32 000)."""
+    every cycle late (a DC-synchronous EtherCAT slave under its own hold: 32 000 of 32 000).
+    Skipping whole missed periods then kept a lag of part of one: once the answers came 0.6 ms
+    later, every cycle of the busy blocks was late (2 000 of 4 000; 978 on a busy CI machine)."""
     plan = _plan(ServoModel(0.1, 1.0, 0.5, 0.4), 3.0, 0.05)
     drive = SyncPaced("sim://?pace=real&noise=0.01&seed=1" + WINDOW)
     with drive:
@@ -302,6 +314,6 @@ def test_the_closed_loops_deadlines_start_after_the_enable_and_never_trail_the_d
         stream_closed_runs(drive, runs, 1000.0, tmp_path / "log.csv", plan, pace="real", settle_s=0.05)
     log = read_log(tmp_path / "log.csv")
     rows = sum(len(r) for r in log.runs)
-    late = int(log.metadata["late_cycles"])
+    late, missed = int(log.metadata["late_cycles"]), int(log.metadata["missed_cycles"])
     assert log.complete and rows == 4000
-    assert late <= 0.02 * rows, (late, log.metadata["missed_cycles"])  # a stall's cycle, at most
+    assert late <= missed + 0.01 * rows, (late, missed)  # a stall's cycle, at most

@@ -33,12 +33,13 @@ drive that times the cycle itself
 EtherCAT slave, SYNC on SocketCAN) paces it, as in open loop; else the
 deadlines ``t0 + k dt`` count from the first cycle after the drive is enabled,
 and start again from the cycle after each non-cyclic step (entering the
-drive's hold, restarting it between runs); a cycle more than a whole period
-late starts at once and the deadlines move on from it, whole periods later: a
-loop never bursts to catch up (a host loop run faster than its period, a move
-faster than planned) and never trails the drive's own cycle for the rest of a
-session (a DC-synchronous exchange, which waits for the drive's next cycle,
-could not catch up). The
+drive's hold, restarting it between runs); a cycle more than half a period
+late starts at once, is counted late against its deadline, and the deadlines
+count on from it: a loop never bursts to catch up (a host loop run faster than
+its period, a move faster than planned) and never trails the drive's own cycle
+for the rest of a session (a DC-synchronous exchange, which waits for the
+drive's next cycle, could not catch up: the deadlines take the drive's phase,
+where whole periods skipped kept a lag of up to a period on every cycle). The
 feedback is checked as in open loop
 (:class:`~servobench.bench.run.feedback_check.FeedbackCheck`, with each
 sample's host time): a repeated drive stamp is logged as read.
@@ -228,6 +229,7 @@ class _Cycler:
         self.limit = MARGIN * plan.room
         self.t0 = 0.0  # the deadlines' origin: set by anchor() before the first cycle
         self.paced = False  # the drive times the cycle (start_cycle_clock), no host schedule
+        self.deadline = 0.0  # the last cycle's deadline on the host's clock [s]
         self.k = 0
         self.last: Feedback | None = None
         self.pending: _Row | None = None
@@ -328,7 +330,7 @@ class _Cycler:
             t = k * self.checked.dt if nominal else t_abs - t0_drive
             if cycle_clock is not None:
                 start, end = self.bracket
-                deadline = start if self.paced else self.t0 + (self.k - 1) * self.checked.dt
+                deadline = start if self.paced else self.deadline
                 cycle_clock.mark(k, deadline, start, end, t_unc, fb.t_s)
             self.pending = _Row(number, t, fb.velocity, fb.position, t_host, uk, self.x_ref, acted, t_unc)
             self._guard(fb)
@@ -359,9 +361,10 @@ class _Cycler:
         and the row left pending by the cycle before."""
         if self.realtime and not self.paced:
             dt = self.checked.dt
-            behind = time.monotonic() - (self.t0 + self.k * dt)
-            if behind > dt:  # a whole period late or more: start now, the deadlines move on
-                self.t0 += math.floor(behind / dt) * dt
+            self.deadline = self.t0 + self.k * dt
+            behind = time.monotonic() - self.deadline
+            if behind > 0.5 * dt:  # more than half a period late: start now, the deadlines count on from here
+                self.t0 += behind
             sleep_until(self.t0 + self.k * dt)
         self.k += 1
         if not self.drive.holding and self.last is not None:
