@@ -1,6 +1,6 @@
 """Issue 30: a handful of the naming benchmark's random cases (``benchmarks/diagnose_cases.py``).
 
-Each is a case of ``--cases 300 --seed 1`` (its number there in the name), with
+Each is a case of ``--cases 300 --seed 1`` (its number there in the name; one of ``--seed 2``), with
 its size, excitation and sensor noise: the four excitations (SIDBE pair, single
 run, square wave, closed loop in a travel window), the three noises (white,
 coloured, quantised), a control with nothing hidden and a Stribeck curve. The
@@ -74,6 +74,13 @@ CASES = {
     # 11.3 % -> 4.2 %). Restarts along the line, each refitted, reach the play (1.5 %).
     272: ("backlash", 2.5891902309098977, "square", "quantised", 1876360588),
 }
+#: A case of ``--seed 2`` (keyed by seed and number): a play 2.8 times the Coulomb level in a SIDBE
+#: pair. The base fitted without it is far off (M 0.033 for 0.082, Coulomb 0 / 0.16 for 0.42 /
+#: 0.46), and on that base the play's quick guess simulated worse than the base (35.7 % held out
+#: against 34.8 %): it was never refitted, and nothing was named (gap 28.6 %). Against the base
+#: alone, far from the floor, every effect is refitted once nothing paid.
+SEED_2 = {"2-236": ("backlash", 2.822980818549884, "sidbe", "coloured", 1307834303)}
+NAMED = {**CASES, **SEED_2}
 #: A Stribeck curve whose static level is four times the Coulomb level, in a single run, read in
 #: steps: the axis mostly sticks, and what little motion there is stays under the Stribeck
 #: velocity. The base fit puts its Coulomb levels at the breakaway (1.78 / 1.75 for 0.40 / 0.46)
@@ -117,7 +124,7 @@ def results(tmp_path_factory):
     folder = Path(tmp_path_factory.mktemp("cases"))
 
     def run(number: int) -> dict:
-        effect, size, inputs, noise, seed = {**CASES, **TIED, **COLOURED, **BREAKAWAY, **AT_REST, **BARS}[number]
+        effect, size, inputs, noise, seed = {**NAMED, **TIED, **COLOURED, **BREAKAWAY, **AT_REST, **BARS}[number]
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         log = read_log(write_case_log(case, folder / f"case-{number}.csv", rng))
@@ -126,17 +133,17 @@ def results(tmp_path_factory):
     return CaseResults(run)
 
 
-@pytest.mark.parametrize("number", sorted(CASES))
+@pytest.mark.parametrize("number", [*sorted(CASES), *SEED_2])
 def test_the_hidden_effect_is_named_alone(results, number):
-    effect = CASES[number][0]
+    effect = NAMED[number][0]
     d = results[number]["diagnosis"]
     assert [e.name for e in d.effects] == ([effect] if effect else []), d.trace.stop
 
 
-@pytest.mark.parametrize("number", sorted(CASES))
+@pytest.mark.parametrize("number", [*sorted(CASES), *SEED_2])
 def test_the_gap_shrinks_three_times_where_it_shows(results, number):
     d = results[number]["diagnosis"]
-    if d.gap_before >= 3 * d.verdict.floor.percent and CASES[number][0]:
+    if d.gap_before >= 3 * d.verdict.floor.percent and NAMED[number][0]:
         assert d.gap_after <= d.gap_before / 3, (d.gap_before, d.gap_after)
 
 

@@ -70,6 +70,9 @@ PAIR_BELOW = 0.8
 #: When nothing in the pool pays and the held-out gap is above this multiple of the noise
 #: floor, every other effect whose quick guess beats the current model is refitted too: far
 #: from the floor a screening read off a poor base model can rank the missing effect low.
+#: Against the base model alone, every other effect: a base fitted without a large play is
+#: far off (M 2.5 times small), and the play's guess on it simulates worse than the base
+#: until its refit moves the base too.
 WIDEN_ABOVE = 2.0
 
 Progress = Callable[[str], None]
@@ -400,7 +403,8 @@ def _round(
         wider = [
             n
             for n in sorted(quick, key=lambda n: quick[n].held_out_gap)
-            if n not in singles and quick[n].held_out_gap < current.gap_held_out
+            if n not in singles
+            and (not current.candidate.effects or quick[n].held_out_gap < current.gap_held_out)
         ]
         for i, n in enumerate(wider, 1):
             progress(f"refitting {n} (nothing paid so far; {i}/{len(wider)})")
