@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 
 from servobench.bench.diagnose.data import DiagnosisData
 from servobench.bench.diagnose.evidence import MIN_GAIN, MIN_Z, Payoff, payoff
+from servobench.bench.diagnose.floor import STRUCTURED
 from servobench.bench.diagnose.refit import FitResult, evaluate, refit, with_covariance
 from servobench.bench.diagnose.screening import (
     COMPANIONS,
@@ -50,6 +51,7 @@ from servobench.bench.diagnose.screening import (
     without,
 )
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.diagnose.verdict import predicted_share
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects.spec import Screening
 
@@ -70,9 +72,10 @@ PAIR_BELOW = 0.8
 #: When nothing in the pool pays and the held-out gap is above this multiple of the noise
 #: floor, every other effect whose quick guess beats the current model is refitted too: far
 #: from the floor a screening read off a poor base model can rank the missing effect low.
-#: Against the base model alone, every other effect: a base fitted without a large play is
-#: far off (M 2.5 times small), and the play's guess on it simulates worse than the base
-#: until its refit moves the base too.
+#: Against the base model alone, whose residual the log's signals predict (not noise-like:
+#: :func:`structured`), every other effect: a base fitted without a large play is far off (M
+#: 2.5 times small), and the play's guess on it simulates worse than the base until its refit
+#: moves the base too.
 WIDEN_ABOVE = 2.0
 
 Progress = Callable[[str], None]
@@ -374,6 +377,12 @@ def _best_start(data: DiagnosisData, name: str, fits: list[FitResult]) -> FitRes
     return chosen
 
 
+def structured(data: DiagnosisData, fit: FitResult) -> bool:
+    """Whether the log's signals predict at least :data:`~.floor.STRUCTURED` of the residual
+    of ``fit`` on held-out samples (coloured noise alone is predicted by none)."""
+    return predicted_share(data, fit.candidate, fit.v_sim) >= STRUCTURED
+
+
 def _round(
     fitter: _Fitter, current: FitResult, quick: dict[str, QuickScore], progress: Progress
 ) -> tuple[tuple[str, ...], FitResult | None, Round]:
@@ -400,11 +409,11 @@ def _round(
     chosen, best, reasons, rivals = _decide(fitter.data, current, singles, pairs)
     far = fitter.floor > 0 and current.gap_held_out > WIDEN_ABOVE * fitter.floor
     if not chosen and far:  # (a floor of 0: no sensor noise known, no scale for "far")
+        every = not current.candidate.effects and structured(fitter.data, current)
         wider = [
             n
             for n in sorted(quick, key=lambda n: quick[n].held_out_gap)
-            if n not in singles
-            and (not current.candidate.effects or quick[n].held_out_gap < current.gap_held_out)
+            if n not in singles and (every or quick[n].held_out_gap < current.gap_held_out)
         ]
         for i, n in enumerate(wider, 1):
             progress(f"refitting {n} (nothing paid so far; {i}/{len(wider)})")
