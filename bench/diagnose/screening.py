@@ -123,8 +123,8 @@ class QuickScore:
     """Held-out gap [%] of the best screening guess, and where refits should start.
 
     ``starts`` holds the best candidate built on the screening's main guess; the main guess
-    on the other base too when the two bases are far apart (:func:`unsettled`: the quick
-    simulation cannot tell which basin the refit will reach); when the screening offered
+    on the other base too when the two bases are far apart (:func:`unsettled`, nearer for a
+    rugged effect: the quick simulation cannot tell which basin the refit will reach); when the screening offered
     alternatives, the best of those (rugged surfaces: each is refitted); and when it offered
     restarts (starts with a base of their own), the best of those too, whatever its quick gap
     (its guess of the term was made on the current base: the refit moves both).
@@ -137,10 +137,16 @@ class QuickScore:
 
 #: Two bases are far apart when B or a Coulomb level differs by more than this factor.
 BASE_SPREAD = 2.0
+#: ... or by more than this one, for an effect whose screening asks its refit to scan (a rugged
+#: surface): there a quick simulation of the guess on the wrong base says nothing of the basin
+#: its refit reaches (cogging wells 1.9 times the Coulomb level: on the current base, its
+#: friction 1.5 times the joint fit's, the guess simulated better and its refit missed the
+#: wells; from the joint base, whose guess simulated worse, it reached them).
+RUGGED_SPREAD = 1.25
 
 
-def unsettled(a: dict[str, float], b: dict[str, float]) -> bool:
-    """Whether bases ``a`` and ``b`` differ by more than :data:`BASE_SPREAD` in ``B`` or in
+def unsettled(a: dict[str, float], b: dict[str, float], spread: float = BASE_SPREAD) -> bool:
+    """Whether bases ``a`` and ``b`` differ by more than ``spread`` in ``B`` or in
     the mean Coulomb level: a current base whose best linear-plus-Coulomb fit wanted ``B < 0``
     (a strong Stribeck curve) against the screening's joint fit with ``B`` held positive."""
     for pair in (
@@ -148,7 +154,7 @@ def unsettled(a: dict[str, float], b: dict[str, float]) -> bool:
         (a["coulomb_pos"] + a["coulomb_neg"], b["coulomb_pos"] + b["coulomb_neg"]),
     ):
         lo, hi = sorted(abs(float(x)) for x in pair)
-        if hi > BASE_SPREAD * lo:
+        if hi > spread * lo:
             return True
     return False
 
@@ -186,7 +192,8 @@ def quick_score(data: DiagnosisData, current: Candidate, name: str, s: Screening
         return QuickScore(name, float("inf"), (fallback,))
     mains = sorted((best[k] for k in ("main", "joint") if k in best), key=lambda item: item[0])
     kept = mains[:1]
-    if len(mains) == 2 and unsettled(dict(mains[0][1].base), dict(mains[1][1].base)):
+    spread = RUGGED_SPREAD if s.scan else BASE_SPREAD
+    if len(mains) == 2 and unsettled(dict(mains[0][1].base), dict(mains[1][1].base), spread):
         kept.append(mains[1])
     kept += [best[k] for k in ("alternative", "restart") if k in best]
     ranked = sorted(kept, key=lambda item: item[0])
