@@ -1,6 +1,6 @@
 """Issue 30: a handful of the naming benchmark's random cases (``benchmarks/diagnose_cases.py``).
 
-Each is a case of ``--cases 300 --seed 1`` (its number there in the name; three of ``--seed 2``), with
+Each is a case of ``--cases 300 --seed 1`` (its number there in the name; three of ``--seed 2``, one of 3), with
 its size, excitation and sensor noise: the four excitations (SIDBE pair, single
 run, square wave, closed loop in a travel window), the three noises (white,
 coloured, quantised), a control with nothing hidden and a Stribeck curve. The
@@ -74,24 +74,30 @@ CASES = {
     # 11.3 % -> 4.2 %). Restarts along the line, each refitted, reach the play (1.5 %).
     272: ("backlash", 2.5891902309098977, "square", "quantised", 1876360588),
 }
-#: Cases of ``--seed 2`` (keyed by seed and number). A play 2.8 times the Coulomb level in a SIDBE
-#: pair. The base fitted without it is far off (M 0.033 for 0.082, Coulomb 0 / 0.16 for 0.42 /
-#: 0.46), and on that base the play's quick guess simulated worse than the base (35.7 % held out
-#: against 34.8 %): it was never refitted, and nothing was named (gap 28.6 %). Against the base
-#: alone, far from the floor, every effect is refitted once nothing paid.
-#: Cogging wells 2.7 times the Coulomb level under a square wave: the periodogram of the base
-#: fit's residual put the period 1.2 % long (the base's direction column had taken up part of
-#: the wells), a drift of a tenth of a period over the travel's eight, and the refit stuck
-#: there (held out 12.7 % for the hidden model's 0.46 %: nothing named). The joint regression
-#: settles the period. Wells 1.9 times the Coulomb level in a SIDBE pair: the guess simulated on
-#: the current base (its friction 1.5 times the joint fit's) ranked above the joint base, whose
-#: refit alone reaches the wells; a rugged effect's refit starts from both.
-SEED_2 = {
+#: Cases of other seeds, keyed by seed and number.
+OTHER_SEEDS = {
+    # A play 2.8 times the Coulomb level in a SIDBE pair. The base fitted without it is far off
+    # (M 0.033 for 0.082, Coulomb 0 / 0.16 for 0.42 / 0.46), and on that base the play's quick
+    # guess simulated worse than the base (35.7 % held out against 34.8 %): it was never
+    # refitted, and nothing was named (gap 28.6 %). Against the base alone, far from the floor,
+    # every effect is refitted once nothing paid.
     "2-236": ("backlash", 2.822980818549884, "sidbe", "coloured", 1307834303),
+    # Cogging wells 2.7 times the Coulomb level under a square wave: the periodogram of the base
+    # fit's residual put the period 1.2 % long (the base's direction column had taken up part of
+    # the wells), a drift of a tenth of a period over the travel's eight, and the refit stuck
+    # there (held out 12.7 % for the hidden model's 0.46 %: nothing named). The joint
+    # regression settles the period.
     "2-234": ("cogging", 2.7287800340935675, "square", "white", 119894916),
+    # Wells 1.9 times the Coulomb level in a SIDBE pair: the guess simulated on the current base
+    # (its friction 1.5 times the joint fit's) ranked above the joint base, whose refit alone
+    # reaches the wells; a rugged effect's refit starts from both.
     "2-54": ("cogging", 1.8984429688621913, "sidbe", "quantised", 1346077885),
+    # A play 1.7 times the Coulomb level in a single run, its base as far off (M
+    # 0.097 for 0.149) and its residual as unpredictable from the log's signals as coloured
+    # noise (12 %): refitted only because every effect is, against the base alone.
+    "3-20": ("backlash", 1.6992098087806875, "single", "white", 456516547),
 }
-NAMED = {**CASES, **SEED_2}
+NAMED = {**CASES, **OTHER_SEEDS}
 #: A Stribeck curve whose static level is four times the Coulomb level, in a single run, read in
 #: steps: the axis mostly sticks, and what little motion there is stays under the Stribeck
 #: velocity. The base fit puts its Coulomb levels at the breakaway (1.78 / 1.75 for 0.40 / 0.46)
@@ -144,14 +150,14 @@ def results(tmp_path_factory):
     return CaseResults(run)
 
 
-@pytest.mark.parametrize("number", [*sorted(CASES), *SEED_2])
+@pytest.mark.parametrize("number", [*sorted(CASES), *OTHER_SEEDS])
 def test_the_hidden_effect_is_named_alone(results, number):
     effect = NAMED[number][0]
     d = results[number]["diagnosis"]
     assert [e.name for e in d.effects] == ([effect] if effect else []), d.trace.stop
 
 
-@pytest.mark.parametrize("number", [*sorted(CASES), *SEED_2])
+@pytest.mark.parametrize("number", [*sorted(CASES), *OTHER_SEEDS])
 def test_the_gap_shrinks_three_times_where_it_shows(results, number):
     d = results[number]["diagnosis"]
     if d.gap_before >= 3 * d.verdict.floor.percent and NAMED[number][0]:

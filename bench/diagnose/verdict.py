@@ -297,32 +297,15 @@ def shares(
     return best, max(together, *best.values())
 
 
-def _residual(
-    data: DiagnosisData, v_sim: Sequence[np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The measured velocity's residual against ``v_sim`` (0 where not finite), and the finite
-    samples' training and held-out masks."""
-    e = np.concatenate([r.v - vs for r, vs in zip(data.segments, v_sim, strict=True)])
-    ok = np.isfinite(e)
-    held = np.concatenate(data.held_out)
-    return np.where(ok, e, 0.0), ok & ~held, ok & held
-
-
-def predicted_share(data: DiagnosisData, cand: Candidate, v_sim: Sequence[np.ndarray]) -> float:
-    """The share of the residual of ``cand`` (simulated velocity ``v_sim``) that the log's
-    signals together predict on held-out samples (:func:`shares`): under
-    :data:`~.floor.STRUCTURED`, the residual is noise-like."""
-    e, train, test = _residual(data, v_sim)
-    return shares(data, cand, v_sim, e, train, test)[1]
-
-
 def judge(
     data: DiagnosisData, final: Candidate, v_sim: Sequence[np.ndarray], gap: float
 ) -> Verdict:
     """The verdict on the final model ``final`` with simulated velocity ``v_sim`` and gap [%]."""
-    e, train, test = _residual(data, v_sim)
-    ok = train | test
-    by_place, together = shares(data, final, v_sim, e, train, test)
+    e = np.concatenate([r.v - vs for r, vs in zip(data.segments, v_sim, strict=True)])
+    ok = np.isfinite(e)
+    held = np.concatenate(data.held_out)
+    e = np.where(ok, e, 0.0)
+    by_place, together = shares(data, final, v_sim, e, ok & ~held, ok & held)
     places = tuple(sorted((Place(k, s) for k, s in by_place.items()), key=lambda p: -p.share))
     floor = noise_floor(data, gap, together, v_sim, final.base)
     spectrum = _spectrum(data, e[ok])
