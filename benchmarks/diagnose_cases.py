@@ -16,7 +16,8 @@ quantization of a two-level command), the false-name rate (cases naming an effec
 the gap shrink where the effect's own gap is at least 3 times the noise floor,
 the Stribeck refit accuracy (static level in each direction and Stribeck
 velocity within 5 %, where the curve's gap is at least 3 times the floor), each
-against issue 30's target, and every case that went
+against issue 30's target, how many of those refits lie within two of their
+stated sigma (the largest of the three errors over its sigma), and every case that went
 wrong with its seed (``--only SEED`` reruns one).
 
 The noise floor the cases are sorted by is the *true* one: the gap the hidden
@@ -37,6 +38,7 @@ Run: ``python benchmarks/diagnose_cases.py [--cases 300] [--seed 1] [--jobs 2]``
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 import time
@@ -51,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from servobench.bench.diagnose.verdict import VERDICT_FACTOR  # noqa: E402
 from servobench.bench.diagnose.workflow import diagnose  # noqa: E402
 from servobench.bench.log.io import read_log  # noqa: E402
+from servobench.bench.report.diagnose import to_json  # noqa: E402
 from servobench.bench.testing.hidden_effects import true_floor, write_case_log  # noqa: E402
 from servobench.bench.testing.sized_cases import NOISES, sized_case  # noqa: E402
 from servobench.sim_backend.physics import effects as library  # noqa: E402
@@ -150,6 +153,13 @@ def run_case(case: Case, folder: str) -> dict:
                 abs(got["vs"] / true["vs"] - 1),
             )
         )
+        if got is not None:
+            std = to_json(d)["std"]
+            out["stribeck_sigmas"] = max(
+                abs(got[k] - true[t]) / s if s else math.inf
+                for k, t in (("fs_pos", "fs"), ("fs_neg", "fs"), ("vs", "vs"))
+                for s in [std.get(f"stribeck.{k}")]
+            )
     return out
 
 
@@ -275,6 +285,9 @@ def targets(results: list[dict]) -> None:
             f"{good}/{len(shown)} where its gap is >= {SHRINK:g} x floor (worst parameter "
             f"error {100 * worst:.1f}%)",
         )
+        sig = [r["stribeck_sigmas"] for r in shown if "stribeck_sigmas" in r]
+        held = sum(z <= 2.0 for z in sig)
+        print(f"{'':26s}{held}/{len(sig)} of these refits within two of their stated sigma")
         visible = [r for r in stribeck if not r["invisible"]]
         good = sum(r["stribeck"] is not None and r["stribeck"] <= STRIBECK_REL for r in visible)
         print(f"{'':26s}{good}/{len(visible)} of all the Stribeck cases that show")
@@ -320,7 +333,12 @@ def main(argv: list[str] | None = None) -> int:
             print()
             print(f"{title}:")
         for r in rows:
-            extra = f", Stribeck error {100 * r['stribeck']:.1f}%" if r.get("stribeck") else ""
+            extra = (
+                f", Stribeck error {100 * r['stribeck']:.1f}% ({r['stribeck_sigmas']:.2g} of its "
+                f"stated sigma)"
+                if r.get("stribeck")
+                else ""
+            )
             extra += f", rivals of the first: {', '.join(r['rivals'])}" if r["rivals"] else ""
             print(
                 f"  {r['case'].label}: named {', '.join(r['named']) or NONE}; gap "
