@@ -50,6 +50,7 @@ from servobench.bench.diagnose.screening import (
     without,
 )
 from servobench.bench.diagnose.simulate import Candidate
+from servobench.bench.diagnose.verdict import EXACT_GAP_PERCENT
 from servobench.sim_backend.physics import effects as library
 from servobench.sim_backend.physics.effects.spec import Screening
 
@@ -74,7 +75,8 @@ PAIR_BELOW = 0.8
 #: far off (M 1.5-2.5 times small), and the play's guess on it simulates worse than the base
 #: until its refit moves the base too. Its residual is then no more predictable from the log's
 #: signals than coloured noise is (12 % of it on a single run), so that cannot tell the two
-#: apart: coloured noise under a control costs 0.6 -> 0.9 s a diagnosis.
+#: apart: coloured noise under a control costs 0.6 -> 0.9 s a diagnosis. A model that already
+#: reproduces the log within :data:`~.verdict.EXACT_GAP_PERCENT` (noise-free data) is not far.
 WIDEN_ABOVE = 2.0
 
 Progress = Callable[[str], None]
@@ -400,7 +402,7 @@ def _round(
             start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
     chosen, best, reasons, rivals = _decide(fitter.data, current, singles, pairs)
-    far = fitter.floor > 0 and current.gap_held_out > WIDEN_ABOVE * fitter.floor
+    far = fitter.floor > 0 and current.gap_held_out > max(WIDEN_ABOVE * fitter.floor, EXACT_GAP_PERCENT)
     if not chosen and far:  # (a floor of 0: no sensor noise known, no scale for "far")
         every = not current.candidate.effects
         wider = [
