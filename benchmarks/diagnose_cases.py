@@ -324,10 +324,17 @@ def main(argv: list[str] | None = None) -> int:
         if not r["invisible"]
         and (r.get("stribeck", 0.0) is None or r.get("stribeck", 0) > STRIBECK_REL)
     ]
+    wide = [
+        r
+        for r in big
+        if r["case"].effect == "stribeck" and r.get("stribeck_sigmas", 0.0) > 2.0
+        and r not in bad and r not in loose
+    ]
     for title, rows in (
         ("cases that went wrong", bad),
         (f"gap shrunk less than {SHRINK:g} times", slow),
         ("Stribeck refit beyond 5%", [r for r in loose if r not in bad]),
+        ("Stribeck refit within 5% but beyond two of its stated sigma", wide),
     ):
         if rows:
             print()
@@ -336,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
             extra = (
                 f", Stribeck error {100 * r['stribeck']:.1f}% ({r['stribeck_sigmas']:.2g} of its "
                 f"stated sigma)"
-                if r.get("stribeck")
+                if r.get("stribeck") and "stribeck_sigmas" in r
                 else ""
             )
             extra += f", rivals of the first: {', '.join(r['rivals'])}" if r["rivals"] else ""
