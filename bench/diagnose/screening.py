@@ -124,8 +124,9 @@ class QuickScore:
 
     ``starts`` holds the best candidate built on the screening's main guess; the main guess
     on the other base too when the two bases are far apart (:func:`unsettled`, nearer for a
-    rugged effect: the quick simulation cannot tell which basin the refit will reach); when the screening offered
-    alternatives, the best of those (rugged surfaces: each is refitted); and when it offered
+    rugged effect: the quick simulation cannot tell which basin the refit will reach); when
+    the screening offered alternatives, the best of those (rugged surfaces: each is
+    refitted); and when it offered
     restarts (starts with a base of their own), the best of those too, whatever its quick gap
     (its guess of the term was made on the current base: the refit moves both).
     """

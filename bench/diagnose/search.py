@@ -402,7 +402,8 @@ def _round(
             start = Candidate(dict(fa.base), {**fb.effects, **fa.effects})
             pairs[(a, b)] = fitter.fit(start, (a, b), False)
     chosen, best, reasons, rivals = _decide(fitter.data, current, singles, pairs)
-    far = fitter.floor > 0 and current.gap_held_out > max(WIDEN_ABOVE * fitter.floor, EXACT_GAP_PERCENT)
+    reach = max(WIDEN_ABOVE * fitter.floor, EXACT_GAP_PERCENT)
+    far = fitter.floor > 0 and current.gap_held_out > reach
     if not chosen and far:  # (a floor of 0: no sensor noise known, no scale for "far")
         every = not current.candidate.effects
         wider = [

@@ -363,7 +363,7 @@ class _Cycler:
             dt = self.checked.dt
             self.deadline = self.t0 + self.k * dt
             behind = time.monotonic() - self.deadline
-            if behind > 0.5 * dt:  # more than half a period late: start now, the deadlines count on from here
+            if behind > 0.5 * dt:  # over half a period late: start now, count on from here
                 self.t0 += behind
             sleep_until(self.t0 + self.k * dt)
         self.k += 1

@@ -40,8 +40,8 @@ EFFECT = EffectSpec(
     ),
     signature="the residual plotted against position repeats with a fixed spatial period, "
     "whatever the speed (a line in the periodogram of the force residual over position)",
-    fit="periodogram of the equation error over position, sin/cos regression at the best "
-    "period, then simulation error on amplitude, period and phase",
+    fit="periodogram of the equation error over position, its peak settled by the sin/cos "
+    "regression with the base, then simulation error on amplitude, period and phase",
 )
 
 
