@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
             extra = (
                 f", Stribeck error {100 * r['stribeck']:.1f}% ({r['stribeck_sigmas']:.2g} of its "
                 f"stated sigma)"
-                if r.get("stribeck") and "stribeck_sigmas" in r
+                if r.get("stribeck")
                 else ""
             )
             extra += f", rivals of the first: {', '.join(r['rivals'])}" if r["rivals"] else ""
