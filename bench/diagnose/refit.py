@@ -19,9 +19,10 @@ The Jacobian is ``least_squares``'s own two-point finite difference (same steps,
 columns), its columns simulated in one compiled call (:func:`.simulate.simulate_flat`)
 instead of one simulation per column.
 
-Every fitted parameter gets a 1-sigma (:mod:`.sigma`): the HAC covariance of the Jacobian and
-residual of the final ``least_squares`` (a fresh Jacobian when the grid search or an earlier
-round's solution is kept), each training window a chunk, in natural units by the chain rule.
+Every fitted parameter gets a 1-sigma (:mod:`.sigma`): the noise-model sandwich of the Jacobian
+and residual of the final ``least_squares`` (a fresh Jacobian when the grid search or an earlier
+round's solution is kept), each window a chunk, with the simulation's sensitivity to the measured
+velocity each window starts from, in natural units by the chain rule.
 """
 
 from __future__ import annotations
@@ -64,6 +65,9 @@ SIMPLEX_MAXFEV = 200
 POLISH_ABOVE = 1.5
 #: The Coulomb levels' least scale in a fit, as a share of the command's spread.
 FORCE_FLOOR_SHARE = 0.05
+#: Step of the start velocity's sensitivity (:meth:`_TrainingError.start_gain`), a share of the
+#: velocity's spread.
+START_STEP = 1e-3
 #: Residual returned for parameters the simulator rejects.
 PENALTY = 10.0
 #: Multipliers tried for fixed (grid-searched) parameters after the gradient fit.
@@ -263,6 +267,28 @@ class _TrainingError:
         """Cumulative sizes of each window's training samples in the residual."""
         return np.cumsum([int(m.sum()) for m in self.masks])
 
+    @property
+    def window_ends(self) -> np.ndarray:
+        """Cumulative sizes of the windows, every sample (held-out ones too)."""
+        return np.cumsum([e - s for _, s, e in self.which])
+
+    @property
+    def training_mask(self) -> np.ndarray:
+        """Which samples of the windows, each after the one before it, are training samples."""
+        return self._flat_mask
+
+    def start_gain(self, cand: Candidate) -> np.ndarray | None:
+        """How much ``cand``'s simulated velocity at every sample of the windows moves with the
+        measured velocity its window starts from (central difference, :data:`START_STEP` of the
+        velocity's spread); None where the simulator rejects the candidate."""
+        step = START_STEP * self.scale
+        if not step > 0.0:
+            return None
+        (hi,), (lo,) = (simulate_flat(self.data, [cand], self.which, start_dv=d) for d in (step, -step))
+        if isinstance(hi, UsageError) or isinstance(lo, UsageError):
+            return None
+        return (hi - lo) / (2.0 * step)
+
     def cost(self, cand: Candidate) -> float:
         return float(np.sum(self.residual(cand) ** 2))
 
@@ -427,14 +453,23 @@ def _covariance(
     layout = solution.layout
     values = [*(float(best.base[k]) for k in BASE_KEYS)]
     values += [float(best.effects[name][pname]) for name, pname, *_ in layout.slots]
+    # on the windows' every sample: the noise's lags are true ones across held-out samples,
+    # and the noise of the measured velocity each window starts from enters with its gain
+    mask = error.training_mask
+    jac = np.zeros((mask.size, solution.jac.shape[1]))
+    jac[mask] = solution.jac
+    residual = np.zeros(mask.size)
+    residual[mask] = solution.residual
     return natural_covariance(
         layout.names(),
         values,
-        solution.jac,
-        solution.residual,
-        error.chunks,
+        jac,
+        residual,
+        error.window_ends,
         layout.dnatural_dz(solution.z),
         {f"{name}.{pname}": (lo, hi) for name, pname, _, lo, hi in layout.slots},
+        valid=mask,
+        start_gain=error.start_gain(best),
     )
 
 

@@ -128,9 +128,14 @@ def simulate_flat(
     cands: Sequence[Candidate],
     which: Sequence[Window],
     added: Sequence[np.ndarray] | None = None,
+    start_dv: float = 0.0,
 ) -> list[np.ndarray | UsageError]:
     """:func:`simulate_many`'s velocities as one array per candidate: the windows ``which``, each
-    after the one before it (what a fit compares, without the runs' arrays around them)."""
+    after the one before it (what a fit compares, without the runs' arrays around them).
+
+    ``start_dv`` [units/s] is added to the measured velocity each window starts from where the
+    axis moves there (not where it starts at rest): the sensitivity of the simulation to the
+    noise of that sample (:mod:`.sigma`)."""
     dt = data.dt_s
     sigma = data.sigma_v
     u_runs = [r.u if added is None else r.u + added[i] for i, r in enumerate(data.segments)]
@@ -138,6 +143,8 @@ def simulate_flat(
     for i, s, e in which:
         r = data.segments[i]
         v0, x0 = initial_velocity(r, sigma, s), float(r.position[s])
+        if start_dv and v0 != 0.0:
+            v0 += start_dv
         rows.append((i, s, e - s, col))
         start.append((v0, x0, v0, x0, 0.0))
         col += e - s

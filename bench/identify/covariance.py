@@ -39,6 +39,11 @@ MAX_RHO = 0.98
 BANDWIDTH_FACTOR = 2.0
 #: Fewest samples per lag: the bandwidth stays below this fraction of the longest segment.
 MAX_BANDWIDTH_SHARE = 0.25
+#: Highest order of the noise's autoregression (:func:`noise_model_covariance`).
+AR_MAX_ORDER = 20
+#: Fits of the noise model where a start's noise is taken out of the residual (each weighs
+#: that with the model before it).
+START_PASSES = 3
 
 
 @dataclass(frozen=True)
@@ -64,12 +69,12 @@ class ResidualColour:
     lags: int
     coloured: bool
 
-    def note(self, what: str) -> str:
-        """One line for a result's notes: what was found and what the sigmas allow for."""
+    def note(self, what: str, by: str = "a HAC (Newey-West) covariance") -> str:
+        """One line for a result's notes: what was found and what the sigmas allow for it ``by``."""
         p = "< 1e-12" if self.p_value < 1e-12 else f"{self.p_value:.1g}"
         return (
             f"{what} residual is coloured (lag-1 autocorrelation {self.rho1:.2f}, Ljung-Box p {p}): "
-            "its 1-sigma come from a HAC (Newey-West) covariance that allows for it"
+            f"its 1-sigma come from {by} that allows for it"
         )
 
 
@@ -188,4 +193,154 @@ def hac_covariance(
     except np.linalg.LinAlgError:
         return np.full((p, p), np.nan)
     S = long_run_covariance(J * r[:, None], bounds, lags)
+    return H_inv @ S @ H_inv * (n / max(1, n - p))
+
+
+def _valid_autocovariance(
+    r: np.ndarray, valid: np.ndarray, segments: list[tuple[int, int]], lags: int
+) -> np.ndarray:
+    """Autocovariance of ``r`` at lags ``0 .. lags`` over the pairs of valid samples within one
+    segment (each lag's sum over its own number of pairs)."""
+    rv = np.where(valid, r, 0.0)
+    m = valid.astype(float)
+    total, pairs = np.zeros(lags + 1), np.zeros(lags + 1)
+    for a, b in segments:
+        for k in range(min(lags, b - a - 1) + 1):
+            total[k] += float(rv[a + k : b] @ rv[a : b - k])
+            pairs[k] += float(m[a + k : b] @ m[a : b - k])
+    return np.divide(total, pairs, out=np.zeros_like(total), where=pairs > 0)
+
+
+def autoregression(rho: np.ndarray, n: int, max_order: int = AR_MAX_ORDER) -> np.ndarray:
+    """Coefficients ``phi`` of the autoregression ``e_t = sum_i phi_i e_{t-i} + w_t`` of least
+    AIC (``n log var(w) + 2 order``, order ``0 .. max_order``) for the autocorrelation ``rho``
+    (lags ``0 .. max_order``), by Levinson-Durbin; empty for white noise."""
+    phi, best, best_aic, v = np.zeros(0), np.zeros(0), 0.0, 1.0
+    for p in range(1, min(max_order, rho.size - 1) + 1):
+        k = (rho[p] - float(phi @ rho[p - 1 : 0 : -1])) / v
+        if not abs(k) < 1.0:
+            break
+        phi = np.append(phi - k * phi[::-1], k)
+        v *= 1.0 - k * k
+        aic = n * math.log(v) + 2.0 * p
+        if aic < best_aic:
+            best, best_aic = phi.copy(), aic
+    return best
+
+
+def ar_autocorrelation(phi: np.ndarray, rho: np.ndarray, lags: int) -> np.ndarray:
+    """The autocorrelation at lags ``0 .. lags`` of the autoregression ``phi`` whose first
+    ``len(phi) + 1`` values are ``rho`` (what Yule-Walker matches), on by its recursion."""
+    p = phi.size
+    out = np.zeros(lags + 1)
+    out[: min(p, lags) + 1] = rho[: min(p, lags) + 1]
+    if p == 0:
+        return out
+    for k in range(p + 1, lags + 1):
+        out[k] = float(phi @ out[k - 1 : k - p - 1 : -1])  # out[k-1] .. out[k-p]
+        if k > 4 * p and np.all(np.abs(out[k - p : k + 1]) < 1e-9):
+            break  # decayed: the rest are zero to the precision that matters
+    return out
+
+
+def _without_start(
+    r: np.ndarray, gain: np.ndarray, segments: list[tuple[int, int]], phi: np.ndarray
+) -> np.ndarray:
+    """``r`` less, in each segment, the multiple of ``gain`` that least-squares fits it after
+    both are whitened by the autoregression ``phi``."""
+    from scipy.signal import lfilter
+
+    out = r.copy()
+    whiten = np.concatenate(([1.0], -phi))
+    for a, b in segments:
+        h = gain[a:b]
+        if not float(h @ h) > 0.0:
+            continue
+        wh, wr = lfilter(whiten, [1.0], h), lfilter(whiten, [1.0], r[a:b])
+        out[a:b] -= float(wh @ wr) / float(wh @ wh) * h
+    return out
+
+
+def noise_model_covariance(
+    jac: np.ndarray,
+    r: np.ndarray,
+    bounds: Sequence[int] | None = None,
+    valid: np.ndarray | None = None,
+    start_gain: np.ndarray | None = None,
+    max_order: int = AR_MAX_ORDER,
+) -> np.ndarray:
+    """Covariance of a least-squares estimate whose residual is stationary noise within each
+    segment, its autocovariance from an autoregression fitted to the residual.
+
+    Parameters
+    ----------
+    jac : ndarray, shape (n, p)
+        Jacobian of the residual at the estimate; rows of samples not in the cost are zero.
+    r : ndarray, shape (n,)
+        Residual at the estimate (the same weighting as ``jac``).
+    bounds : sequence of int, optional
+        Ends of the segments (the noise of one is independent of the others'); one by default.
+    valid : ndarray of bool, shape (n,), optional
+        Samples in the cost (all by default): the autocovariance is taken over pairs of them,
+        at their true lags, so samples left out of a segment do not shorten them.
+    start_gain : ndarray, shape (n,), optional
+        How much the model output at each sample moves with the noise of its segment's first
+        sample (a simulation started from that sample's measured value; 0 where it starts from
+        a fixed state). That noise enters the estimate through ``jac``'s products with it.
+    max_order : int
+        Highest order of the autoregression (:func:`autoregression`).
+
+    Returns
+    -------
+    ndarray, shape (p, p)
+        ``(J^T J)^-1 A^T Sigma A (J^T J)^-1 n / (n - p)``, ``A`` the Jacobian with the start
+        noise's loading added to each segment's first row, ``Sigma`` the noise's block Toeplitz
+        covariance, ``n`` the valid samples. Columns the residual does not move are NaN, as in
+        :func:`hac_covariance`.
+    """
+    from scipy.signal import fftconvolve
+
+    J = np.asarray(jac, dtype=float)
+    r = np.asarray(r, dtype=float)
+    n_rows, p = J.shape
+    moved = np.any(J != 0.0, axis=0)
+    if not moved.all():
+        out = np.full((p, p), np.nan)
+        if moved.any():
+            out[np.ix_(moved, moved)] = noise_model_covariance(
+                J[:, moved], r, bounds, valid, start_gain, max_order
+            )
+        return out
+    valid = np.ones(n_rows, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    n = int(valid.sum())
+    segments = _segments(n_rows, bounds)
+    h = None if start_gain is None else np.where(valid, np.asarray(start_gain, dtype=float), 0.0)
+    phi = np.zeros(0)
+    for _ in range(START_PASSES if h is not None else 1):
+        # the residual holds each start sample's noise times the gain: a decay, not the
+        # noise's colour; the noise model is fitted with it taken out (by least squares
+        # weighted with the noise model so far: unweighted, it takes the coloured noise's
+        # slow part with it)
+        noise = r if h is None else _without_start(r, h, segments, phi)
+        gamma = _valid_autocovariance(noise, valid, segments, max_order)
+        if not gamma[0] > 0.0:
+            return np.zeros((p, p))
+        rho = gamma / gamma[0]
+        phi = autoregression(rho, n, max_order)
+    acf = ar_autocorrelation(phi, rho, max(b - a for a, b in segments) - 1)
+    try:
+        H_inv = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return np.full((p, p), np.nan)
+    A = J.copy()
+    if h is not None:
+        for a, b in segments:
+            A[a] -= h[a:b] @ J[a:b]
+    S = np.zeros((p, p))
+    for a, b in segments:
+        L = b - a
+        two_sided = np.concatenate((acf[L - 1 : 0 : -1], acf[:L]))
+        SA = fftconvolve(A[a:b], two_sided[:, None], mode="full", axes=0)[L - 1 : 2 * L - 1]
+        S += A[a:b].T @ SA
+    S = 0.5 * (S + S.T) * gamma[0]
     return H_inv @ S @ H_inv * (n / max(1, n - p))

@@ -33,7 +33,7 @@ from servobench.bench.diagnose.model_file import (
     sim_url,
     written_parameters,
 )
-from servobench.bench.diagnose.sigma import candidate_std
+from servobench.bench.diagnose.sigma import NOISE_MODEL, candidate_std
 from servobench.bench.diagnose.simulate import Candidate
 from servobench.bench.diagnose.verdict import LABELS
 from servobench.bench.diagnose.workflow import (
@@ -103,13 +103,28 @@ def colour_note(d: Diagnosis) -> str:
     """The note on a coloured training residual of the final fit (empty when white)."""
     cov = d.steps[-1].fit.covariance
     colour = None if cov is None else cov.colour
-    return colour.note("the final fit's training") if colour is not None and colour.coloured else ""
+    return (
+        colour.note("the final fit's training", by=NOISE_MODEL)
+        if colour is not None and colour.coloured
+        else ""
+    )
+
+
+def sigma_note(d: Diagnosis) -> str:
+    """The note on what the 1-sigma cover where the final model does not reproduce the log to
+    its noise (empty where it does, or where nothing has a sigma)."""
+    if d.verdict.explained or d.steps[-1].fit.covariance is None:
+        return ""
+    return (
+        f"the final model leaves a gap of {d.gap_after:.3g}% where the noise explains "
+        f"{d.verdict.floor.percent:.3g}%: its 1-sigma allow for the sensor noise, not for what the "
+        "model lacks, and its values may be off by more"
+    )
 
 
 def notes(d: Diagnosis) -> list[str]:
-    """The diagnosis' notes and the coloured-residual note."""
-    note = colour_note(d)
-    return list(d.notes) + ([note] if note else [])
+    """The diagnosis' notes, the coloured-residual note and the note on what the sigmas cover."""
+    return list(d.notes) + [n for n in (colour_note(d), sigma_note(d)) if n]
 
 
 def model_json(d: Diagnosis) -> dict:

@@ -375,10 +375,16 @@ def coloured(rng: np.random.Generator, n: int, std: float, corner_hz: float) -> 
     return std * w / np.std(w)
 
 
-def write_case_log(case: HiddenCase, path: str | Path, rng: np.random.Generator) -> Path:
-    """Simulate the runs (each from rest) and write ``run,t,u,v,x``; the effects are not named."""
+def write_case_log(
+    case: HiddenCase, path: str | Path, rng: np.random.Generator, noise_seed: int | None = None
+) -> Path:
+    """Simulate the runs (each from rest) and write ``run,t,u,v,x``; the effects are not named.
+
+    ``noise_seed`` seeds the sensor's noise in place of the one drawn from ``rng`` (drawn all
+    the same): the same excitation read through another realisation of the noise."""
     path = Path(path)
     seed = int(rng.integers(2**31))
+    seed = seed if noise_seed is None else int(noise_seed)
     if case.inputs == "closed":
         from servobench.bench.testing.closed_case import ClosedPlant, write_closed_log
 
