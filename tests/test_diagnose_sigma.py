@@ -173,3 +173,19 @@ def test_the_sigma_holds_under_coloured_sensor_noise(tmp_path):
     rms = float(np.sqrt(np.mean(z**2)))
     assert COLOURED_RMS[0] <= rms <= COLOURED_RMS[1], rms
     assert np.mean(np.abs(z) < 2.0) >= 0.87
+
+
+def test_a_positive_parameter_whose_sigma_exceeds_its_value_is_not_determined():
+    """``M`` and ``B`` cannot be negative: a first-order sigma beyond the value says the log does
+    not determine it (a ``B`` fitted to 1e-6 for a true 1.0 on a log as noisy as its signal
+    stated 1.4e-6 +- 2e-5), and it is NaN, not a bar that reaches below zero."""
+    from servobench.bench.diagnose.sigma import natural_covariance
+
+    rng = np.random.default_rng(4)
+    J = rng.normal(size=(600, 4))
+    r = rng.normal(size=600)
+    names = ("M", "B", "coulomb_pos", "coulomb_neg")
+    sd = natural_covariance(names, (0.1, 1.0, 0.5, 0.4), J, r, [300, 600], (1.0,) * 4).std
+    assert all(0.0 < sd[k] < 0.1 for k in names), sd  # each about 1 / sqrt(600)
+    tiny = natural_covariance(names, (0.1, 0.01, 0.5, 0.4), J, r, [300, 600], (1.0,) * 4).std
+    assert math.isnan(tiny["B"]) and all(0.0 < tiny[k] < 0.1 for k in ("M", "coulomb_pos", "coulomb_neg"))

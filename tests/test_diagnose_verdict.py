@@ -132,6 +132,7 @@ def test_issue_case_names_position_friction_and_reaches_the_noise_floor(results)
     assert j["gap_after"] <= 1.5 * j["noise_floor_percent"]
     assert j["gap_before"] >= 5 * j["noise_floor_percent"]
     assert r["text"][0].startswith("verdict: explained")
+    assert not any("its 1-sigma allow for the sensor noise" in line for line in r["text"])
 
 
 def test_issue_case_friction_curve_rises_along_the_travel_as_hidden(results):
@@ -159,6 +160,10 @@ def test_without_position_friction_the_verdict_is_unexplained_and_says_where(res
     assert j["residual"]["places"][0]["place"] == "position"
     assert r["text"][0] == f"verdict: unexplained -- {sig}"
     assert math.isfinite(j["noise_floor_percent"]) and j["noise_floor_percent"] > 0
+    # its 1-sigma allow for the noise alone, and the text says so
+    cover = [line for line in r["text"] if "its 1-sigma allow for the sensor noise" in line]
+    assert len(cover) == 1 and "not for what the model lacks" in cover[0], r["text"]
+    assert f"a gap of {j['gap_after']:.3g}%" in cover[0]
 
 
 def test_a_stribeck_peak_that_makes_the_base_fit_s_b_negative_is_named(results):
