@@ -28,8 +28,9 @@ velocity each window starts from, in natural units by the chain rule.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -99,21 +100,41 @@ class FitResult:
     gap_train: float
     gap_held_out: float
     evaluations: int
-    covariance: ParameterCovariance | None = None
+    #: Computes :attr:`covariance` when first asked for (None: no covariance).
+    covariance_of: Callable[[], ParameterCovariance | None] | None = field(
+        default=None, repr=False, compare=False
+    )
+
+    @cached_property
+    def covariance(self) -> ParameterCovariance | None:
+        """The fitted parameters' covariance, computed on first use: a search refits scores of
+        candidates and compares them, and reads the sigma of few."""
+        return None if self.covariance_of is None else self.covariance_of()
 
     @property
     def std(self) -> dict[str, float]:
         return {} if self.covariance is None else self.covariance.std
 
 
+@dataclass(frozen=True)
+class _Given:
+    """A covariance already computed, as :attr:`FitResult.covariance_of` gives it."""
+
+    value: ParameterCovariance | None
+
+    def __call__(self) -> ParameterCovariance | None:
+        return self.value
+
+
 def evaluate(
     data: DiagnosisData,
     cand: Candidate,
     evaluations: int = 1,
-    covariance: ParameterCovariance | None = None,
+    covariance: ParameterCovariance | Callable[[], ParameterCovariance | None] | None = None,
 ) -> FitResult:
     """Simulate a candidate on all windows and measure its gaps (infinite for parameters the
-    simulator rejects)."""
+    simulator rejects); ``covariance`` the parameters' covariance, or what computes it when
+    it is first asked for."""
     try:
         v = tuple(simulate(data, cand))
     except UsageError:
@@ -128,7 +149,7 @@ def evaluate(
         gap_percent(data, v, "train"),
         gap_percent(data, v, "held_out"),
         evaluations,
-        covariance,
+        covariance if covariance is None or callable(covariance) else _Given(covariance),
     )
 
 
@@ -473,6 +494,20 @@ def _covariance(
     )
 
 
+@dataclass(frozen=True)
+class _Deferred:
+    """:func:`_covariance` of a refit, run when the covariance is first asked for."""
+
+    error: _TrainingError
+    best: Candidate
+    bounds: Bounds
+    fixed: Mapping[str, tuple[str, ...]]
+    solution: _Solution | None
+
+    def __call__(self) -> ParameterCovariance:
+        return _covariance(self.error, self.best, self.bounds, self.fixed, self.solution)
+
+
 def with_covariance(data: DiagnosisData, fit: FitResult, like: FitResult) -> FitResult:
     """``fit`` with the covariance of the parameters ``like`` (a refit) fitted, for a candidate
     taken from that refit without a refit of its own (a term dropped from it): a Jacobian at
@@ -484,8 +519,7 @@ def with_covariance(data: DiagnosisData, fit: FitResult, like: FitResult) -> Fit
         name, pname = key.split(".", 1)
         if pname in fit.candidate.effects.get(name, {}):
             bounds.setdefault(name, {})[pname] = (lo, hi)
-    covariance = _covariance(_TrainingError(data), fit.candidate, bounds, {}, None)
-    return replace(fit, covariance=covariance)
+    return replace(fit, covariance_of=_Deferred(_TrainingError(data), fit.candidate, bounds, {}, None))
 
 
 def refit(
@@ -541,4 +575,4 @@ def refit(
                 error, polished, p_cost, bounds, fixed, grid, max_nfev
             )
     evaluations = error.evaluations  # of the fit; the covariance's Jacobian is not counted
-    return evaluate(data, best, evaluations, _covariance(error, best, bounds, fixed, solution))
+    return evaluate(data, best, evaluations, _Deferred(error, best, dict(bounds), dict(fixed), solution))

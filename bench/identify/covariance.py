@@ -43,7 +43,7 @@ MAX_BANDWIDTH_SHARE = 0.25
 AR_MAX_ORDER = 20
 #: Fits of the noise model where a start's noise is taken out of the residual (each weighs
 #: that with the model before it).
-START_PASSES = 3
+START_PASSES = 2
 
 
 @dataclass(frozen=True)
