@@ -24,7 +24,7 @@ result say when the residual is coloured.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,6 +153,20 @@ def long_run_covariance(g: np.ndarray, bounds: Sequence[int] | None, lags: int) 
     return S
 
 
+def _on_moved(J: np.ndarray, covariance: Callable[[np.ndarray], np.ndarray]) -> np.ndarray | None:
+    """Where some column of ``J`` is zero (a parameter the residual does not move at all):
+    ``covariance`` of the other columns, NaN rows and columns for those; None where the residual
+    moves every parameter."""
+    moved = np.any(J != 0.0, axis=0)
+    if moved.all():
+        return None
+    p = J.shape[1]
+    out = np.full((p, p), np.nan)
+    if moved.any():
+        out[np.ix_(moved, moved)] = covariance(J[:, moved])
+    return out
+
+
 def hac_covariance(
     jac: np.ndarray, r: np.ndarray, bounds: Sequence[int] | None = None, lags: int | None = None
 ) -> np.ndarray:
@@ -180,12 +194,9 @@ def hac_covariance(
     J = np.asarray(jac, dtype=float)
     r = np.asarray(r, dtype=float)
     n, p = J.shape
-    moved = np.any(J != 0.0, axis=0)
-    if not moved.all():
-        out = np.full((p, p), np.nan)
-        if moved.any():
-            out[np.ix_(moved, moved)] = hac_covariance(J[:, moved], r, bounds, lags)
-        return out
+    partial = _on_moved(J, lambda moved: hac_covariance(moved, r, bounds, lags))
+    if partial is not None:
+        return partial
     if lags is None:
         lags = bandwidth(r, bounds)
     try:
@@ -303,14 +314,11 @@ def noise_model_covariance(
     J = np.asarray(jac, dtype=float)
     r = np.asarray(r, dtype=float)
     n_rows, p = J.shape
-    moved = np.any(J != 0.0, axis=0)
-    if not moved.all():
-        out = np.full((p, p), np.nan)
-        if moved.any():
-            out[np.ix_(moved, moved)] = noise_model_covariance(
-                J[:, moved], r, bounds, valid, start_gain, max_order
-            )
-        return out
+    partial = _on_moved(
+        J, lambda moved: noise_model_covariance(moved, r, bounds, valid, start_gain, max_order)
+    )
+    if partial is not None:
+        return partial
     valid = np.ones(n_rows, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
     n = int(valid.sum())
     segments = _segments(n_rows, bounds)
