@@ -116,25 +116,15 @@ class FitResult:
         return {} if self.covariance is None else self.covariance.std
 
 
-@dataclass(frozen=True)
-class _Given:
-    """A covariance already computed, as :attr:`FitResult.covariance_of` gives it."""
-
-    value: ParameterCovariance | None
-
-    def __call__(self) -> ParameterCovariance | None:
-        return self.value
-
-
 def evaluate(
     data: DiagnosisData,
     cand: Candidate,
     evaluations: int = 1,
-    covariance: ParameterCovariance | Callable[[], ParameterCovariance | None] | None = None,
+    covariance_of: Callable[[], ParameterCovariance | None] | None = None,
 ) -> FitResult:
     """Simulate a candidate on all windows and measure its gaps (infinite for parameters the
-    simulator rejects); ``covariance`` the parameters' covariance, or what computes it when
-    it is first asked for."""
+    simulator rejects); ``covariance_of`` computes the parameters' covariance when it is first
+    asked for (:attr:`FitResult.covariance`)."""
     try:
         v = tuple(simulate(data, cand))
     except UsageError:
@@ -149,7 +139,7 @@ def evaluate(
         gap_percent(data, v, "train"),
         gap_percent(data, v, "held_out"),
         evaluations,
-        covariance if covariance is None or callable(covariance) else _Given(covariance),
+        covariance_of,
     )
 
 
