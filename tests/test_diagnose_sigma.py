@@ -162,13 +162,12 @@ def test_the_sigma_holds_under_coloured_sensor_noise(tmp_path):
         rng = np.random.default_rng(seed)
         case = sized_case(effect, rng, size, inputs=inputs, noise=noise)
         path = write_case_log(case, tmp_path / f"{k}.csv", rng, noise_seed=7919 * k + 13)
-        p, s = case.params, case.effects["stribeck"]
-        true = {"M": p.M, "B": p.B, "coulomb_pos": p.coulomb_pos, "coulomb_neg": p.coulomb_neg}
+        true, s = truth(case), case.effects["stribeck"]
         bounds = {name: (0.3 * s[name], 3.0 * s[name]) for name in ("fs", "vs")}
-        fit = refit(prepare(read_log(path)), Candidate(true, {"stribeck": dict(s)}), {"stribeck": bounds})
+        start = Candidate({k: true[k] for k in BASE}, {"stribeck": dict(s)})
+        fit = refit(prepare(read_log(path)), start, {"stribeck": bounds})
         got = {**fit.candidate.base, **{f"stribeck.{k}": v for k, v in fit.candidate.effects["stribeck"].items()}}
-        true |= {f"stribeck.{name}": s[name] for name in ("fs", "vs")}
-        z += [(got[key] - true[key]) / fit.std[key] for key in true]
+        z += [(got[key] - true[key]) / fit.std[key] for key in (*BASE, "stribeck.fs", "stribeck.vs")]
     z = np.asarray(z)
     rms = float(np.sqrt(np.mean(z**2)))
     assert COLOURED_RMS[0] <= rms <= COLOURED_RMS[1], rms
