@@ -323,6 +323,8 @@ def noise_model_covariance(
     n = int(valid.sum())
     segments = _segments(n_rows, bounds)
     h = None if start_gain is None else np.where(valid, np.asarray(start_gain, dtype=float), 0.0)
+    if h is not None and not h.any():
+        h = None  # every window starts from a fixed state: no start noise to take out
     phi = np.zeros(0)
     for _ in range(START_PASSES if h is not None else 1):
         # the residual holds each start sample's noise times the gain: a decay, not the
